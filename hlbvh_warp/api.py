@@ -1,0 +1,125 @@
+"""Public entry points: build a BVH from a mesh or from boxes, and cast rays against it."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import inputs
+from .bvh import Bvh
+from .config import BuildConfig
+from .hlbvh import HlbvhPipeline, StageTimer
+
+#: method name -> callable(pipeline inputs) returning a Bvh; reference builders add themselves.
+BUILDERS = {}
+
+
+def register_builder(name: str):
+    def wrap(fn):
+        BUILDERS[name] = fn
+        return fn
+
+    return wrap
+
+
+def _pipeline_builder(method: str):
+    def run(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
+        n = prim_lowers.shape[0]
+        pipe = HlbvhPipeline(n, config, device)
+        wp.copy(pipe.prim_lowers, prim_lowers)
+        wp.copy(pipe.prim_uppers, prim_uppers)
+        pipeline_timings = pipe.build(method, timer)
+        return bvh_from_pipeline(pipe, method, pipeline_timings)
+
+    return run
+
+
+def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict) -> Bvh:
+    n = pipe.num_prims
+    return Bvh(
+        method=method,
+        config=pipe.config,
+        device=pipe.device,
+        prim_lowers=pipe.prim_lowers,
+        prim_uppers=pipe.prim_uppers,
+        prim_order=pipe.sorted_prim_ids[:n],
+        node_lowers=pipe.node_lowers,
+        node_uppers=pipe.node_uppers,
+        node_left=pipe.node_left,
+        node_right=pipe.node_right,
+        node_parent=pipe.node_parent,
+        node_begin=pipe.node_begin,
+        node_end=pipe.node_end,
+        node_count=pipe.node_count,
+        timings=timings,
+    )
+
+
+BUILDERS["hlbvh"] = _pipeline_builder("hlbvh")
+BUILDERS["lbvh"] = _pipeline_builder("lbvh")
+
+
+def _resolve(method: str, config: BuildConfig | None, device):
+    if config is None:
+        config = BuildConfig()
+    elif not isinstance(config, BuildConfig):
+        raise ValueError(f"config must be a BuildConfig, got {type(config).__name__}")
+    _load_optional_builders()
+    if method not in BUILDERS:
+        raise ValueError(f"unknown method {method!r}; choose one of {sorted(BUILDERS)}")
+    return config, wp.get_device(device)
+
+
+def _load_optional_builders():
+    # Reference builders register themselves on import; imported lazily to keep `import` cheap.
+    try:
+        from . import builders  # noqa: F401
+    except ImportError:
+        pass
+
+
+def build(mesh, faces=None, *, method: str = "hlbvh", device=None, config: BuildConfig | None = None,
+          timings: bool = False) -> Bvh:
+    """Build a BVH over the triangles of a mesh.
+
+    Args:
+        mesh: a ``trimesh.Trimesh``, or vertices ``(V, 3)`` (NumPy or Warp; float64 is converted).
+        faces: ``(F, 3)`` vertex indices of any integer width when ``mesh`` is vertices.
+        method: ``"hlbvh"`` (Pantaleoni & Luebke 2010), ``"lbvh"`` (one global radix sort, the
+            paper's Table 1 baseline), or a reference builder (``"sweep_sah"``, ``"binned_sah"``,
+            ``"median"``, ``"hlbvh_sah"``) where installed.
+        device: Warp device; the current default device when ``None``.
+        config: `BuildConfig`; defaults when ``None``.
+        timings: when True, synchronize around every stage and fill ``Bvh.timings`` (ms).
+
+    Raises:
+        ValueError: NaN/Inf coordinates, out-of-range face indices, wrong shapes or dtypes, an
+            empty mesh, or an unknown method.
+    """
+    config, device = _resolve(method, config, device)
+    verts_np, faces_np = inputs.mesh_arrays(mesh, faces)
+    vertices = wp.array(verts_np, dtype=wp.vec3, device=device)
+    face_arr = wp.array(faces_np, dtype=wp.int32, device=device)
+    timer = StageTimer(device, timings)
+    timer.stage("prim_bounds")
+    n = faces_np.shape[0]
+    lowers = wp.empty(n, dtype=wp.vec3, device=device)
+    uppers = wp.empty(n, dtype=wp.vec3, device=device)
+    from .kernels import morton
+
+    wp.launch(morton.triangle_bounds_kernel, dim=n, inputs=[vertices, face_arr, lowers, uppers], device=device)
+    bvh = BUILDERS[method](lowers, uppers, config, device, timer)
+    bvh.vertices = vertices
+    bvh.faces = face_arr
+    return bvh
+
+
+def build_from_bounds(lowers, uppers, *, method: str = "hlbvh", device=None, config: BuildConfig | None = None,
+                      timings: bool = False) -> Bvh:
+    """Build a BVH over arbitrary primitives given by their boxes ``(N, 3)`` lowers and uppers."""
+    config, device = _resolve(method, config, device)
+    lo, hi = inputs.bounds_arrays(lowers, uppers)
+    timer = StageTimer(device, timings)
+    return BUILDERS[method](
+        wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device), config, device, timer
+    )

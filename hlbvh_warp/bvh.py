@@ -1,0 +1,180 @@
+"""The one canonical BVH layout every builder produces, and its host-side accessors."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .config import BuildConfig
+
+
+class Bvh:
+    """A binary BVH as structure-of-arrays on the build device.
+
+    Node layout (root is node 0; children are always numbered after their parent):
+
+    ==============  ===================================================================
+    ``node_lowers``  vec3, lower corner of the node's box
+    ``node_uppers``  vec3, upper corner
+    ``node_left``    int32, left child; -1 marks a leaf
+    ``node_right``   int32, right child; -1 for a leaf
+    ``node_parent``  int32, parent; -1 for the root
+    ``node_begin``   int32, first position in ``prim_order`` covered by the node's subtree
+    ``node_end``     int32, one past the last position (half-open): a leaf holds exactly
+                     ``prim_order[node_begin:node_end]``, an interior node the union of its
+                     children's ranges, which are adjacent
+    ==============  ===================================================================
+
+    ``prim_order[k]`` is the input index of the k-th primitive in tree order. The arrays have the
+    arena's capacity (2N - 1); ``num_nodes`` entries are used, a count kept on the device and read
+    only when asked for.
+    """
+
+    def __init__(
+        self,
+        *,
+        method: str,
+        config: BuildConfig,
+        device,
+        prim_lowers: wp.array,
+        prim_uppers: wp.array,
+        prim_order: wp.array,
+        node_lowers: wp.array,
+        node_uppers: wp.array,
+        node_left: wp.array,
+        node_right: wp.array,
+        node_parent: wp.array,
+        node_begin: wp.array,
+        node_end: wp.array,
+        node_count: wp.array,
+        vertices: wp.array | None = None,
+        faces: wp.array | None = None,
+        timings: dict | None = None,
+    ):
+        self.method = method
+        self.config = config
+        self.device = wp.get_device(device)
+        self.prim_lowers = prim_lowers
+        self.prim_uppers = prim_uppers
+        self.prim_order = prim_order
+        self.node_lowers = node_lowers
+        self.node_uppers = node_uppers
+        self.node_left = node_left
+        self.node_right = node_right
+        self.node_parent = node_parent
+        self.node_begin = node_begin
+        self.node_end = node_end
+        self.node_count = node_count
+        self.vertices = vertices
+        self.faces = faces
+        #: Milliseconds per stage, filled when the build was asked to time itself.
+        self.timings = timings if timings is not None else {}
+        self._cache = {}
+
+    @property
+    def num_prims(self) -> int:
+        return self.prim_order.shape[0]
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.node_count.numpy()[0])
+
+    @property
+    def num_leaves(self) -> int:
+        return int((self.to_numpy()["node_left"] < 0).sum())
+
+    @property
+    def depth(self) -> int:
+        """Edges on the longest root-to-leaf path (a single leaf has depth 0)."""
+        if "depth" not in self._cache:
+            self._cache["depth"] = int(node_depths(self.to_numpy()).max())
+        return self._cache["depth"]
+
+    def to_numpy(self) -> dict:
+        """The used part of every array as NumPy, keyed by the attribute names above."""
+        key = "numpy"
+        if key not in self._cache:
+            n = self.num_nodes
+            out = {name: getattr(self, name).numpy()[:n].copy() for name in NODE_FIELDS}
+            out["prim_order"] = self.prim_order.numpy().copy()
+            out["prim_lowers"] = self.prim_lowers.numpy().copy()
+            out["prim_uppers"] = self.prim_uppers.numpy().copy()
+            self._cache[key] = out
+        return self._cache[key]
+
+    def invalidate(self):
+        """Forget host copies after the device arrays changed (refit, rebuild)."""
+        self._cache.clear()
+
+    def __repr__(self) -> str:
+        return f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, device={self.device})"
+
+
+NODE_FIELDS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_parent", "node_begin", "node_end")
+
+
+def node_depths(tree: dict) -> np.ndarray:
+    """Depth of every node from the parent links (children are numbered after parents)."""
+    parent = tree["node_parent"]
+    depth = np.zeros(parent.shape[0], dtype=np.int64)
+    ancestor = parent.astype(np.int64)
+    # One step up per iteration for every node at once: as many NumPy passes as the tree is deep.
+    alive = ancestor >= 0
+    while alive.any():
+        depth[alive] += 1
+        ancestor[alive] = parent[ancestor[alive]]
+        alive = ancestor >= 0
+    return depth
+
+
+def bvh_from_numpy(
+    *,
+    method: str,
+    config: BuildConfig,
+    device,
+    prim_lowers: np.ndarray,
+    prim_uppers: np.ndarray,
+    prim_order: np.ndarray,
+    node_left: np.ndarray,
+    node_right: np.ndarray,
+    node_begin: np.ndarray,
+    node_end: np.ndarray,
+    vertices=None,
+    faces=None,
+    timings=None,
+) -> Bvh:
+    """Wrap a topology computed on the host (reference builders) and compute its boxes on the device."""
+    from . import hlbvh  # deferred: hlbvh imports this module
+
+    num_nodes = node_left.shape[0]
+    node_parent = np.full(num_nodes, -1, dtype=np.int32)
+    interior = np.nonzero(node_left >= 0)[0]
+    node_parent[node_left[interior]] = interior
+    node_parent[node_right[interior]] = interior
+    if not (node_parent[1:] < np.arange(1, num_nodes)).all():
+        raise ValueError("children must be numbered after their parents")
+
+    def dev(a, dtype=wp.int32):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+    bvh = Bvh(
+        method=method,
+        config=config,
+        device=device,
+        prim_lowers=prim_lowers if isinstance(prim_lowers, wp.array) else dev(prim_lowers, wp.vec3),
+        prim_uppers=prim_uppers if isinstance(prim_uppers, wp.array) else dev(prim_uppers, wp.vec3),
+        prim_order=dev(prim_order.astype(np.int32)),
+        node_lowers=wp.zeros(num_nodes, dtype=wp.vec3, device=device),
+        node_uppers=wp.zeros(num_nodes, dtype=wp.vec3, device=device),
+        node_left=dev(node_left.astype(np.int32)),
+        node_right=dev(node_right.astype(np.int32)),
+        node_parent=dev(node_parent),
+        node_begin=dev(node_begin.astype(np.int32)),
+        node_end=dev(node_end.astype(np.int32)),
+        node_count=dev(np.array([num_nodes], dtype=np.int32)),
+        vertices=vertices,
+        faces=faces,
+        timings=timings,
+    )
+    hlbvh.refit_bounds(bvh)
+    return bvh

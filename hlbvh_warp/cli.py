@@ -1,0 +1,31 @@
+"""Command line: ``python -m hlbvh_warp <command> [options]``.
+
+Each command lives in its own module with a ``main(argv)``; this file only dispatches.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+COMMANDS = {
+    "demo": ("hlbvh_warp.demo", "build a generated scene with each method, check rays, print timings"),
+    "bench": ("hlbvh_warp.bench", "build time against tree quality for every builder (JSON + plot)"),
+    "bench-rays": ("hlbvh_warp.ray_bench", "closest-hit rays per second against wp.Mesh"),
+    "bench-build": ("hlbvh_warp.build_bench", "per-stage build times against wp.Bvh and wp.Mesh"),
+}
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+        print("usage: python -m hlbvh_warp <command> [options]\n\ncommands:")
+        for name, (_, text) in COMMANDS.items():
+            print(f"  {name:12s} {text}")
+        return 0 if not argv or argv[0] in ("-h", "--help") else 2
+    module = importlib.import_module(COMMANDS[argv[0]][0])
+    return int(module.main(argv[1:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,70 @@
+"""Build settings: one documented dataclass, no module-level knobs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+#: Morton codes live in int32 (the radix sort's key type): 3 * 10 = 30 bits at most.
+MAX_BITS_PER_AXIS = 10
+#: A treelet pass keeps its 2^p - 1 split slots in a fixed-size local vector.
+MAX_PLANES_PER_PASS = 4
+#: Traversal stacks are this deep; `BuildConfig` keeps every tree's depth below it.
+TRAVERSAL_STACK_SIZE = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class BuildConfig:
+    """Settings of the HLBVH build (Pantaleoni & Luebke, HPG 2010) and of the builders beside it.
+
+    Attributes:
+        bits_per_axis: n, Morton bits per axis; codes have 3n bits (paper: n = 10, 30-bit codes).
+        coarse_bits: m, bits per axis of the coarse voxel grid whose 3m-bit codes are run-length
+            encoded and sorted by compress-sort-decompress. ``None`` picks it from the primitive
+            count as the paper does (m = 6 up to about 2M primitives, m = 7 above).
+        planes_per_pass: p, Morton bit planes consumed by one treelet-emission pass (1 to 4);
+            each pass emits treelets of up to 2^p leaves.
+        block_capacity: voxel segments are grouped into blocks of about this many primitives
+            for the block-local sort by the low 3(n - m) bits (paper: 2000).
+        max_leaf_size: segments of at most this many primitives become leaves. 1 gives the
+            paper's setup of exactly 2N - 1 nodes.
+        sah_traversal_cost: T1 of the paper's SAH cost (eq. 1), per child visited.
+        sah_intersection_cost: T2 of the paper's SAH cost, per primitive in a leaf.
+        sah_bins: bins per axis of the ``binned_sah`` builder.
+    """
+
+    bits_per_axis: int = 10
+    coarse_bits: int | None = None
+    planes_per_pass: int = 3
+    block_capacity: int = 2000
+    max_leaf_size: int = 1
+    sah_traversal_cost: float = 1.0
+    sah_intersection_cost: float = 1.0
+    sah_bins: int = 16
+
+    def __post_init__(self):
+        checks = [
+            (1 <= self.bits_per_axis <= MAX_BITS_PER_AXIS, f"bits_per_axis must be in [1, {MAX_BITS_PER_AXIS}]"),
+            (
+                self.coarse_bits is None or 0 <= self.coarse_bits <= self.bits_per_axis,
+                "coarse_bits must be None or in [0, bits_per_axis]",
+            ),
+            (1 <= self.planes_per_pass <= MAX_PLANES_PER_PASS, f"planes_per_pass must be in [1, {MAX_PLANES_PER_PASS}]"),
+            (self.block_capacity >= 1, "block_capacity must be >= 1"),
+            (1 <= self.max_leaf_size <= 1 << 16, "max_leaf_size must be in [1, 65536]"),
+            (self.sah_traversal_cost >= 0.0, "sah_traversal_cost must be >= 0"),
+            (self.sah_intersection_cost > 0.0, "sah_intersection_cost must be > 0"),
+            (2 <= self.sah_bins <= 256, "sah_bins must be in [2, 256]"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"BuildConfig: {message} (got {self})")
+
+    def resolved_coarse_bits(self, num_prims: int) -> int:
+        """m for `num_prims` primitives: the paper uses m = 6 up to ~1M triangles and m = 7 for ~10M."""
+        if self.coarse_bits is not None:
+            return self.coarse_bits
+        m = 6 if num_prims <= (1 << 21) else 7
+        return min(m, self.bits_per_axis)
+
+    def replace(self, **changes) -> "BuildConfig":
+        return dataclasses.replace(self, **changes)

@@ -1,0 +1,439 @@
+"""Host side of the HLBVH build: buffers, stage wrappers and the orchestrator.
+
+Pantaleoni & Luebke, "HLBVH: Hierarchical LBVH Construction for Real-Time Ray Tracing of
+Dynamic Geometry", HPG 2010. `HlbvhPipeline.build` reads like the paper's Fig. 1 and Fig. 4:
+one commented step per stage, named as the stage's timing label.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import warp as wp
+
+from .bvh import Bvh
+from .config import BuildConfig
+from .kernels import block_sort, bounds, compress, morton, treelets
+
+
+class StageTimer:
+    """Milliseconds per stage label, only when asked: no host synchronization otherwise."""
+
+    def __init__(self, device, enabled: bool):
+        self.device = device
+        self.enabled = enabled
+        self.timings: dict[str, float] = {}
+        self._label = None
+        self._start = 0.0
+
+    def stage(self, label: str):
+        if not self.enabled:
+            return
+        self._close()
+        wp.synchronize_device(self.device)
+        self._label = label
+        self._start = time.perf_counter()
+
+    def skipped(self, label: str):
+        """Record that a stage's work was found already done (reported as 'skipped')."""
+        if self.enabled:
+            self._close()
+            self.timings.setdefault("skipped", []).append(label)
+
+    def _close(self):
+        if self._label is not None:
+            wp.synchronize_device(self.device)
+            elapsed = (time.perf_counter() - self._start) * 1e3
+            self.timings[self._label] = self.timings.get(self._label, 0.0) + elapsed
+            self._label = None
+
+    def finish(self) -> dict:
+        if self.enabled:
+            self._close()
+            self.timings["total"] = sum(v for k, v in self.timings.items() if k not in ("skipped",))
+        return self.timings
+
+
+class HlbvhPipeline:
+    """Scratch buffers for one primitive count, allocated once and reused by every build."""
+
+    def __init__(self, num_prims: int, config: BuildConfig, device):
+        if num_prims < 1:
+            raise ValueError("HLBVH needs at least one primitive")
+        self.num_prims = n = num_prims
+        self.config = config
+        self.device = device = wp.get_device(device)
+        self.coarse_bits = config.resolved_coarse_bits(n)
+        num_node_slots = 2 * n - 1
+        stride = (1 << config.planes_per_pass) - 1
+
+        def ints(count):
+            return wp.empty(count, dtype=wp.int32, device=device)
+
+        self.scene_bounds = wp.empty(2, dtype=wp.vec3, device=device)
+        self.morton_codes = ints(n)
+        self.coarse_codes = ints(n)
+        # Run-length encoding and the radix sort, whose buffers need 2x the key count.
+        self.run_codes = ints(2 * n)
+        self.run_ids = ints(2 * n)
+        self.run_lengths = ints(n)
+        self.run_starts = ints(n)
+        self.run_count = ints(1)
+        self.sorted_run_lengths = ints(n)
+        self.sorted_run_offsets = ints(n)
+        self.sorted_codes = ints(2 * n)
+        self.sorted_prim_ids = ints(2 * n)
+        # Voxel sort.
+        self.voxel_flags = ints(n)
+        self.voxel_index = ints(n)
+        self.voxel_starts = ints(n)
+        self.voxel_count = ints(1)
+        self.block_flags = ints(n)
+        self.block_index = ints(n)
+        self.block_starts = ints(n)
+        self.block_count = ints(1)
+        self.blocks_sorted = ints(1)
+        self.scratch_codes = ints(n)
+        self.scratch_ids = ints(n)
+        # Treelet emission.
+        self.head_to_node = ints(n)
+        self.head_to_end = ints(n)
+        self.head_flags = ints(n)
+        self.segment_id = ints(n)
+        self.segment_heads = ints(n)
+        self.segment_ends = ints(n)
+        self.segment_nodes = ints(n)
+        self.segment_count = ints(1)
+        self.split_pos = ints(n * stride)
+        self.split_count = ints(n)
+        self.split_offset = ints(n)
+        self.max_segment = ints(1)
+        # The tree itself.
+        self.prim_lowers = wp.empty(n, dtype=wp.vec3, device=device)
+        self.prim_uppers = wp.empty(n, dtype=wp.vec3, device=device)
+        self.node_lowers = wp.empty(num_node_slots, dtype=wp.vec3, device=device)
+        self.node_uppers = wp.empty(num_node_slots, dtype=wp.vec3, device=device)
+        self.node_left = ints(num_node_slots)
+        self.node_right = ints(num_node_slots)
+        self.node_parent = ints(num_node_slots)
+        self.node_begin = ints(num_node_slots)
+        self.node_end = ints(num_node_slots)
+        self.node_visits = ints(num_node_slots)
+        self.node_count = ints(1)
+
+    # ------------------------------------------------------------------ stages
+    def _launch(self, kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def compute_triangle_bounds(self, vertices: wp.array, faces: wp.array):
+        self._launch(morton.triangle_bounds_kernel, self.num_prims, [vertices, faces, self.prim_lowers, self.prim_uppers])
+
+    def compute_morton_codes(self):
+        n = self.num_prims
+        self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
+        self._launch(morton.centroid_bounds_kernel, n, [self.prim_lowers, self.prim_uppers, self.scene_bounds])
+        self._launch(
+            morton.morton_codes_kernel,
+            n,
+            [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, self.morton_codes],
+        )
+
+    def run_length_encode(self) -> int:
+        """High 3m bits: run_heads compaction (wp.utils.runlength_encode); returns M."""
+        n = self.num_prims
+        shift = 3 * (self.config.bits_per_axis - self.coarse_bits)
+        self._launch(morton.coarse_codes_kernel, n, [self.morton_codes, shift, self.coarse_codes])
+        num_runs = wp.utils.runlength_encode(self.coarse_codes, self.run_codes, self.run_lengths, value_count=n)
+        wp.utils.array_scan(self.run_lengths[:num_runs], self.run_starts[:num_runs], inclusive=False)
+        self.run_count.fill_(num_runs)
+        return num_runs
+
+    def top_level_sort(self, num_runs: int):
+        """Radix sort of the M run codes (3m bits) with their run ids as values."""
+        self._launch(compress.iota_kernel, num_runs, [self.run_ids])
+        wp.utils.radix_sort_pairs(self.run_codes, self.run_ids, num_runs, end_bit=max(3 * self.coarse_bits, 1))
+
+    def run_length_decode(self, num_runs: int):
+        """Exclusive scan of the sorted run lengths, then every run expanded in sorted order."""
+        self._launch(
+            compress.gather_run_lengths_kernel,
+            num_runs,
+            [self.run_count, self.run_ids, self.run_lengths, self.sorted_run_lengths],
+        )
+        wp.utils.array_scan(self.sorted_run_lengths[:num_runs], self.sorted_run_offsets[:num_runs], inclusive=False)
+        self._launch(
+            compress.decompress_runs_kernel,
+            num_runs,
+            [
+                self.run_count,
+                self.run_ids,
+                self.run_starts,
+                self.run_lengths,
+                self.sorted_run_offsets,
+                self.morton_codes,
+                self.sorted_prim_ids,
+                self.sorted_codes,
+            ],
+        )
+
+    def voxel_sort(self, num_runs: int):
+        """Group voxel segments into blocks and sort every block by its codes in one launch."""
+        n = self.num_prims
+        self._launch(compress.voxel_head_flags_kernel, num_runs, [self.run_count, self.run_codes, self.voxel_flags])
+        wp.utils.array_scan(self.voxel_flags[:num_runs], self.voxel_index[:num_runs], inclusive=True)
+        self._launch(
+            block_sort.compact_voxel_starts_kernel,
+            num_runs,
+            [self.run_count, self.voxel_flags, self.voxel_index, self.sorted_run_offsets, self.voxel_starts, self.voxel_count],
+        )
+        self._launch(
+            block_sort.block_head_flags_kernel,
+            num_runs,
+            [self.voxel_count, self.voxel_starts, self.config.block_capacity, self.block_flags],
+        )
+        wp.utils.array_scan(self.block_flags[:num_runs], self.block_index[:num_runs], inclusive=True)
+        self._launch(
+            block_sort.compact_block_starts_kernel,
+            num_runs,
+            [self.voxel_count, self.block_flags, self.block_index, self.voxel_starts, self.block_starts, self.block_count],
+        )
+        self.blocks_sorted.zero_()
+        self._launch(
+            block_sort.block_sort_kernel,
+            num_runs,
+            [
+                n,
+                self.block_count,
+                self.block_starts,
+                self.sorted_codes,
+                self.sorted_prim_ids,
+                self.scratch_codes,
+                self.scratch_ids,
+                self.blocks_sorted,
+            ],
+        )
+
+    def global_sort(self):
+        """LBVH baseline (the paper's Table 1): one radix sort over all 3n bits."""
+        n = self.num_prims
+        wp.copy(self.sorted_codes, self.morton_codes, count=n)
+        self._launch(compress.iota_kernel, n, [self.sorted_prim_ids])
+        wp.utils.radix_sort_pairs(self.sorted_codes, self.sorted_prim_ids, n, end_bit=3 * self.config.bits_per_axis)
+
+    def _host_count(self, count: wp.array, bound: int) -> int:
+        """Launch size for a per-segment stage: the exact count where reading it is free (the CPU
+        device shares host memory and has already finished), else the bound, with threads past the
+        device-side count returning at once, so CUDA never waits for the host."""
+        if self.device.is_cpu:
+            return int(count.numpy()[0])
+        return bound
+
+    def _segment_pass(self) -> int:
+        """Fig. 4 bookkeeping: segment_id = scan(head_to_node != -1) and the segment_heads list."""
+        n = self.num_prims
+        wp.utils.array_scan(self.head_flags, self.segment_id, inclusive=True)
+        self._launch(
+            treelets.compact_segments_kernel,
+            n,
+            [n, self.head_flags, self.head_to_node, self.head_to_end, self.segment_id, self.segment_heads,
+             self.segment_ends, self.segment_nodes, self.segment_count],
+        )
+        return self._host_count(self.segment_count, n)
+
+    def _emit(self, num_segments: int, shift: int, planes: int, stride: int, median: int):
+        """Count each segment's valid splits, scan them for offsets, emit the treelets."""
+        n = self.num_prims
+        leaf = self.config.max_leaf_size
+        self._launch(
+            treelets.count_splits_kernel,
+            num_segments,
+            [leaf, shift, planes, stride, median, self.sorted_codes, self.segment_heads, self.segment_ends,
+             self.segment_count, self.split_pos, self.split_count],
+        )
+        wp.utils.array_scan(self.split_count[:num_segments], self.split_offset[:num_segments], inclusive=False)
+        self._launch(
+            treelets.emit_treelets_kernel,
+            num_segments,
+            [
+                shift,
+                planes,
+                stride,
+                median,
+                leaf,
+                self.sorted_codes,
+                self.segment_heads,
+                self.segment_ends,
+                self.segment_nodes,
+                self.segment_count,
+                self.split_pos,
+                self.split_count,
+                self.split_offset,
+                self.node_count,
+                self.head_to_node,
+                self.head_to_end,
+                self.head_flags,
+                self.node_left,
+                self.node_right,
+                self.node_parent,
+                self.node_begin,
+                self.node_end,
+            ],
+        )
+        self._launch(
+            treelets.advance_node_count_kernel,
+            1,
+            [self.segment_count, self.split_count, self.split_offset, self.node_count],
+        )
+
+    def emit_hierarchy(self, top_bit: int, bottom_bit: int):
+        """Treelet passes over the bit planes [bottom_bit, top_bit), p planes at a time, MSB first."""
+        n = self.num_prims
+        p = self.config.planes_per_pass
+        stride = (1 << p) - 1
+        hi = top_bit
+        while hi > bottom_bit:
+            planes = min(p, hi - bottom_bit)
+            shift = hi - planes
+            num_segments = self._segment_pass()
+            self._launch(
+                treelets.mark_splits_kernel,
+                n,
+                [
+                    self.config.max_leaf_size,
+                    shift,
+                    planes,
+                    stride,
+                    self.sorted_codes,
+                    self.segment_id,
+                    self.segment_heads,
+                    self.segment_ends,
+                    self.split_pos,
+                ],
+            )
+            self._emit(num_segments, shift, planes, stride, 0)
+            hi = shift
+
+    def split_exhausted_segments(self):
+        """Segments whose codes are all equal (duplicates, bits exhausted): index-median passes."""
+        n = self.num_prims
+        leaf = self.config.max_leaf_size
+        stride = (1 << self.config.planes_per_pass) - 1
+        num_segments = self._segment_pass()
+        self.max_segment.zero_()
+        self._launch(
+            treelets.max_segment_size_kernel,
+            num_segments,
+            [self.segment_heads, self.segment_ends, self.segment_count, self.max_segment],
+        )
+        # The one host read of the hierarchy stage: how many halvings the largest segment needs.
+        size = int(self.max_segment.numpy()[0])
+        passes = 0
+        while size > leaf:
+            size = (size + 1) // 2
+            passes += 1
+        for k in range(passes):
+            if k > 0:
+                num_segments = self._segment_pass()
+            self._launch(
+                treelets.mark_median_splits_kernel,
+                num_segments,
+                [leaf, stride, self.segment_heads, self.segment_ends, self.segment_count, self.split_pos],
+            )
+            self._emit(num_segments, 0, 1, stride, 1)
+
+    def compute_node_bounds(self):
+        compute_bounds(
+            self.device,
+            self.node_count,
+            self.node_left,
+            self.node_right,
+            self.node_parent,
+            self.node_begin,
+            self.node_end,
+            self.sorted_prim_ids,
+            self.prim_lowers,
+            self.prim_uppers,
+            self.node_visits,
+            self.node_lowers,
+            self.node_uppers,
+        )
+
+    # ------------------------------------------------------------ orchestrator
+    def build(self, method: str = "hlbvh", timer: StageTimer | None = None):
+        """Run the pipeline on `prim_lowers` / `prim_uppers` (already filled)."""
+        n = self.num_prims
+        timer = timer or StageTimer(self.device, False)
+        bits = 3 * self.config.bits_per_axis
+
+        # Morton codes of the primitive centroids over the centroid bounds (n bits per axis).
+        timer.stage("morton")
+        self.compute_morton_codes()
+
+        if method == "hlbvh":
+            # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.
+            timer.stage("run_length_encode")
+            num_runs = self.run_length_encode()
+            # Compress-sort-decompress: sort the M run codes, then expand the runs in order.
+            timer.stage("top_level_sort")
+            self.top_level_sort(num_runs)
+            timer.stage("run_length_decode")
+            self.run_length_decode(num_runs)
+            # Sort each block of voxels by the low 3(n - m) bits.
+            timer.stage("voxel_sort")
+            self.voxel_sort(num_runs)
+        elif method == "lbvh":
+            timer.stage("global_sort")
+            self.global_sort()
+        else:
+            raise ValueError(f"unknown pipeline method {method!r}")
+
+        # Emit the hierarchy by treelets, p bit planes per pass, then split what the bits cannot.
+        timer.stage("hierarchy")
+        self._launch(
+            treelets.init_nodes_kernel,
+            2 * n - 1,
+            [
+                n,
+                self.node_left,
+                self.node_right,
+                self.node_parent,
+                self.node_visits,
+                self.config.max_leaf_size,
+                self.head_to_node,
+                self.head_to_end,
+                self.head_flags,
+                self.node_begin,
+                self.node_end,
+                self.node_count,
+            ],
+        )
+        self.emit_hierarchy(bits, 0)
+        self.split_exhausted_segments()
+
+        # Bounding boxes of all nodes, bottom-up.
+        timer.stage("bbox")
+        self.compute_node_bounds()
+        return timer.finish()
+
+
+def compute_bounds(device, node_count, node_left, node_right, node_parent, node_begin, node_end, prim_order,
+                   prim_lowers, prim_uppers, node_visits, node_lowers, node_uppers):
+    wp.launch(bounds.reset_visits_kernel, dim=node_visits.shape[0], inputs=[node_visits], device=device)
+    wp.launch(
+        bounds.node_bounds_kernel,
+        dim=node_left.shape[0],
+        inputs=[node_count, node_left, node_right, node_parent, node_begin, node_end, prim_order,
+                prim_lowers, prim_uppers, node_visits, node_lowers, node_uppers],
+        device=device,
+    )
+
+
+def refit_bounds(bvh: Bvh, node_visits: wp.array | None = None):
+    """Recompute every node box from the primitive boxes, keeping the topology (a refit)."""
+    if node_visits is None:
+        node_visits = wp.empty(bvh.node_left.shape[0], dtype=wp.int32, device=bvh.device)
+    compute_bounds(bvh.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent, bvh.node_begin,
+                   bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers, node_visits, bvh.node_lowers,
+                   bvh.node_uppers)
+    bvh.invalidate()

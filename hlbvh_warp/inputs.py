@@ -1,0 +1,94 @@
+"""Validation and conversion of user input: every problem is a ValueError naming it."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+def _to_numpy(values, name: str) -> np.ndarray:
+    if isinstance(values, wp.array):
+        return values.numpy()
+    try:
+        return np.asarray(values)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"{name} could not be read as an array: {exc}") from exc
+
+
+def _check_points(values, name: str) -> np.ndarray:
+    arr = _to_numpy(values, name)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+    if arr.ndim == 1 and arr.size % 3 == 0 and arr.dtype.kind == "f" and isinstance(values, wp.array):
+        arr = arr.reshape(-1, 3)  # a wp.array of vec3 comes back as (n, 3) already; flat floats too
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
+    arr64 = arr.astype(np.float64, copy=False)
+    bad = ~np.isfinite(arr64)
+    if bad.any():
+        row = int(np.argwhere(bad)[0][0])
+        raise ValueError(f"{name} has a NaN or Inf coordinate (first at row {row}: {arr[row].tolist()})")
+    if np.abs(arr64).max(initial=0.0) > np.finfo(np.float32).max:
+        raise ValueError(f"{name} has a coordinate beyond the float32 range")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float32 (V, 3), faces int32 (F, 3)) from a trimesh.Trimesh or two arrays."""
+    if faces is None:
+        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+            raise ValueError("build() takes a trimesh.Trimesh, or vertices with faces=")
+        vertices, faces = mesh.vertices, mesh.faces
+    else:
+        vertices = mesh
+    verts = _check_points(vertices, "vertices")
+    tris = _to_numpy(faces, "faces")
+    if tris.dtype.kind not in "iu":
+        raise ValueError(f"faces must hold integers, got dtype {tris.dtype}")
+    if tris.ndim == 1 and tris.size % 3 == 0:
+        tris = tris.reshape(-1, 3)
+    if tris.ndim != 2 or tris.shape[1] != 3:
+        raise ValueError(f"faces must have shape (F, 3), got {tris.shape}")
+    if tris.shape[0] == 0:
+        raise ValueError("the mesh is empty: faces has no rows")
+    if verts.shape[0] == 0:
+        raise ValueError("the mesh is empty: vertices has no rows")
+    lo, hi = int(tris.min()), int(tris.max())
+    if lo < 0 or hi >= verts.shape[0]:
+        bad = lo if lo < 0 else hi
+        row = int(np.argwhere((tris < 0) | (tris >= verts.shape[0]))[0][0])
+        raise ValueError(f"face index {bad} out of range [0, {verts.shape[0]}) (first at face {row})")
+    if tris.shape[0] >= 1 << 30:
+        raise ValueError(f"too many faces ({tris.shape[0]}): indices are int32 and the arena holds 2F - 1 nodes")
+    return verts, np.ascontiguousarray(tris, dtype=np.int32)
+
+
+def bounds_arrays(lowers, uppers) -> tuple[np.ndarray, np.ndarray]:
+    lo = _check_points(lowers, "lowers")
+    hi = _check_points(uppers, "uppers")
+    if lo.shape != hi.shape:
+        raise ValueError(f"lowers and uppers differ in shape: {lo.shape} vs {hi.shape}")
+    if lo.shape[0] == 0:
+        raise ValueError("no primitives: lowers has no rows")
+    inverted = lo > hi
+    if inverted.any():
+        row = int(np.argwhere(inverted)[0][0])
+        raise ValueError(f"box {row} has lowers > uppers: {lo[row].tolist()} vs {hi[row].tolist()}")
+    return lo, hi
+
+
+def ray_arrays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """Rays may hold NaN or Inf (they miss); only shapes and dtypes are errors."""
+    out = []
+    for values, name in ((origins, "origins"), (directions, "directions")):
+        arr = _to_numpy(values, name)
+        if arr.dtype.kind not in "fiu":
+            raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+        if arr.ndim == 1 and arr.shape == (3,):
+            arr = arr.reshape(1, 3)
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
+        out.append(np.ascontiguousarray(arr, dtype=np.float32))
+    if out[0].shape != out[1].shape:
+        raise ValueError(f"origins and directions differ in shape: {out[0].shape} vs {out[1].shape}")
+    return out[0], out[1]

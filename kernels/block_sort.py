@@ -1,0 +1,173 @@
+"""Stage 5 of HLBVH: the voxel sort.
+
+Pantaleoni & Luebke 2010, section 2.2: after compress-sort-decompress the primitives are
+ordered by coarse voxel; consecutive voxel segments are grouped into blocks of roughly
+`block_capacity` primitives and every block is sorted by its full codes (within a block the
+voxels are already in order, so this sorts each voxel by its low 3(n - m) bits) in one launch.
+
+The paper sorts a block with an odd-even sort in shared memory, one thread per element. Here a
+block is sorted by one thread with a stable merge sort that streams through a global scratch
+buffer: on Warp's CPU device a launch runs its threads one after another, where odd-even
+transposition would cost O(k^2) per block, and the scratch buffer lifts the paper's assumption
+that a voxel fits in a block, so an oversized voxel needs no separate path.
+"""
+
+import warp as wp
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+# Runs of this many elements are insertion-sorted before merging starts.
+INSERTION_RUN = 16
+
+
+@wp.kernel
+def compact_voxel_starts_kernel(
+    run_count: wp.array(dtype=wp.int32),
+    voxel_flags: wp.array(dtype=wp.int32),
+    voxel_index: wp.array(dtype=wp.int32),
+    sorted_run_offsets: wp.array(dtype=wp.int32),
+    voxel_starts: wp.array(dtype=wp.int32),
+    voxel_count: wp.array(dtype=wp.int32),
+):
+    # voxel_index is the inclusive scan of voxel_flags.
+    r = wp.tid()
+    m = run_count[0]
+    if r >= m:
+        return
+    if voxel_flags[r] != 0:
+        voxel_starts[voxel_index[r] - 1] = sorted_run_offsets[r]
+    if r == m - 1:
+        voxel_count[0] = voxel_index[r]
+
+
+@wp.kernel
+def block_head_flags_kernel(
+    voxel_count: wp.array(dtype=wp.int32),
+    voxel_starts: wp.array(dtype=wp.int32),
+    block_capacity: int,
+    block_flags: wp.array(dtype=wp.int32),
+):
+    # A block is the voxels whose first primitive lies in the same window of `block_capacity`
+    # sorted positions: decided locally, so grouping needs no serial pass.
+    v = wp.tid()
+    if v >= voxel_count[0]:
+        block_flags[v] = 0
+        return
+    flag = int(1)
+    if v > 0:
+        if voxel_starts[v] // block_capacity == voxel_starts[v - 1] // block_capacity:
+            flag = 0
+    block_flags[v] = flag
+
+
+@wp.kernel
+def compact_block_starts_kernel(
+    voxel_count: wp.array(dtype=wp.int32),
+    block_flags: wp.array(dtype=wp.int32),
+    block_index: wp.array(dtype=wp.int32),
+    voxel_starts: wp.array(dtype=wp.int32),
+    block_starts: wp.array(dtype=wp.int32),
+    block_count: wp.array(dtype=wp.int32),
+):
+    v = wp.tid()
+    nv = voxel_count[0]
+    if v >= nv:
+        return
+    if block_flags[v] != 0:
+        block_starts[block_index[v] - 1] = voxel_starts[v]
+    if v == nv - 1:
+        block_count[0] = block_index[v]
+
+
+@wp.func
+def merge_pass(
+    src_keys: wp.array(dtype=wp.int32),
+    src_vals: wp.array(dtype=wp.int32),
+    dst_keys: wp.array(dtype=wp.int32),
+    dst_vals: wp.array(dtype=wp.int32),
+    begin: int,
+    end: int,
+    width: int,
+):
+    lo = begin
+    while lo < end:
+        mid = wp.min(lo + width, end)
+        hi = wp.min(lo + 2 * width, end)
+        i = lo
+        j = mid
+        k = lo
+        while k < hi:
+            # `<=` takes from the left run on ties: the merge is stable.
+            if i < mid and (j >= hi or src_keys[i] <= src_keys[j]):
+                dst_keys[k] = src_keys[i]
+                dst_vals[k] = src_vals[i]
+                i += 1
+            else:
+                dst_keys[k] = src_keys[j]
+                dst_vals[k] = src_vals[j]
+                j += 1
+            k += 1
+        lo = hi
+    return 0
+
+
+@wp.kernel
+def block_sort_kernel(
+    num_prims: int,
+    block_count: wp.array(dtype=wp.int32),
+    block_starts: wp.array(dtype=wp.int32),
+    codes: wp.array(dtype=wp.int32),
+    prim_ids: wp.array(dtype=wp.int32),
+    scratch_codes: wp.array(dtype=wp.int32),
+    scratch_ids: wp.array(dtype=wp.int32),
+    blocks_sorted: wp.array(dtype=wp.int32),
+):
+    b = wp.tid()
+    nb = block_count[0]
+    if b >= nb:
+        return
+    begin = block_starts[b]
+    end = num_prims
+    if b + 1 < nb:
+        end = block_starts[b + 1]
+
+    # A block that is already in order (resorted input) costs one read and no writes.
+    in_order = int(1)
+    for i in range(begin + 1, end):
+        if codes[i - 1] > codes[i]:
+            in_order = 0
+            break
+    if in_order == 1:
+        return
+    wp.atomic_add(blocks_sorted, 0, 1)
+
+    # Stable insertion sort of short runs, then bottom-up merges ping-ponging with scratch.
+    run_begin = begin
+    while run_begin < end:
+        run_end = wp.min(run_begin + INSERTION_RUN, end)
+        for i in range(run_begin + 1, run_end):
+            key = codes[i]
+            val = prim_ids[i]
+            j = i - 1
+            while j >= run_begin and codes[j] > key:
+                codes[j + 1] = codes[j]
+                prim_ids[j + 1] = prim_ids[j]
+                j -= 1
+            codes[j + 1] = key
+            prim_ids[j + 1] = val
+        run_begin = run_end
+
+    width = int(INSERTION_RUN)
+    in_scratch = int(0)
+    while width < end - begin:
+        if in_scratch == 0:
+            merge_pass(codes, prim_ids, scratch_codes, scratch_ids, begin, end, width)
+        else:
+            merge_pass(scratch_codes, scratch_ids, codes, prim_ids, begin, end, width)
+        in_scratch = 1 - in_scratch
+        width *= 2
+    if in_scratch == 1:
+        for i in range(begin, end):
+            codes[i] = scratch_codes[i]
+            prim_ids[i] = scratch_ids[i]

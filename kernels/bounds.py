@@ -1,0 +1,57 @@
+"""Stage 7 of HLBVH: node bounding boxes, bottom-up on the device.
+
+Pantaleoni & Luebke 2010, section 2.4 ("bbox" in their Table 2). One thread per leaf computes
+the leaf box and climbs; at each parent the first arriving child stops and the second, which
+finds both children done (an atomic visit counter, as in Karras 2012), writes the union.
+The same kernel refits a tree whose primitives moved (topology unchanged).
+"""
+
+import warp as wp
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def reset_visits_kernel(node_visits: wp.array(dtype=wp.int32)):
+    node_visits[wp.tid()] = 0
+
+
+@wp.kernel
+def node_bounds_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    node_visits: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    node = wp.tid()
+    if node >= node_count[0] or node_left[node] >= 0:
+        return
+    p = prim_order[node_begin[node]]
+    lower = prim_lowers[p]
+    upper = prim_uppers[p]
+    for k in range(node_begin[node] + 1, node_end[node]):
+        p = prim_order[k]
+        lower = wp.min(lower, prim_lowers[p])
+        upper = wp.max(upper, prim_uppers[p])
+    node_lowers[node] = lower
+    node_uppers[node] = upper
+
+    parent = node_parent[node]
+    while parent >= 0:
+        # The first child to arrive leaves; the second sees its sibling's box written.
+        if wp.atomic_add(node_visits, parent, 1) == 0:
+            return
+        left = node_left[parent]
+        right = node_right[parent]
+        node_lowers[parent] = wp.min(node_lowers[left], node_lowers[right])
+        node_uppers[parent] = wp.max(node_uppers[left], node_uppers[right])
+        parent = node_parent[parent]

@@ -1,0 +1,72 @@
+"""Stages 3-4 of HLBVH: compress-sort-decompress of the coarse-voxel runs.
+
+Pantaleoni & Luebke 2010, section 2.2, after Garanzha & Loop 2010: the codes are run-length
+encoded by their high 3m bits, the M run codes are radix sorted with their run ids, and the
+runs are expanded back in sorted order. Coherent input (e.g. the previous frame's order) has
+M << N, so the global sort touches M keys instead of N.
+"""
+
+import warp as wp
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def iota_kernel(values: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    values[tid] = tid
+
+
+@wp.kernel
+def gather_run_lengths_kernel(
+    run_count: wp.array(dtype=wp.int32),
+    sorted_run_ids: wp.array(dtype=wp.int32),
+    run_lengths: wp.array(dtype=wp.int32),
+    sorted_run_lengths: wp.array(dtype=wp.int32),
+):
+    r = wp.tid()
+    if r >= run_count[0]:
+        return
+    sorted_run_lengths[r] = run_lengths[sorted_run_ids[r]]
+
+
+@wp.kernel
+def decompress_runs_kernel(
+    run_count: wp.array(dtype=wp.int32),
+    sorted_run_ids: wp.array(dtype=wp.int32),
+    run_starts: wp.array(dtype=wp.int32),
+    run_lengths: wp.array(dtype=wp.int32),
+    sorted_run_offsets: wp.array(dtype=wp.int32),
+    morton_codes: wp.array(dtype=wp.int32),
+    sorted_prim_ids: wp.array(dtype=wp.int32),
+    sorted_codes: wp.array(dtype=wp.int32),
+):
+    # One thread per run: runs are contiguous in the input and are copied whole.
+    r = wp.tid()
+    if r >= run_count[0]:
+        return
+    run = sorted_run_ids[r]
+    src = run_starts[run]
+    dst = sorted_run_offsets[r]
+    for j in range(run_lengths[run]):
+        sorted_prim_ids[dst + j] = src + j
+        sorted_codes[dst + j] = morton_codes[src + j]
+
+
+@wp.kernel
+def voxel_head_flags_kernel(
+    run_count: wp.array(dtype=wp.int32),
+    sorted_run_codes: wp.array(dtype=wp.int32),
+    voxel_flags: wp.array(dtype=wp.int32),
+):
+    # A voxel is a maximal stretch of sorted runs with the same coarse code.
+    r = wp.tid()
+    if r >= run_count[0]:
+        voxel_flags[r] = 0
+        return
+    flag = int(1)
+    if r > 0:
+        if sorted_run_codes[r] == sorted_run_codes[r - 1]:
+            flag = 0
+    voxel_flags[r] = flag

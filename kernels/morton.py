@@ -1,0 +1,95 @@
+"""Stages 1-2 of HLBVH: primitive bounds, scene centroid bounds, Morton codes.
+
+Pantaleoni & Luebke, "HLBVH: Hierarchical LBVH Construction for Real-Time Ray Tracing of
+Dynamic Geometry", HPG 2010, section 2.1 (after Lauterbach et al. 2009).
+"""
+
+import warp as wp
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def triangle_bounds_kernel(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+):
+    tid = wp.tid()
+    a = vertices[faces[tid, 0]]
+    b = vertices[faces[tid, 1]]
+    c = vertices[faces[tid, 2]]
+    prim_lowers[tid] = wp.min(wp.min(a, b), c)
+    prim_uppers[tid] = wp.max(wp.max(a, b), c)
+
+
+@wp.kernel
+def reset_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3)):
+    # scene_bounds[0] is the lower corner, scene_bounds[1] the upper corner.
+    big = 3.4e38
+    scene_bounds[0] = wp.vec3(big, big, big)
+    scene_bounds[1] = wp.vec3(-big, -big, -big)
+
+
+@wp.kernel
+def centroid_bounds_kernel(
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    scene_bounds: wp.array(dtype=wp.vec3),
+):
+    tid = wp.tid()
+    c = 0.5 * (prim_lowers[tid] + prim_uppers[tid])
+    wp.atomic_min(scene_bounds, 0, c)
+    wp.atomic_max(scene_bounds, 1, c)
+
+
+@wp.func
+def spread_bits_10(x: wp.int32):
+    # Insert two zero bits between each of the 10 low bits of x:
+    #   ---- ---- ---- ---- ---- --98 7654 3210
+    # -> ---- 9--8 --7- -6-- 5--4 --3- -2-- 1--0
+    v = x & 0x3FF
+    v = (v | (v << 16)) & 0x030000FF
+    v = (v | (v << 8)) & 0x0300F00F
+    v = (v | (v << 4)) & 0x030C30C3
+    v = (v | (v << 2)) & 0x09249249
+    return v
+
+
+@wp.func
+def quantize(c: float, lo: float, hi: float, cells: int):
+    # Quantize in float64: at 1e18 the float32 product (c - lo) * scale loses the cell index.
+    extent = wp.float64(hi) - wp.float64(lo)
+    q = int(0)
+    if extent > wp.float64(0.0):
+        t = (wp.float64(c) - wp.float64(lo)) / extent
+        q = int(t * wp.float64(cells))
+    return wp.clamp(q, 0, cells - 1)
+
+
+@wp.kernel
+def morton_codes_kernel(
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    scene_bounds: wp.array(dtype=wp.vec3),
+    bits_per_axis: int,
+    morton_codes: wp.array(dtype=wp.int32),
+):
+    tid = wp.tid()
+    c = 0.5 * (prim_lowers[tid] + prim_uppers[tid])
+    lo = scene_bounds[0]
+    hi = scene_bounds[1]
+    cells = 1 << bits_per_axis
+    x = quantize(c[0], lo[0], hi[0], cells)
+    y = quantize(c[1], lo[1], hi[1], cells)
+    z = quantize(c[2], lo[2], hi[2], cells)
+    # x takes the most significant bit of each triple: code = ... x1 y1 z1 x0 y0 z0.
+    morton_codes[tid] = (spread_bits_10(x) << 2) | (spread_bits_10(y) << 1) | spread_bits_10(z)
+
+
+@wp.kernel
+def coarse_codes_kernel(morton_codes: wp.array(dtype=wp.int32), shift: int, coarse_codes: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    coarse_codes[tid] = morton_codes[tid] >> shift

@@ -1,0 +1,346 @@
+"""Stage 6 of HLBVH: hierarchy emission by treelets, p Morton bit planes per pass.
+
+Pantaleoni & Luebke 2010, section 2.3 and Fig. 4. Every current leaf segment of the sorted
+primitive array owns a block descriptor of 2^p - 1 split slots laid out as a heap over the p
+bit planes of the pass (MSB first, like an MSD radix sort):
+
+    slot 0          first element whose p-bit digit is 1xx
+    slots 1, 2      first of 01x (inside 0xx), first of 11x (inside 1xx)
+    slots 3 .. 6    first of 001, 011, 101, 111
+
+Bookkeeping, as in the paper: `head_to_node[N]` (the node of the segment a primitive heads),
+`segment_heads`, `segment_id = scan(head_flags)`. A foreach over primitives writes the split
+positions, an exclusive scan of the per-segment split counts gives every segment its output
+offset, and a foreach over segments emits its treelet, 2 nodes per real split, so the node arena
+has no holes and no singleton nodes.
+
+Only segments that can still split (more than `max_leaf_size` primitives) are flagged as heads:
+a finished leaf drops out of every later pass, so late passes, where most segments are single
+primitives, touch only the few segments left. Each head also records where its segment ends
+(`head_to_end`), because the next flagged head may lie past finished leaves.
+"""
+
+import warp as wp
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+# Slot heaps hold at most 2^4 - 1 slots (planes_per_pass <= 4).
+vec16i = wp.types.vector(length=16, dtype=wp.int32)
+
+
+@wp.kernel
+def init_nodes_kernel(
+    num_prims: int,
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_visits: wp.array(dtype=wp.int32),
+    max_leaf_size: int,
+    head_to_node: wp.array(dtype=wp.int32),
+    head_to_end: wp.array(dtype=wp.int32),
+    head_flags: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    node_count: wp.array(dtype=wp.int32),
+):
+    # Launched over the node arena (2N - 1 entries): -1 children mark a leaf until a split.
+    i = wp.tid()
+    node_left[i] = -1
+    node_right[i] = -1
+    node_parent[i] = -1
+    node_visits[i] = 0
+    if i < num_prims:
+        head_to_node[i] = -1
+        head_flags[i] = 0
+    if i == 0:
+        # One segment, [0, N), owned by the root.
+        head_to_node[0] = 0
+        head_to_end[0] = num_prims
+        if num_prims > max_leaf_size:
+            head_flags[0] = 1
+        node_begin[0] = 0
+        node_end[0] = num_prims
+        node_count[0] = 1
+
+
+@wp.kernel
+def compact_segments_kernel(
+    num_prims: int,
+    head_flags: wp.array(dtype=wp.int32),
+    head_to_node: wp.array(dtype=wp.int32),
+    head_to_end: wp.array(dtype=wp.int32),
+    segment_id: wp.array(dtype=wp.int32),
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_nodes: wp.array(dtype=wp.int32),
+    segment_count: wp.array(dtype=wp.int32),
+):
+    # segment_id is the inclusive scan of the head flags: segment of primitive i, plus one.
+    # Split slots are not cleared: a stale slot fails `split_is_valid`, which saves N * (2^p - 1)
+    # writes per pass.
+    i = wp.tid()
+    if head_flags[i] != 0:
+        s = segment_id[i] - 1
+        segment_heads[s] = i
+        segment_ends[s] = head_to_end[i]
+        segment_nodes[s] = head_to_node[i]
+    if i == num_prims - 1:
+        segment_count[0] = segment_id[i]
+
+
+@wp.func
+def highest_bit(x: int):
+    # Index of the most significant set bit of x > 0.
+    b = int(0)
+    while (x >> (b + 1)) != 0:
+        b += 1
+    return b
+
+
+@wp.func
+def boundary_slot(codes: wp.array(dtype=wp.int32), i: int, shift: int, planes: int):
+    # The slot whose split lies between elements i - 1 and i of one segment, or -1 when their
+    # p-bit digits agree: the level is the highest differing bit, the slot within the level is
+    # the digit prefix above it.
+    mask = (1 << planes) - 1
+    prev = (codes[i - 1] >> shift) & mask
+    cur = (codes[i] >> shift) & mask
+    if prev == cur:
+        return -1
+    hb = highest_bit(prev ^ cur)
+    level = planes - 1 - hb
+    return (1 << level) - 1 + (cur >> (hb + 1))
+
+
+@wp.func
+def split_is_valid(
+    codes: wp.array(dtype=wp.int32),
+    sp: int,
+    slot: int,
+    begin: int,
+    end: int,
+    max_leaf_size: int,
+    shift: int,
+    planes: int,
+    median: int,
+):
+    # Slots are never cleared, so a value is trusted only if it is this pass's split of the slot.
+    if sp <= begin or sp >= end or end - begin <= max_leaf_size:
+        return False
+    if median != 0:
+        return slot == 0 and sp == (begin + end + 1) // 2
+    return boundary_slot(codes, sp, shift, planes) == slot
+
+
+@wp.kernel
+def mark_splits_kernel(
+    max_leaf_size: int,
+    shift: int,
+    planes: int,
+    stride: int,
+    codes: wp.array(dtype=wp.int32),
+    segment_id: wp.array(dtype=wp.int32),
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+):
+    # Each boundary between neighbours of one segment whose p-bit digits differ is the split of
+    # exactly one slot. Digits are sorted inside a segment, so no slot is written twice.
+    i = wp.tid()
+    s = segment_id[i] - 1
+    if s < 0:
+        return
+    # Primitives of finished leaves map to the last open segment before them: skip them here.
+    if i <= segment_heads[s] or i >= segment_ends[s]:
+        return
+    slot = boundary_slot(codes, i, shift, planes)
+    if slot >= 0:
+        split_pos[s * stride + slot] = i
+
+
+@wp.kernel
+def mark_median_splits_kernel(
+    max_leaf_size: int,
+    stride: int,
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_count: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+):
+    # Segments whose codes are exhausted (duplicates, or all 3n bits used) are split at the index
+    # median: ceil(log2(size / max_leaf_size)) such passes bring every segment down to a leaf.
+    s = wp.tid()
+    if s >= segment_count[0]:
+        return
+    begin = segment_heads[s]
+    end = segment_ends[s]
+    if end - begin > max_leaf_size:
+        split_pos[s * stride] = (begin + end + 1) // 2
+
+
+@wp.kernel
+def count_splits_kernel(
+    max_leaf_size: int,
+    shift: int,
+    planes: int,
+    stride: int,
+    median: int,
+    codes: wp.array(dtype=wp.int32),
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_count: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+    split_count: wp.array(dtype=wp.int32),
+):
+    # Launched over at least the segment count; past it the counts are zero for the scan.
+    s = wp.tid()
+    c = int(0)
+    if s < segment_count[0]:
+        begin = segment_heads[s]
+        end = segment_ends[s]
+        for k in range((1 << planes) - 1):
+            if split_is_valid(codes, split_pos[s * stride + k], k, begin, end, max_leaf_size, shift, planes, median):
+                c += 1
+    split_count[s] = c
+
+
+@wp.func
+def open_segment(
+    lo: int,
+    hi: int,
+    node: int,
+    max_leaf_size: int,
+    head_to_node: wp.array(dtype=wp.int32),
+    head_to_end: wp.array(dtype=wp.int32),
+    head_flags: wp.array(dtype=wp.int32),
+):
+    # A new segment stays open only while it can still split; otherwise it is a finished leaf.
+    head_to_node[lo] = node
+    head_to_end[lo] = hi
+    if hi - lo > max_leaf_size:
+        head_flags[lo] = 1
+    else:
+        head_flags[lo] = 0
+    return 0
+
+
+@wp.kernel
+def emit_treelets_kernel(
+    shift: int,
+    planes: int,
+    stride: int,
+    median: int,
+    max_leaf_size: int,
+    codes: wp.array(dtype=wp.int32),
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_nodes: wp.array(dtype=wp.int32),
+    segment_count: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+    split_count: wp.array(dtype=wp.int32),
+    split_offset: wp.array(dtype=wp.int32),
+    node_count: wp.array(dtype=wp.int32),
+    head_to_node: wp.array(dtype=wp.int32),
+    head_to_end: wp.array(dtype=wp.int32),
+    head_flags: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+):
+    s = wp.tid()
+    if s >= segment_count[0]:
+        return
+    if split_count[s] == 0:
+        return
+    slots = (1 << planes) - 1
+    first_leaf_slot = (1 << (planes - 1)) - 1
+    # The s-th segment's 2 * split_count[s] new nodes start here: no holes in the arena.
+    next_node = node_count[0] + 2 * split_offset[s]
+
+    # Range [lo, hi) and owning node of every slot of the heap; empty where lo == hi.
+    lo = vec16i()
+    hi = vec16i()
+    owner = vec16i()
+    begin = segment_heads[s]
+    end = segment_ends[s]
+    lo[0] = begin
+    hi[0] = end
+    owner[0] = segment_nodes[s]
+
+    for j in range(slots):
+        a = lo[j]
+        b = hi[j]
+        node = owner[j]
+        # Children of the slot: two heap slots, or (on the last level) two new segments.
+        left_lo = a
+        left_hi = a
+        right_lo = b
+        right_hi = b
+        left_owner = node
+        right_owner = node
+        if b > a:
+            sp = split_pos[s * stride + j]
+            if split_is_valid(codes, sp, j, begin, end, max_leaf_size, shift, planes, median):
+                left_owner = next_node
+                right_owner = next_node + 1
+                next_node += 2
+                node_left[node] = left_owner
+                node_right[node] = right_owner
+                node_parent[left_owner] = node
+                node_parent[right_owner] = node
+                node_begin[left_owner] = a
+                node_end[left_owner] = sp
+                node_begin[right_owner] = sp
+                node_end[right_owner] = b
+                left_hi = sp
+                right_lo = sp
+            else:
+                # No split here: the whole range goes to the side its bit of this level says.
+                level = highest_bit(j + 1)
+                bit = (codes[a] >> (shift + planes - 1 - level)) & 1
+                if bit == 0:
+                    left_hi = b
+                else:
+                    right_lo = a
+        if j < first_leaf_slot:
+            lo[2 * j + 1] = left_lo
+            hi[2 * j + 1] = left_hi
+            owner[2 * j + 1] = left_owner
+            lo[2 * j + 2] = right_lo
+            hi[2 * j + 2] = right_hi
+            owner[2 * j + 2] = right_owner
+        else:
+            if left_hi > left_lo:
+                open_segment(left_lo, left_hi, left_owner, max_leaf_size, head_to_node, head_to_end, head_flags)
+            if right_hi > right_lo:
+                open_segment(right_lo, right_hi, right_owner, max_leaf_size, head_to_node, head_to_end, head_flags)
+
+
+@wp.kernel
+def advance_node_count_kernel(
+    segment_count: wp.array(dtype=wp.int32),
+    split_count: wp.array(dtype=wp.int32),
+    split_offset: wp.array(dtype=wp.int32),
+    node_count: wp.array(dtype=wp.int32),
+):
+    last = segment_count[0] - 1
+    if last < 0:
+        return
+    node_count[0] = node_count[0] + 2 * (split_offset[last] + split_count[last])
+
+
+@wp.kernel
+def max_segment_size_kernel(
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_count: wp.array(dtype=wp.int32),
+    max_size: wp.array(dtype=wp.int32),
+):
+    s = wp.tid()
+    if s >= segment_count[0]:
+        return
+    size = segment_ends[s] - segment_heads[s]
+    wp.atomic_max(max_size, 0, size)
