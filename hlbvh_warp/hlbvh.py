@@ -80,6 +80,7 @@ class HlbvhPipeline:
         self.run_lengths = ints(n)
         self.run_starts = ints(n)
         self.run_count = ints(1)
+        self.out_of_order = ints(1)
         self.sorted_run_lengths = ints(n)
         self.sorted_run_offsets = ints(n)
         self.sorted_codes = ints(2 * n)
@@ -121,6 +122,7 @@ class HlbvhPipeline:
         self.node_end = ints(num_node_slots)
         self.node_visits = ints(num_node_slots)
         self.node_count = ints(1)
+        self.sync_free = False
 
     # ------------------------------------------------------------------ stages
     def _launch(self, kernel, dim, inputs):
@@ -139,20 +141,43 @@ class HlbvhPipeline:
             [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, self.morton_codes],
         )
 
-    def run_length_encode(self) -> int:
-        """High 3m bits: run_heads compaction (wp.utils.runlength_encode); returns M."""
+    def run_length_encode(self, sync_free: bool = False) -> int:
+        """High 3m bits: the run_heads compaction (wp.utils.runlength_encode).
+
+        Returns M, the run count, read on the host (it sizes the top-level sort); with
+        `sync_free` the count stays on the device and N, its bound, is returned instead.
+        """
         n = self.num_prims
         shift = 3 * (self.config.bits_per_axis - self.coarse_bits)
         self._launch(morton.coarse_codes_kernel, n, [self.morton_codes, shift, self.coarse_codes])
-        num_runs = wp.utils.runlength_encode(self.coarse_codes, self.run_codes, self.run_lengths, value_count=n)
+        if sync_free:
+            wp.utils.runlength_encode(self.coarse_codes, self.run_codes, self.run_lengths, run_count=self.run_count,
+                                      value_count=n)
+            num_runs = n
+        else:
+            num_runs = wp.utils.runlength_encode(self.coarse_codes, self.run_codes, self.run_lengths, value_count=n)
+            self.run_count.fill_(num_runs)
+        # Runs past the count hold stale lengths; an exclusive scan's first M entries ignore them.
         wp.utils.array_scan(self.run_lengths[:num_runs], self.run_starts[:num_runs], inclusive=False)
-        self.run_count.fill_(num_runs)
         return num_runs
 
-    def top_level_sort(self, num_runs: int):
+    def runs_in_order(self, num_runs: int) -> bool:
+        """True when the run codes already ascend (resorted input): the top-level sort has no work."""
+        self.out_of_order.zero_()
+        self._launch(compress.count_descents_kernel, num_runs, [self.run_count, self.run_codes, self.out_of_order])
+        return int(self.out_of_order.numpy()[0]) == 0
+
+    def top_level_sort(self, num_runs: int, sort: bool = True):
         """Radix sort of the M run codes (3m bits) with their run ids as values."""
         self._launch(compress.iota_kernel, num_runs, [self.run_ids])
-        wp.utils.radix_sort_pairs(self.run_codes, self.run_ids, num_runs, end_bit=max(3 * self.coarse_bits, 1))
+        if not sort:
+            return
+        end_bit = max(3 * self.coarse_bits, 1)
+        if num_runs == self.num_prims:
+            # Sync-free: sort all N slots; the ones past the device-side run count get the largest
+            # key and, the sort being stable, land after every real run.
+            self._launch(compress.pad_run_codes_kernel, num_runs, [self.run_count, (1 << end_bit) - 1, self.run_codes])
+        wp.utils.radix_sort_pairs(self.run_codes, self.run_ids, num_runs, end_bit=end_bit)
 
     def run_length_decode(self, num_runs: int):
         """Exclusive scan of the sorted run lengths, then every run expanded in sorted order."""
@@ -225,7 +250,7 @@ class HlbvhPipeline:
         """Launch size for a per-segment stage: the exact count where reading it is free (the CPU
         device shares host memory and has already finished), else the bound, with threads past the
         device-side count returning at once, so CUDA never waits for the host."""
-        if self.device.is_cpu:
+        if self.device.is_cpu and not self.sync_free:
             return int(count.numpy()[0])
         return bound
 
@@ -245,40 +270,35 @@ class HlbvhPipeline:
         """Count each segment's valid splits, scan them for offsets, emit the treelets."""
         n = self.num_prims
         leaf = self.config.max_leaf_size
+        walk = [
+            self.sorted_codes,
+            self.segment_heads,
+            self.segment_ends,
+            self.segment_nodes,
+            self.segment_count,
+            self.split_pos,
+        ]
+        heads_and_nodes = [
+            self.head_to_node,
+            self.head_to_end,
+            self.head_flags,
+            self.node_left,
+            self.node_right,
+            self.node_parent,
+            self.node_begin,
+            self.node_end,
+        ]
         self._launch(
             treelets.count_splits_kernel,
             num_segments,
-            [leaf, shift, planes, stride, median, self.sorted_codes, self.segment_heads, self.segment_ends,
-             self.segment_count, self.split_pos, self.split_count],
+            [shift, planes, stride, median, leaf, *walk, self.split_count, *heads_and_nodes],
         )
         wp.utils.array_scan(self.split_count[:num_segments], self.split_offset[:num_segments], inclusive=False)
         self._launch(
             treelets.emit_treelets_kernel,
             num_segments,
-            [
-                shift,
-                planes,
-                stride,
-                median,
-                leaf,
-                self.sorted_codes,
-                self.segment_heads,
-                self.segment_ends,
-                self.segment_nodes,
-                self.segment_count,
-                self.split_pos,
-                self.split_count,
-                self.split_offset,
-                self.node_count,
-                self.head_to_node,
-                self.head_to_end,
-                self.head_flags,
-                self.node_left,
-                self.node_right,
-                self.node_parent,
-                self.node_begin,
-                self.node_end,
-            ],
+            [shift, planes, stride, median, leaf, *walk, self.split_count, self.split_offset, self.node_count,
+             *heads_and_nodes],
         )
         self._launch(
             treelets.advance_node_count_kernel,
@@ -327,7 +347,9 @@ class HlbvhPipeline:
             [self.segment_heads, self.segment_ends, self.segment_count, self.max_segment],
         )
         # The one host read of the hierarchy stage: how many halvings the largest segment needs.
-        size = int(self.max_segment.numpy()[0])
+        # Sync-free builds assume the worst, a segment of all N primitives; passes with nothing
+        # left to split cost a launch each and change nothing.
+        size = n if self.sync_free else int(self.max_segment.numpy()[0])
         passes = 0
         while size > leaf:
             size = (size + 1) // 2
@@ -360,11 +382,19 @@ class HlbvhPipeline:
         )
 
     # ------------------------------------------------------------ orchestrator
-    def build(self, method: str = "hlbvh", timer: StageTimer | None = None):
-        """Run the pipeline on `prim_lowers` / `prim_uppers` (already filled)."""
+    def build(self, method: str = "hlbvh", timer: StageTimer | None = None, sync_free: bool = False):
+        """Run the pipeline on `prim_lowers` / `prim_uppers` (already filled); returns the timings.
+
+        Args:
+            method: ``"hlbvh"`` or ``"lbvh"`` (one global radix sort, the paper's Table 1 baseline).
+            timer: a `StageTimer`; stages are timed only when it is enabled.
+            sync_free: keep every count on the device (launches sized by their bounds) so that the
+                build never waits for the device and can be captured in a CUDA graph.
+        """
         n = self.num_prims
         timer = timer or StageTimer(self.device, False)
         bits = 3 * self.config.bits_per_axis
+        self.sync_free = sync_free
 
         # Morton codes of the primitive centroids over the centroid bounds (n bits per axis).
         timer.stage("morton")
@@ -373,15 +403,21 @@ class HlbvhPipeline:
         if method == "hlbvh":
             # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.
             timer.stage("run_length_encode")
-            num_runs = self.run_length_encode()
+            num_runs = self.run_length_encode(sync_free)
             # Compress-sort-decompress: sort the M run codes, then expand the runs in order.
+            # Runs already in order (resorted input) need no sort.
+            sort = sync_free or not self.runs_in_order(num_runs)
             timer.stage("top_level_sort")
-            self.top_level_sort(num_runs)
+            self.top_level_sort(num_runs, sort)
+            if not sort:
+                timer.skipped("top_level_sort")
             timer.stage("run_length_decode")
             self.run_length_decode(num_runs)
-            # Sort each block of voxels by the low 3(n - m) bits.
+            # Sort each block of voxels by the low 3(n - m) bits; blocks in order are left alone.
             timer.stage("voxel_sort")
             self.voxel_sort(num_runs)
+            if timer.enabled and int(self.blocks_sorted.numpy()[0]) == 0:
+                timer.skipped("voxel_sort")
         elif method == "lbvh":
             timer.stage("global_sort")
             self.global_sort()

@@ -19,6 +19,26 @@ def iota_kernel(values: wp.array(dtype=wp.int32)):
 
 
 @wp.kernel
+def count_descents_kernel(
+    run_count: wp.array(dtype=wp.int32),
+    run_codes: wp.array(dtype=wp.int32),
+    descents: wp.array(dtype=wp.int32),
+):
+    r = wp.tid()
+    if r == 0 or r >= run_count[0]:
+        return
+    if run_codes[r - 1] > run_codes[r]:
+        wp.atomic_add(descents, 0, 1)
+
+
+@wp.kernel
+def pad_run_codes_kernel(run_count: wp.array(dtype=wp.int32), pad_code: int, run_codes: wp.array(dtype=wp.int32)):
+    r = wp.tid()
+    if r >= run_count[0]:
+        run_codes[r] = pad_code
+
+
+@wp.kernel
 def gather_run_lengths_kernel(
     run_count: wp.array(dtype=wp.int32),
     sorted_run_ids: wp.array(dtype=wp.int32),
@@ -27,6 +47,8 @@ def gather_run_lengths_kernel(
 ):
     r = wp.tid()
     if r >= run_count[0]:
+        # Zero past the count, so a scan over the launch bound leaves the real offsets intact.
+        sorted_run_lengths[r] = 0
         return
     sorted_run_lengths[r] = run_lengths[sorted_run_ids[r]]
 

@@ -179,32 +179,6 @@ def mark_median_splits_kernel(
         split_pos[s * stride] = (begin + end + 1) // 2
 
 
-@wp.kernel
-def count_splits_kernel(
-    max_leaf_size: int,
-    shift: int,
-    planes: int,
-    stride: int,
-    median: int,
-    codes: wp.array(dtype=wp.int32),
-    segment_heads: wp.array(dtype=wp.int32),
-    segment_ends: wp.array(dtype=wp.int32),
-    segment_count: wp.array(dtype=wp.int32),
-    split_pos: wp.array(dtype=wp.int32),
-    split_count: wp.array(dtype=wp.int32),
-):
-    # Launched over at least the segment count; past it the counts are zero for the scan.
-    s = wp.tid()
-    c = int(0)
-    if s < segment_count[0]:
-        begin = segment_heads[s]
-        end = segment_ends[s]
-        for k in range((1 << planes) - 1):
-            if split_is_valid(codes, split_pos[s * stride + k], k, begin, end, max_leaf_size, shift, planes, median):
-                c += 1
-    split_count[s] = c
-
-
 @wp.func
 def open_segment(
     lo: int,
@@ -223,6 +197,137 @@ def open_segment(
     else:
         head_flags[lo] = 0
     return 0
+
+
+@wp.func
+def walk_treelet(
+    emit: int,
+    s: int,
+    next_node: int,
+    shift: int,
+    planes: int,
+    stride: int,
+    median: int,
+    max_leaf_size: int,
+    codes: wp.array(dtype=wp.int32),
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_nodes: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+    head_to_node: wp.array(dtype=wp.int32),
+    head_to_end: wp.array(dtype=wp.int32),
+    head_flags: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+):
+    """Walk segment s's slot heap top-down; count its real splits, and with `emit` write them.
+
+    A slot splits only when its split is valid and its own range still exceeds the leaf size, so
+    a range that is small enough stops splitting inside the treelet too, exactly as a top-down
+    build would. Counting and emitting share this walk so their counts always agree.
+    """
+    slots = (1 << planes) - 1
+    first_leaf_slot = (1 << (planes - 1)) - 1
+    # Range [lo, hi) and owning node of every slot of the heap; empty where lo == hi.
+    lo = vec16i()
+    hi = vec16i()
+    owner = vec16i()
+    begin = segment_heads[s]
+    end = segment_ends[s]
+    lo[0] = begin
+    hi[0] = end
+    owner[0] = segment_nodes[s]
+    count = int(0)
+
+    for j in range(slots):
+        a = lo[j]
+        b = hi[j]
+        node = owner[j]
+        # Children of the slot: two heap slots, or (on the last level) two new segments.
+        left_lo = a
+        left_hi = a
+        right_lo = b
+        right_hi = b
+        left_owner = node
+        right_owner = node
+        if b > a:
+            sp = split_pos[s * stride + j]
+            real = False
+            if b - a > max_leaf_size:
+                real = split_is_valid(codes, sp, j, begin, end, max_leaf_size, shift, planes, median)
+            if real:
+                count += 1
+                left_owner = next_node
+                right_owner = next_node + 1
+                next_node += 2
+                left_hi = sp
+                right_lo = sp
+                if emit != 0:
+                    node_left[node] = left_owner
+                    node_right[node] = right_owner
+                    node_parent[left_owner] = node
+                    node_parent[right_owner] = node
+                    node_begin[left_owner] = a
+                    node_end[left_owner] = sp
+                    node_begin[right_owner] = sp
+                    node_end[right_owner] = b
+            else:
+                # No split here: the whole range goes to the side its bit of this level says.
+                level = highest_bit(j + 1)
+                bit = (codes[a] >> (shift + planes - 1 - level)) & 1
+                if bit == 0:
+                    left_hi = b
+                else:
+                    right_lo = a
+        if j < first_leaf_slot:
+            lo[2 * j + 1] = left_lo
+            hi[2 * j + 1] = left_hi
+            owner[2 * j + 1] = left_owner
+            lo[2 * j + 2] = right_lo
+            hi[2 * j + 2] = right_hi
+            owner[2 * j + 2] = right_owner
+        elif emit != 0:
+            if left_hi > left_lo:
+                open_segment(left_lo, left_hi, left_owner, max_leaf_size, head_to_node, head_to_end, head_flags)
+            if right_hi > right_lo:
+                open_segment(right_lo, right_hi, right_owner, max_leaf_size, head_to_node, head_to_end, head_flags)
+    return count
+
+
+@wp.kernel
+def count_splits_kernel(
+    shift: int,
+    planes: int,
+    stride: int,
+    median: int,
+    max_leaf_size: int,
+    codes: wp.array(dtype=wp.int32),
+    segment_heads: wp.array(dtype=wp.int32),
+    segment_ends: wp.array(dtype=wp.int32),
+    segment_nodes: wp.array(dtype=wp.int32),
+    segment_count: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+    split_count: wp.array(dtype=wp.int32),
+    head_to_node: wp.array(dtype=wp.int32),
+    head_to_end: wp.array(dtype=wp.int32),
+    head_flags: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+):
+    # Launched over at least the segment count; past it the counts are zero for the scan.
+    s = wp.tid()
+    c = int(0)
+    if s < segment_count[0]:
+        c = walk_treelet(0, s, 0, shift, planes, stride, median, max_leaf_size, codes, segment_heads, segment_ends,
+                         segment_nodes, split_pos, head_to_node, head_to_end, head_flags, node_left, node_right,
+                         node_parent, node_begin, node_end)
+    split_count[s] = c
 
 
 @wp.kernel
@@ -255,68 +360,11 @@ def emit_treelets_kernel(
         return
     if split_count[s] == 0:
         return
-    slots = (1 << planes) - 1
-    first_leaf_slot = (1 << (planes - 1)) - 1
     # The s-th segment's 2 * split_count[s] new nodes start here: no holes in the arena.
     next_node = node_count[0] + 2 * split_offset[s]
-
-    # Range [lo, hi) and owning node of every slot of the heap; empty where lo == hi.
-    lo = vec16i()
-    hi = vec16i()
-    owner = vec16i()
-    begin = segment_heads[s]
-    end = segment_ends[s]
-    lo[0] = begin
-    hi[0] = end
-    owner[0] = segment_nodes[s]
-
-    for j in range(slots):
-        a = lo[j]
-        b = hi[j]
-        node = owner[j]
-        # Children of the slot: two heap slots, or (on the last level) two new segments.
-        left_lo = a
-        left_hi = a
-        right_lo = b
-        right_hi = b
-        left_owner = node
-        right_owner = node
-        if b > a:
-            sp = split_pos[s * stride + j]
-            if split_is_valid(codes, sp, j, begin, end, max_leaf_size, shift, planes, median):
-                left_owner = next_node
-                right_owner = next_node + 1
-                next_node += 2
-                node_left[node] = left_owner
-                node_right[node] = right_owner
-                node_parent[left_owner] = node
-                node_parent[right_owner] = node
-                node_begin[left_owner] = a
-                node_end[left_owner] = sp
-                node_begin[right_owner] = sp
-                node_end[right_owner] = b
-                left_hi = sp
-                right_lo = sp
-            else:
-                # No split here: the whole range goes to the side its bit of this level says.
-                level = highest_bit(j + 1)
-                bit = (codes[a] >> (shift + planes - 1 - level)) & 1
-                if bit == 0:
-                    left_hi = b
-                else:
-                    right_lo = a
-        if j < first_leaf_slot:
-            lo[2 * j + 1] = left_lo
-            hi[2 * j + 1] = left_hi
-            owner[2 * j + 1] = left_owner
-            lo[2 * j + 2] = right_lo
-            hi[2 * j + 2] = right_hi
-            owner[2 * j + 2] = right_owner
-        else:
-            if left_hi > left_lo:
-                open_segment(left_lo, left_hi, left_owner, max_leaf_size, head_to_node, head_to_end, head_flags)
-            if right_hi > right_lo:
-                open_segment(right_lo, right_hi, right_owner, max_leaf_size, head_to_node, head_to_end, head_flags)
+    walk_treelet(1, s, next_node, shift, planes, stride, median, max_leaf_size, codes, segment_heads, segment_ends,
+                 segment_nodes, split_pos, head_to_node, head_to_end, head_flags, node_left, node_right, node_parent,
+                 node_begin, node_end)
 
 
 @wp.kernel

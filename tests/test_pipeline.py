@@ -1,0 +1,335 @@
+"""Each HLBVH stage against an independent NumPy reference, and the whole build's invariants."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from oracles import (
+    assert_hits_match,
+    brute_force_closest_hit,
+    check_tree_invariants,
+    random_rays,
+    random_soup,
+)
+
+import hlbvh_warp as hb
+from hlbvh_warp.hlbvh import HlbvhPipeline, StageTimer
+
+from conftest import shared_mesh
+
+
+# --------------------------------------------------------------------------- references
+def morton_reference(lowers, uppers, bits):
+    """3n-bit Morton codes of box centroids, quantized in float64 over the centroid bounds."""
+    c = (np.float32(0.5) * (lowers + uppers)).astype(np.float32)
+    lo, hi = c.min(0).astype(np.float64), c.max(0).astype(np.float64)
+    extent = hi - lo
+    cells = 1 << bits
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(extent > 0, (c.astype(np.float64) - lo) / np.where(extent > 0, extent, 1.0), 0.0)
+    q = np.clip((t * cells).astype(np.int64), 0, cells - 1)
+    code = np.zeros(len(c), dtype=np.int64)
+    for bit in range(bits):
+        for axis in range(3):  # x is the most significant of each triple
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
+    return code
+
+
+def radix_tree_reference(codes, max_leaf_size=1):
+    """Top-down: split at the highest differing bit; equal codes split at the index median.
+
+    Returns the set of (begin, end, is_leaf) over every node: the tree up to node numbering.
+    """
+    nodes = set()
+    stack = [(0, len(codes))]
+    while stack:
+        b, e = stack.pop()
+        if e - b <= max_leaf_size:
+            nodes.add((b, e, True))
+            continue
+        nodes.add((b, e, False))
+        if codes[b] == codes[e - 1]:
+            m = (b + e + 1) // 2
+        else:
+            hb = int(codes[b] ^ codes[e - 1]).bit_length() - 1
+            m = b + int(np.searchsorted((codes[b:e] >> hb) & 1, 1))
+        stack += [(b, m), (m, e)]
+    return nodes
+
+
+def node_set(tree):
+    leaf = tree["node_left"] < 0
+    return {(int(b), int(e), bool(l)) for b, e, l in zip(tree["node_begin"], tree["node_end"], leaf)}
+
+
+def sah_reference(tree):
+    """The paper's eq. (1) with T1 = T2 = 1, float64, evaluated bottom-up."""
+    lo = tree["node_lowers"].astype(np.float64)
+    hi = tree["node_uppers"].astype(np.float64)
+    d = hi - lo
+    area = 2 * (d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0])
+    left, right = tree["node_left"], tree["node_right"]
+    cost = np.zeros(len(left))
+    for i in range(len(left) - 1, -1, -1):
+        if left[i] < 0:
+            cost[i] = tree["node_end"][i] - tree["node_begin"][i]
+        else:
+            p = area[i] if area[i] > 0 else 1.0
+            cost[i] = 2 + (cost[left[i]] * area[left[i]] + cost[right[i]] * area[right[i]]) / p
+    return cost[0]
+
+
+def make_pipeline(lowers, uppers, device, **config):
+    pipe = HlbvhPipeline(len(lowers), hb.BuildConfig(**config), device)
+    pipe.prim_lowers.assign(wp.array(lowers, dtype=wp.vec3, device=device))
+    pipe.prim_uppers.assign(wp.array(uppers, dtype=wp.vec3, device=device))
+    return pipe
+
+
+def soup_bounds(rng, n, clusters=False):
+    if clusters:  # a few tight clusters: long runs, big voxels
+        centers = rng.random((5, 3))
+        pts = centers[rng.integers(0, 5, n)] + 1e-3 * rng.random((n, 3))
+    else:
+        pts = rng.random((n, 3))
+    lo = pts.astype(np.float32)
+    hi = (pts + 0.01 * rng.random((n, 3))).astype(np.float32)
+    return lo, hi
+
+
+# --------------------------------------------------------------------------- stages
+@pytest.mark.parametrize("bits", [10, 4])
+def test_morton_codes(device, rng, bits):
+    lo, hi = soup_bounds(rng, 3000)
+    pipe = make_pipeline(lo, hi, device, bits_per_axis=bits, coarse_bits=min(bits, 6))
+    pipe.compute_morton_codes()
+    np.testing.assert_array_equal(pipe.morton_codes.numpy(), morton_reference(lo, hi, bits))
+
+
+def test_run_length_encoding_and_csd(device, rng):
+    lo, hi = soup_bounds(rng, 4000)
+    # Coherent input: sort half of it so that runs are long, keep the rest shuffled.
+    pipe = make_pipeline(lo, hi, device, coarse_bits=3)
+    pipe.compute_morton_codes()
+    codes = pipe.morton_codes.numpy().astype(np.int64)
+    coarse = codes >> (3 * (10 - 3))
+    m = pipe.run_length_encode()
+    heads = np.flatnonzero(np.r_[True, coarse[1:] != coarse[:-1]])
+    assert m == len(heads)
+    np.testing.assert_array_equal(pipe.run_codes.numpy()[:m], coarse[heads])
+    np.testing.assert_array_equal(pipe.run_lengths.numpy()[:m], np.diff(np.r_[heads, len(codes)]))
+    np.testing.assert_array_equal(pipe.run_starts.numpy()[:m], heads)
+    # Compress-sort-decompress: primitives grouped by coarse voxel, input order within one.
+    pipe.top_level_sort(m)
+    pipe.run_length_decode(m)
+    order = np.argsort(coarse, kind="stable")
+    np.testing.assert_array_equal(pipe.sorted_prim_ids.numpy()[: len(codes)], order)
+    np.testing.assert_array_equal(pipe.sorted_codes.numpy()[: len(codes)], codes[order])
+
+
+@pytest.mark.parametrize("capacity", [2000, 7])
+def test_voxel_sort_equals_stable_argsort(device, rng, capacity):
+    # Clustered input makes voxels far larger than a block of 7: the oversized-voxel path.
+    lo, hi = soup_bounds(rng, 5000, clusters=True)
+    pipe = make_pipeline(lo, hi, device, block_capacity=capacity)
+    pipe.build("hlbvh")
+    codes = pipe.morton_codes.numpy()
+    order = np.argsort(codes, kind="stable")
+    np.testing.assert_array_equal(pipe.sorted_prim_ids.numpy()[: len(codes)], order)
+    assert pipe.sorted_prim_ids.numpy()[: len(codes)].shape == order.shape
+
+
+@pytest.mark.parametrize("planes", [1, 2, 3, 4])
+@pytest.mark.parametrize("leaf", [1, 3])
+def test_emitted_topology_matches_radix_tree(device, rng, planes, leaf):
+    lo, hi = soup_bounds(rng, 3000, clusters=True)
+    # Duplicated boxes force equal codes: those segments must be split at the index median.
+    lo = np.concatenate([lo, np.repeat(lo[:5], 40, axis=0)])
+    hi = np.concatenate([hi, np.repeat(hi[:5], 40, axis=0)])
+    pipe = make_pipeline(lo, hi, device, planes_per_pass=planes, max_leaf_size=leaf)
+    pipe.build("hlbvh")
+    bvh = hb.api.bvh_from_pipeline(pipe, "hlbvh", {})
+    tree = bvh.to_numpy()
+    sorted_codes = pipe.sorted_codes.numpy()[: len(lo)].astype(np.int64)
+    assert node_set(tree) == radix_tree_reference(sorted_codes, leaf)
+    check_tree_invariants(tree, len(lo), max_leaf_size=leaf)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
+def test_distinct_codes_give_2n_minus_1_nodes(device, method):
+    # A 3D grid of points: every centroid in its own Morton cell.
+    g = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    bvh = hb.build_from_bounds(g, g + 0.5, method=method, device=device)
+    check_tree_invariants(bvh.to_numpy(), len(g), exact_node_count=2 * len(g) - 1)
+    assert bvh.num_nodes == 2 * len(g) - 1
+    assert bvh.num_leaves == len(g)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 1000])
+def test_all_identical_boxes(device, n):
+    lo = np.zeros((n, 3), np.float32)
+    bvh = hb.build_from_bounds(lo, lo + 1, device=device)
+    check_tree_invariants(bvh.to_numpy(), n, exact_node_count=2 * n - 1)
+    # Index-median splits of equal codes give a balanced tree.
+    assert bvh.depth == int(np.ceil(np.log2(n)))
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
+def test_methods_agree_on_tree(device, rng, method):
+    lo, hi = soup_bounds(rng, 2000)
+    ref = hb.build_from_bounds(lo, hi, method="lbvh", device=device).to_numpy()
+    other = hb.build_from_bounds(lo, hi, method=method, device=device).to_numpy()
+    assert node_set(ref) == node_set(other)
+    assert sah_reference(ref) == pytest.approx(sah_reference(other), rel=1e-6)
+
+
+def test_resorted_input_gives_equivalent_tree_and_skips_sort(device):
+    mesh = _bumpy_mesh()
+    first = hb.build(mesh, device=device)
+    order = first.to_numpy()["prim_order"]
+    again = hb.build(mesh.vertices, mesh.faces[order], device=device, timings=True)
+    assert sah_reference(again.to_numpy()) == pytest.approx(sah_reference(first.to_numpy()), rel=1e-6)
+    assert "top_level_sort" in again.timings["skipped"]
+    assert "voxel_sort" in again.timings["skipped"]
+    # The tree holds the same primitives in each leaf, up to the face permutation.
+    np.testing.assert_array_equal(order[again.to_numpy()["prim_order"]], order)
+
+
+def test_timings_report_stages(device, rng):
+    lo, hi = soup_bounds(rng, 500)
+    bvh = hb.build_from_bounds(lo, hi, device=device, timings=True)
+    for stage in ("morton", "run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort", "hierarchy",
+                  "bbox"):
+        assert bvh.timings[stage] >= 0.0
+    assert hb.build_from_bounds(lo, hi, device=device).timings == {}
+
+
+def test_sync_free_build_matches(device, rng):
+    lo, hi = soup_bounds(rng, 3000, clusters=True)
+    pipe = make_pipeline(lo, hi, device)
+    pipe.build("hlbvh")
+    ref = hb.api.bvh_from_pipeline(pipe, "hlbvh", {}).to_numpy()
+    pipe2 = make_pipeline(lo, hi, device)
+    pipe2.build("hlbvh", StageTimer(device, False), sync_free=True)
+    got = hb.api.bvh_from_pipeline(pipe2, "hlbvh", {}).to_numpy()
+    assert node_set(got) == node_set(ref)
+    np.testing.assert_array_equal(got["prim_order"], ref["prim_order"])
+
+
+def test_bounds_climb_matches_reverse_sweep(device, rng):
+    lo, hi = soup_bounds(rng, 2000)
+    tree = hb.build_from_bounds(lo, hi, device=device).to_numpy()
+    # Children are numbered after parents: a reverse sweep is an independent bottom-up.
+    nlo = np.zeros_like(tree["node_lowers"])
+    nhi = np.zeros_like(tree["node_uppers"])
+    for i in range(len(nlo) - 1, -1, -1):
+        l, r = tree["node_left"][i], tree["node_right"][i]
+        if l < 0:
+            prims = tree["prim_order"][tree["node_begin"][i] : tree["node_end"][i]]
+            nlo[i], nhi[i] = lo[prims].min(0), hi[prims].max(0)
+        else:
+            nlo[i], nhi[i] = np.minimum(nlo[l], nlo[r]), np.maximum(nhi[l], nhi[r])
+    np.testing.assert_array_equal(tree["node_lowers"], nlo)
+    np.testing.assert_array_equal(tree["node_uppers"], nhi)
+
+
+# --------------------------------------------------------------------------- rays
+def _bumpy_mesh():
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=4)
+    v = m.vertices * (1 + 0.1 * np.sin(7 * m.vertices[:, :1]))
+    return trimesh.Trimesh(v, m.faces, process=False)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
+def test_intersect_generated_mesh(device, rng, method):
+    mesh = _bumpy_mesh()
+    bvh = hb.build(mesh, method=method, device=device)
+    o, d = random_rays(rng, mesh.vertices, 400)
+    t, p = hb.intersect(bvh, o, d)
+    assert_hits_match(t, p, *brute_force_closest_hit(mesh.vertices, mesh.faces, o, d))
+    assert (p >= 0).sum() > 100
+
+
+@pytest.mark.parametrize("leaf", [1, 4])
+def test_intersect_random_soup(device, rng, leaf):
+    v, f = random_soup(rng, 3000)
+    bvh = hb.build(v, f, device=device, config=hb.BuildConfig(max_leaf_size=leaf, planes_per_pass=2))
+    o, d = random_rays(rng, v, 400)
+    t, p = hb.intersect(bvh, o, d)
+    assert_hits_match(t, p, *brute_force_closest_hit(v, f, o, d))
+
+
+def test_intersect_t_max(device, rng):
+    mesh = _bumpy_mesh()
+    bvh = hb.build(mesh, device=device)
+    o, d = random_rays(rng, mesh.vertices, 300)
+    t_ref, p_ref = brute_force_closest_hit(mesh.vertices, mesh.faces, o, d, t_max=2.0)
+    t, p = hb.intersect(bvh, o, d, t_max=2.0)
+    assert_hits_match(t, p, t_ref, p_ref)
+
+
+@pytest.mark.parametrize("name", ["suzanne", "teapot", "bunny", "armadillo"])
+def test_intersect_shared_meshes(device, rng, name):
+    mesh = shared_mesh(name)
+    bvh = hb.build(mesh, device=device)
+    check_tree_invariants(bvh.to_numpy(), len(mesh.faces), exact_node_count=None)
+    o, d = random_rays(rng, mesh.vertices, 150)
+    t, p = hb.intersect(bvh, o, d)
+    assert_hits_match(t, p, *brute_force_closest_hit(mesh.vertices, mesh.faces, o, d))
+
+
+def test_degenerate_triangles_are_valid(device, rng):
+    v, f = random_soup(rng, 200)
+    f[:50, 2] = f[:50, 1]  # segments
+    f[50:80, 1:] = f[50:80, :1]  # points
+    bvh = hb.build(v, f, device=device)
+    check_tree_invariants(bvh.to_numpy(), 200)
+    o, d = random_rays(rng, v, 200)
+    t, p = hb.intersect(bvh, o, d)
+    assert_hits_match(t, p, *brute_force_closest_hit(v, f, o, d))
+
+
+# --------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    "vertices, faces, message",
+    [
+        (np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], np.float32), [[0, 1, 2]], "NaN or Inf"),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, np.inf, 0]]), [[0, 1, 2]], "NaN or Inf"),
+        (np.eye(3), [[0, 1, 3]], "out of range"),
+        (np.eye(3), [[0, -1, 2]], "out of range"),
+        (np.eye(3)[:, :2], [[0, 1, 2]], "shape"),
+        (np.eye(3), [[0, 1]], "shape"),
+        (np.eye(3), np.array([[0.0, 1.0, 2.0]]), "integers"),
+        (np.zeros((0, 3)), np.zeros((0, 3), np.int32), "empty"),
+        (np.eye(3), np.zeros((0, 3), np.int32), "empty"),
+        (np.array([["a", "b", "c"]]), [[0, 0, 0]], "real numbers"),
+    ],
+)
+def test_bad_input_raises(device, vertices, faces, message):
+    with pytest.raises(ValueError, match=message):
+        hb.build(vertices, faces, device=device)
+
+
+def test_bad_bounds_and_options(device):
+    with pytest.raises(ValueError, match="lowers > uppers"):
+        hb.build_from_bounds(np.ones((2, 3)), np.zeros((2, 3)), device=device)
+    with pytest.raises(ValueError, match="unknown method"):
+        hb.build(np.eye(3), [[0, 1, 2]], method="nope", device=device)
+    with pytest.raises(ValueError, match="planes_per_pass"):
+        hb.BuildConfig(planes_per_pass=9)
+    with pytest.raises(ValueError, match="differ in shape"):
+        hb.intersect(hb.build(np.eye(3), [[0, 1, 2]], device=device), np.zeros((2, 3)), np.zeros((3, 3)))
+
+
+def test_float64_and_wide_int_input(device):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
+    f = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint64)
+    bvh = hb.build(v, f, device=device)
+    t, p = hb.intersect(bvh, [[0.2, 0.2, 1.0]], [[0, 0, -1]])
+    assert p[0] == 0 and t[0] == pytest.approx(1.0)
+    bvh2 = hb.build(wp.array(v.astype(np.float32), dtype=wp.vec3, device=device),
+                    wp.array(f.astype(np.int32), dtype=wp.int32, device=device), device=device)
+    assert bvh2.num_nodes == 3
