@@ -1,11 +1,20 @@
 """hlbvh_warp: HLBVH (Pantaleoni & Luebke, HPG 2010) built with NVIDIA Warp kernels."""
 
-import warp as wp
+import os as _os
 
-from .api import build, build_from_bounds
-from .query import intersect
-from .bvh import Bvh
-from .config import BuildConfig
+# The device code lives in the top-level `kernels/` folder and is installed as
+# `hlbvh_warp.kernels` (a setuptools package-dir mapping). Run from a source checkout, where
+# `python -m` puts the checkout first on sys.path, the folder sits beside this package instead.
+_checkout = _os.path.dirname(_os.path.dirname(_os.path.abspath(__file__)))
+if not _os.path.isdir(_os.path.join(_os.path.dirname(__file__), "kernels")) and _os.path.isfile(
+    _os.path.join(_checkout, "kernels", "__init__.py")
+):
+    __path__.append(_checkout)  # noqa: F821 (package __path__)
+
+from .api import build, build_from_bounds  # noqa: E402
+from .bvh import Bvh  # noqa: E402
+from .config import BuildConfig  # noqa: E402
+from .query import intersect  # noqa: E402
 
 __all__ = ["Bvh", "BuildConfig", "build", "build_from_bounds", "intersect"]
 __version__ = "0.1.0"

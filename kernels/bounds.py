@@ -55,3 +55,50 @@ def node_bounds_kernel(
         node_lowers[parent] = wp.min(node_lowers[left], node_lowers[right])
         node_uppers[parent] = wp.max(node_uppers[left], node_uppers[right])
         parent = node_parent[parent]
+
+
+@wp.kernel
+def leaf_bounds_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    node = wp.tid()
+    if node >= node_count[0] or node_left[node] >= 0:
+        return
+    p = prim_order[node_begin[node]]
+    lower = prim_lowers[p]
+    upper = prim_uppers[p]
+    for k in range(node_begin[node] + 1, node_end[node]):
+        p = prim_order[k]
+        lower = wp.min(lower, prim_lowers[p])
+        upper = wp.max(upper, prim_uppers[p])
+    node_lowers[node] = lower
+    node_uppers[node] = upper
+
+
+@wp.kernel
+def interior_bounds_sweep_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    # One thread: children are numbered after their parents, so a reverse sweep sees both
+    # children finished. Used on the CPU device, which runs a launch's threads one after another
+    # anyway: the sweep does the climb's work without its atomics and random parent hops.
+    node = node_count[0] - 1
+    while node >= 0:
+        left = node_left[node]
+        if left >= 0:
+            right = node_right[node]
+            node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
+            node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
+        node -= 1

@@ -217,9 +217,14 @@ def test_sync_free_build_matches(device, rng):
     np.testing.assert_array_equal(got["prim_order"], ref["prim_order"])
 
 
-def test_bounds_climb_matches_reverse_sweep(device, rng):
+@pytest.mark.parametrize("strategy", ["climb", "sweep"])
+def test_node_bounds_match_numpy_bottom_up(device, rng, strategy):
     lo, hi = soup_bounds(rng, 2000)
-    tree = hb.build_from_bounds(lo, hi, device=device).to_numpy()
+    bvh = hb.build_from_bounds(lo, hi, device=device)
+    bvh.node_lowers.zero_()
+    bvh.node_uppers.zero_()
+    hb.hlbvh.refit_bounds(bvh, strategy=strategy)
+    tree = bvh.to_numpy()
     # Children are numbered after parents: a reverse sweep is an independent bottom-up.
     nlo = np.zeros_like(tree["node_lowers"])
     nhi = np.zeros_like(tree["node_uppers"])
