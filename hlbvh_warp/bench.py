@@ -1,0 +1,320 @@
+"""``python -m hlbvh_warp bench``: build time against tree quality for every builder.
+
+For each mesh and builder: check a batch of rays against the float64 brute force (reference.py)
+before anything is timed, then time the build (median, min, max of ``--repeats`` runs after a
+warm-up), record the per-stage breakdown, the SAH cost of Pantaleoni & Luebke 2010 (eq. 1) and
+its ratio to the greedy full-sweep SAH tree (their Table 3 reference), the node count and the
+bytes of device buffers per triangle. One fixed-format row per builder is printed and all rows
+are written as JSON. Peers on the same device: ``wp.Bvh`` with the "sah", "median" and "lbvh"
+constructors and ``wp.Mesh`` (time only: their nodes are not readable here).
+
+``--sweep`` adds the knobs that trade build time for quality (m, p, n, bins, leaf size) and
+draws build time (log x) against SAH ratio (y), one point per builder and setting, with the
+Pareto frontier marked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import statistics
+import sys
+import time
+import warnings
+
+import numpy as np
+import warp as wp
+
+from . import api, inputs, reference
+from .config import BuildConfig
+from .hlbvh import StageTimer
+from .metrics import sah_cost
+
+#: Our builders, in the order the table lists them.
+OUR_BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
+#: Warp's own builders: wp.Bvh constructors and wp.Mesh.
+PEERS = ("wp.Bvh:sah", "wp.Bvh:median", "wp.Bvh:lbvh", "wp.Mesh")
+#: The quality reference every SAH ratio is taken against (at the same leaf size).
+REFERENCE = "sweep_sah"
+
+ROW_FORMAT = "{mesh:>12s} {tris:>9d} {builder:>14s} {setting:>12s} {median:>10.2f} {min:>9.2f} {max:>9.2f} " \
+             "{sah:>9s} {ratio:>7s} {nodes:>9s} {bytes:>8s} {rays:>6s}"
+HEADER = "{:>12s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}".format(
+    "mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "SAH", "ratio", "nodes", "B/tri",
+    "rays")
+
+
+def generated_scene(num_tris: int = 60000, seed: int = 7):
+    """A clustered test scene: spheres of several sizes over a ground grid (uneven density,
+    empty space between objects, which is where SAH and Morton splits differ)."""
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    parts = []
+    ground = trimesh.creation.box(extents=(40.0, 0.2, 40.0))
+    parts.append(ground.subdivide().subdivide().subdivide())
+    budget = max(num_tris - len(parts[0].faces), 320)
+    while budget > 0:
+        level = int(rng.integers(1, 5))
+        sphere = trimesh.creation.icosphere(subdivisions=level, radius=float(rng.uniform(0.3, 3.0)))
+        sphere.apply_translation(rng.uniform((-18, 0.5, -18), (18, 8, 18)))
+        parts.append(sphere)
+        budget -= len(sphere.faces)
+    scene = trimesh.util.concatenate(parts)
+    return np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32)
+
+
+def load_mesh(path: str):
+    import trimesh
+
+    mesh = trimesh.load(path, process=False, force="mesh")
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+
+
+def sweep_settings(builders) -> list[tuple[str, str, dict]]:
+    """(builder, label, BuildConfig overrides): the default of every builder, plus with --sweep
+    the knobs that trade time for quality."""
+    out = [(b, "default", {}) for b in builders]
+    for b in builders:
+        if b in ("hlbvh", "hlbvh_sah"):
+            out += [(b, f"m={m}", {"coarse_bits": m}) for m in (3, 4, 5, 7, 8)]
+            out += [(b, f"n={n}", {"bits_per_axis": n, "coarse_bits": min(6, n)}) for n in (6, 8)]
+        if b == "hlbvh":
+            out += [(b, f"p={p}", {"planes_per_pass": p}) for p in (1, 2, 4)]
+        if b == "binned_sah":
+            out += [(b, f"bins={k}", {"sah_bins": k}) for k in (4, 8, 32, 64)]
+        if b in ("hlbvh", "sweep_sah", "binned_sah", "median", "hlbvh_sah"):
+            out += [(b, f"leaf={k}", {"max_leaf_size": k}) for k in (4,)]
+    return out
+
+
+def _time(fn, device, repeats: int, warmup: int) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    wp.synchronize_device(device)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        times.append((time.perf_counter() - start) * 1e3)
+    return times
+
+
+def _bytes_per_tri(bvh, num_tris: int, config: BuildConfig, device) -> float:
+    """Device buffers of the build (pipeline scratch and the tree) plus the primitive boxes."""
+    from .builders import pipeline_buffer_bytes
+
+    total = getattr(bvh, "buffer_bytes", None)
+    if total is None:
+        total = pipeline_buffer_bytes(num_tris, config, device)
+    return (total + 2 * 12 * num_tris) / num_tris
+
+
+def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
+    rng = np.random.default_rng(args.seed)
+    verts, tris = inputs.mesh_arrays(vertices, faces)
+    n = tris.shape[0]
+    lowers_np = verts[tris].min(axis=1)
+    uppers_np = verts[tris].max(axis=1)
+    lowers = wp.array(lowers_np, dtype=wp.vec3, device=device)
+    uppers = wp.array(uppers_np, dtype=wp.vec3, device=device)
+    origins, directions = reference.rays_at_box(rng, verts, args.rays)
+    t_ref, prim_ref = reference.brute_force_closest_hit(verts, tris, origins, directions)
+
+    ours = [b for b in args.builders if b in api.BUILDERS]
+    settings = sweep_settings(ours) if args.sweep else [(b, "default", {}) for b in ours]
+    peers = [b for b in args.builders if b in PEERS]
+    rows = []
+    reference_cost = {}
+    # The reference first, at every leaf size a setting uses, so each ratio has its denominator.
+    leaf_sizes = sorted({overrides.get("max_leaf_size", 1) for _, _, overrides in settings})
+    for leaf in leaf_sizes:
+        ref_bvh = api.build(verts, tris, method=REFERENCE, device=device, config=BuildConfig(max_leaf_size=leaf))
+        reference_cost[leaf] = sah_cost(ref_bvh)
+    total = len(settings) + len(peers)
+    for step, (builder, label, overrides) in enumerate(settings, 1):
+        progress(f"[{name} {step}/{total}] {builder} {label}")
+        config = BuildConfig(**overrides)
+        # Correctness before speed: a batch of rays against the float64 brute force.
+        bvh = api.build(verts, tris, method=builder, device=device, config=config, timings=True)
+        t, prim = api_intersect(bvh, origins, directions)
+        mismatches = reference.count_mismatches(t, prim, t_ref, prim_ref)
+        if mismatches:
+            print(f"error: {builder} {label} on {name}: {mismatches} of {len(t)} rays disagree with the brute "
+                  "force; not timed", file=sys.stderr)
+            rows.append({"mesh": name, "builder": builder, "setting": label, "error": f"{mismatches} ray mismatches"})
+            continue
+        fn = api.BUILDERS[builder]
+
+        def run(fn=fn, config=config):
+            fn(lowers, uppers, config, device, StageTimer(device, False))
+
+        times = _time(run, device, args.repeats, args.warmup)
+        cost = sah_cost(bvh, config.sah_traversal_cost, config.sah_intersection_cost)
+        rows.append({
+            "mesh": name, "num_tris": n, "builder": builder, "setting": label, "config": overrides,
+            "time_ms": {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times},
+            "stages_ms": {k: v for k, v in bvh.timings.items() if k != "skipped"},
+            "sah": cost, "sah_ratio": cost / reference_cost[config.max_leaf_size],
+            "num_nodes": bvh.num_nodes, "bytes_per_tri": _bytes_per_tri(bvh, n, config, device),
+            "rays_checked": int(len(t)),
+        })
+    for step, peer in enumerate(peers, len(settings) + 1):
+        progress(f"[{name} {step}/{total}] {peer}")
+        if peer == "wp.Mesh":
+            points = wp.array(verts, dtype=wp.vec3, device=device)
+            indices = wp.array(tris.reshape(-1), dtype=wp.int32, device=device)
+
+            def run():
+                wp.Mesh(points, indices)
+        else:
+            constructor = peer.split(":")[1]
+
+            def run(constructor=constructor):
+                wp.Bvh(lowers, uppers, constructor=constructor)
+
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                times = _time(run, device, args.repeats, args.warmup)
+        except Exception as exc:  # a constructor this device lacks (e.g. lbvh on some versions)
+            rows.append({"mesh": name, "builder": peer, "setting": "default", "error": str(exc)})
+            continue
+        rows.append({
+            "mesh": name, "num_tris": n, "builder": peer, "setting": "default", "config": {},
+            "time_ms": {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times},
+            "stages_ms": {}, "sah": None, "sah_ratio": None, "num_nodes": None, "bytes_per_tri": None,
+            "rays_checked": 0,
+            # e.g. wp.Bvh's lbvh constructor falls back to sah on the CPU: say so in the row.
+            "notes": sorted({str(w.message) for w in caught}),
+        })
+    return rows
+
+
+def api_intersect(bvh, origins, directions):
+    from .query import intersect
+
+    return intersect(bvh, origins, directions)
+
+
+def format_row(row: dict) -> str:
+    if "error" in row:
+        return f"{row['mesh']:>12s} {'':>9s} {row['builder']:>14s} {row['setting']:>12s}  error: {row['error']}"
+
+    def opt(value, fmt):
+        return "-" if value is None else format(value, fmt)
+
+    return ROW_FORMAT.format(
+        mesh=row["mesh"][:12], tris=row["num_tris"], builder=row["builder"], setting=row["setting"][:12],
+        median=row["time_ms"]["median"], min=row["time_ms"]["min"], max=row["time_ms"]["max"],
+        sah=opt(row["sah"], ".2f"), ratio=opt(row["sah_ratio"], ".3f"), nodes=opt(row["num_nodes"], "d"),
+        bytes=opt(row["bytes_per_tri"], ".0f"), rays="ok" if row["rays_checked"] else "-",
+    )
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats in both time and ratio, by increasing time."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], float("inf")
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def plot(rows: list[dict], path: pathlib.Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    meshes = sorted({r["mesh"] for r in rows})
+    fig, axes = plt.subplots(1, len(meshes), figsize=(7 * len(meshes), 5.5), squeeze=False)
+    for ax, mesh in zip(axes[0], meshes):
+        pts = [r for r in rows if r["mesh"] == mesh and r.get("sah_ratio") is not None]
+        builders = sorted({r["builder"] for r in pts})
+        for k, builder in enumerate(builders):
+            sel = [r for r in pts if r["builder"] == builder]
+            ax.scatter([r["time_ms"]["median"] for r in sel], [r["sah_ratio"] for r in sel], label=builder,
+                       color=f"C{k}", s=28)
+            for r in sel:
+                if r["setting"] != "default":
+                    ax.annotate(r["setting"], (r["time_ms"]["median"], r["sah_ratio"]), fontsize=6,
+                                xytext=(3, 2), textcoords="offset points")
+        xy = [(r["time_ms"]["median"], r["sah_ratio"]) for r in pts]
+        front = pareto_front(xy)
+        if front:
+            ax.plot([xy[i][0] for i in front], [xy[i][1] for i in front], "k--", lw=1, label="Pareto frontier")
+        for r in rows:
+            if r["mesh"] == mesh and r.get("sah_ratio") is None and "time_ms" in r:
+                ax.axvline(r["time_ms"]["median"], color="0.6", lw=0.8, ls=":")
+                ax.annotate(r["builder"], (r["time_ms"]["median"], 1.0), rotation=90, fontsize=6, color="0.4")
+        ax.set_xscale("log")
+        ax.set_xlabel("build time, median (ms, log)")
+        ax.set_ylabel(f"SAH cost / {REFERENCE}")
+        ax.set_title(f"{mesh} ({pts[0]['num_tris'] if pts else 0} triangles)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", action="append", default=[],
+                        help="mesh file (repeatable); default: a generated scene")
+    parser.add_argument("--scene-tris", type=int, default=60000, help="triangles of the generated scene")
+    parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
+                        help="comma-separated builders and peers (default: all)")
+    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per builder")
+    parser.add_argument("--warmup", type=int, default=1, help="untimed runs first (kernel compilation, caches)")
+    parser.add_argument("--rays", type=int, default=128, help="rays checked against the brute force")
+    parser.add_argument("--sweep", action="store_true", help="also sweep m, p, n, bins and leaf size")
+    parser.add_argument("--json", default="out/bench.json", help="where to write the rows")
+    parser.add_argument("--plot", default=None, help="PNG of time vs SAH ratio (default: beside the JSON)")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args(argv)
+    args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
+    api._load_optional_builders()
+    unknown = [b for b in args.builders if b not in api.BUILDERS and b not in PEERS]
+    if unknown:
+        parser.error(f"unknown builders {unknown}; choose from {sorted(api.BUILDERS) + list(PEERS)}")
+    if args.repeats < 1:
+        parser.error("--repeats must be >= 1")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(list(sys.argv[1:] if argv is None else argv))
+    wp.config.quiet = True
+    wp.init()
+    device = wp.get_device(args.device)
+    meshes = [(pathlib.Path(p).stem, *load_mesh(p)) for p in args.mesh]
+    if not meshes:
+        meshes = [("generated", *generated_scene(args.scene_tris, args.seed))]
+
+    def progress(text):
+        print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
+
+    print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}")
+    print(HEADER)
+    rows = []
+    for name, vertices, faces in meshes:
+        for row in bench_mesh(name, vertices, faces, args, device, progress):
+            rows.append(row)
+        progress("")
+        for row in rows:
+            if row["mesh"] == name:
+                print(format_row(row), flush=True)
+    json_path = pathlib.Path(args.json)
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "rows": rows}, indent=1))
+    plot_path = pathlib.Path(args.plot) if args.plot else json_path.with_suffix(".png")
+    plot(rows, plot_path)
+    print(f"wrote {json_path} and {plot_path}")
+    return 1 if any("error" in r and r["builder"] not in PEERS for r in rows) else 0

@@ -1,0 +1,440 @@
+"""Reference builders beside HLBVH, registered into `api.BUILDERS` on import.
+
+* ``"sweep_sah"``: greedy top-down full plane-sweep SAH (MacDonald & Booth 1990; Wald, Boulos &
+  Shirley 2007), the quality reference of Pantaleoni & Luebke 2010, Table 3.
+* ``"binned_sah"``: the same sweep priced only at ``config.sah_bins`` bin boundaries per axis
+  (Wald 2007).
+* ``"median"``: object median on the longest centroid axis.
+* ``"hlbvh_sah"``: SAH-optimized HLBVH (Pantaleoni & Luebke 2010, section 3.3): HLBVH's sort and
+  Morton treelets inside every coarse voxel, the top levels a SAH sweep over the voxel clusters
+  weighted by their subtrees' SAH costs.
+
+The top-down builders run one data-parallel step per tree level (kernels/sah.py); the host
+reads one count per level to know when the tree is finished. By default they split down to
+``config.max_leaf_size`` so that every builder is compared at the same leaf rule;
+`build_top_down` takes ``terminate_leaf_size`` for the usual SAH leaf termination.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from . import api
+from .bvh import Bvh
+from .config import BuildConfig
+from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
+from .kernels import metrics as metrics_kernels
+from .kernels import sah, treelets, upper_sah
+
+#: Split rule of each top-down method (kernels/sah.py).
+TOP_DOWN_MODES = {"sweep_sah": sah.MODE_SWEEP, "binned_sah": sah.MODE_BINNED, "median": sah.MODE_MEDIAN}
+
+
+def array_bytes(*holders) -> int:
+    """Bytes of every Warp array held as an attribute of `holders` (what a build allocates)."""
+    seen = set()
+    total = 0
+    for holder in holders:
+        for value in vars(holder).values():
+            if isinstance(value, wp.array) and id(value) not in seen:
+                seen.add(id(value))
+                total += value.capacity
+    return total
+
+
+class TopDownBuilder:
+    """Scratch of the level-parallel top-down build over `num_items` items, allocated once."""
+
+    def __init__(self, num_items: int, device):
+        if num_items < 1:
+            raise ValueError("a top-down build needs at least one item")
+        self.num_items = k = num_items
+        self.device = device = wp.get_device(device)
+
+        def ints(count):
+            return wp.empty(count, dtype=wp.int32, device=device)
+
+        # The radix sort needs keys and values of twice the item count.
+        self.sort_keys = wp.empty(2 * k, dtype=float, device=device)
+        self.sort_ids = ints(2 * k)
+        # Per-axis orders, ping-ponged every level: order[axis * k + position].
+        self.order = ints(3 * k)
+        self.order_next = ints(3 * k)
+        self.item_side = ints(k)
+        self.suffix_area = wp.empty(k, dtype=wp.float64, device=device)
+        self.suffix_weight = wp.empty(k, dtype=wp.float64, device=device)
+        # A level holds disjoint non-empty ranges, so at most k nodes.
+        self.level_nodes = ints(k)
+        self.next_level_nodes = ints(k)
+        self.level_count = ints(1)
+        self.next_level_count = ints(1)
+        self.split_axis = ints(k)
+        self.split_pos = ints(k)
+        self.split_flag = ints(k)
+        self.split_offset = ints(k)
+
+    def _launch(self, kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def sort_axes(self, item_lowers: wp.array, item_uppers: wp.array):
+        """Presort the items by centroid on each axis (stable: ties keep index order)."""
+        k = self.num_items
+        for axis in range(3):
+            self._launch(sah.centroid_keys_kernel, k, [item_lowers, item_uppers, axis, self.sort_keys, self.sort_ids])
+            wp.utils.radix_sort_pairs(self.sort_keys, self.sort_ids, k)
+            wp.copy(self.order, self.sort_ids, dest_offset=axis * k, count=k)
+
+    def build_levels(
+        self,
+        item_lowers: wp.array,
+        item_uppers: wp.array,
+        item_weights: wp.array,
+        *,
+        mode: int,
+        num_bins: int,
+        max_leaf_size: int,
+        terminate_leaf_size: int,
+        t_traversal: float,
+        t_intersect: float,
+        node_left: wp.array,
+        node_right: wp.array,
+        node_parent: wp.array,
+        node_begin: wp.array,
+        node_end: wp.array,
+        node_count: wp.array,
+        item_order: wp.array,
+    ) -> int:
+        """Split level by level until every node is a leaf; returns the number of levels."""
+        k = self.num_items
+        self._launch(
+            sah.init_top_down_kernel,
+            node_left.shape[0],
+            [k, node_left, node_right, node_parent, node_begin, node_end, node_count, self.level_nodes,
+             self.level_count],
+        )
+        count = 1
+        levels = 0
+        while count > 0:
+            levels += 1
+            # Every open node of the level picks its split (or stays a leaf).
+            self._launch(
+                sah.choose_splits_kernel,
+                count,
+                [self.level_count, self.level_nodes, node_begin, node_end, self.order, k, item_lowers, item_uppers,
+                 item_weights, mode, num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal),
+                 wp.float64(t_intersect), self.suffix_area, self.suffix_weight, self.split_axis, self.split_pos,
+                 self.split_flag],
+            )
+            # Number the children of the splitting nodes without holes.
+            wp.utils.array_scan(self.split_flag[:count], self.split_offset[:count], inclusive=False)
+            # Emit the children, partition the three orders, place the finished leaves.
+            self._launch(
+                sah.emit_children_kernel,
+                count,
+                [self.level_count, self.level_nodes, self.split_axis, self.split_pos, self.split_flag,
+                 self.split_offset, k, self.order, self.order_next, self.item_side, node_count, node_left,
+                 node_right, node_parent, node_begin, node_end, self.next_level_nodes, item_order],
+            )
+            self._launch(
+                sah.advance_level_kernel,
+                1,
+                [self.level_count, self.split_flag, self.split_offset, node_count, self.next_level_count],
+            )
+            self.order, self.order_next = self.order_next, self.order
+            self.level_nodes, self.next_level_nodes = self.next_level_nodes, self.level_nodes
+            self.level_count, self.next_level_count = self.next_level_count, self.level_count
+            # The one host read per level: whether (and how wide) the next level is.
+            count = int(self.level_count.numpy()[0])
+        return levels
+
+
+def build_top_down(
+    prim_lowers: wp.array,
+    prim_uppers: wp.array,
+    config: BuildConfig,
+    device,
+    timer: StageTimer,
+    *,
+    method: str = "sweep_sah",
+    terminate_leaf_size: int = 0,
+) -> Bvh:
+    """Top-down build over primitive boxes with the split rule of `method` (see `TOP_DOWN_MODES`).
+
+    Args:
+        terminate_leaf_size: nodes of up to this many primitives become leaves when splitting them
+            costs more than a leaf under the SAH (T1 = ``config.sah_traversal_cost``, T2 =
+            ``config.sah_intersection_cost``); 0 (the default) always splits down to
+            ``config.max_leaf_size``. Only the SAH modes use it.
+    """
+    device = wp.get_device(device)
+    n = prim_lowers.shape[0]
+    arena = 2 * n - 1
+
+    def ints(count):
+        return wp.empty(count, dtype=wp.int32, device=device)
+
+    out = _Arena(device, n, arena)
+    weights = wp.empty(n, dtype=wp.float64, device=device)
+    wp.launch(sah.fill_float64_kernel, dim=n, inputs=[weights, wp.float64(1.0)], device=device)
+    builder = TopDownBuilder(n, device)
+
+    # Sort the primitive centroids once per axis.
+    timer.stage("sort_axes")
+    builder.sort_axes(prim_lowers, prim_uppers)
+    # Split level by level: sweep (or bin, or halve) every open node, partition the orders.
+    timer.stage("top_down")
+    builder.build_levels(
+        prim_lowers,
+        prim_uppers,
+        weights,
+        mode=TOP_DOWN_MODES[method],
+        num_bins=config.sah_bins,
+        max_leaf_size=config.max_leaf_size,
+        terminate_leaf_size=max(terminate_leaf_size, 0),
+        t_traversal=config.sah_traversal_cost,
+        t_intersect=config.sah_intersection_cost,
+        node_left=out.node_left,
+        node_right=out.node_right,
+        node_parent=out.node_parent,
+        node_begin=out.node_begin,
+        node_end=out.node_end,
+        node_count=out.node_count,
+        item_order=out.prim_order,
+    )
+    # Bounding boxes of all nodes, bottom-up.
+    timer.stage("bbox")
+    node_visits = ints(arena)
+    compute_bounds(device, out.node_count, out.node_left, out.node_right, out.node_parent, out.node_begin,
+                   out.node_end, out.prim_order, prim_lowers, prim_uppers, node_visits, out.node_lowers,
+                   out.node_uppers)
+    bvh = out.to_bvh(method, config, prim_lowers, prim_uppers, timer.finish())
+    bvh.buffer_bytes = array_bytes(out, builder) + weights.capacity + node_visits.capacity
+    return bvh
+
+
+class _Arena:
+    """The output arrays of a build: prim_order and the node arena of 2N - 1 slots."""
+
+    def __init__(self, device, num_prims: int, arena: int):
+        self.prim_order = wp.empty(num_prims, dtype=wp.int32, device=device)
+        self.node_lowers = wp.empty(arena, dtype=wp.vec3, device=device)
+        self.node_uppers = wp.empty(arena, dtype=wp.vec3, device=device)
+        for name in ("node_left", "node_right", "node_parent", "node_begin", "node_end"):
+            setattr(self, name, wp.empty(arena, dtype=wp.int32, device=device))
+        self.node_count = wp.zeros(1, dtype=wp.int32, device=device)
+
+    def to_bvh(self, method, config, prim_lowers, prim_uppers, timings) -> Bvh:
+        return Bvh(
+            method=method,
+            config=config,
+            device=self.prim_order.device,
+            prim_lowers=prim_lowers,
+            prim_uppers=prim_uppers,
+            prim_order=self.prim_order,
+            node_lowers=self.node_lowers,
+            node_uppers=self.node_uppers,
+            node_left=self.node_left,
+            node_right=self.node_right,
+            node_parent=self.node_parent,
+            node_begin=self.node_begin,
+            node_end=self.node_end,
+            node_count=self.node_count,
+            timings=timings,
+        )
+
+
+class HlbvhSahPipeline(HlbvhPipeline):
+    """SAH-optimized HLBVH (Pantaleoni & Luebke 2010, section 3.3) on the HLBVH buffers.
+
+    The primitive sort and the treelet emission are HLBVH's own stages; what differs is the
+    top of the tree, built by a SAH sweep over the coarse voxels (clusters) with each cluster
+    priced by its subtree's SAH cost instead of a unit primitive cost. See kernels/upper_sah.py
+    for how the two halves share one arena.
+    """
+
+    def __init__(self, num_prims: int, config: BuildConfig, device):
+        super().__init__(num_prims, config, device)
+        self.node_cost = wp.empty(2 * num_prims - 1, dtype=wp.float64, device=self.device)
+        self.prim_order = wp.empty(num_prims, dtype=wp.int32, device=self.device)
+        self.top = None
+
+    def build_sah(self, timer: StageTimer) -> dict:
+        n = self.num_prims
+        cfg = self.config
+        voxel_bits = 3 * (cfg.bits_per_axis - self.coarse_bits)
+
+        # Morton codes, run-length encoding by coarse voxel, compress-sort-decompress, voxel sort:
+        # the primitive order of HLBVH, unchanged.
+        timer.stage("morton")
+        self.compute_morton_codes()
+        timer.stage("run_length_encode")
+        num_runs = self.run_length_encode()
+        timer.stage("top_level_sort")
+        self.top_level_sort(num_runs)
+        timer.stage("run_length_decode")
+        self.run_length_decode(num_runs)
+        timer.stage("voxel_sort")
+        self.voxel_sort(num_runs)
+
+        # Voxel hierarchy: one treelet segment per cluster, emitted over the low 3(n - m) bits.
+        timer.stage("voxel_hierarchy")
+        num_clusters = int(self.voxel_count.numpy()[0])
+        self._launch(
+            treelets.init_nodes_kernel,
+            2 * n - 1,
+            [n, self.node_left, self.node_right, self.node_parent, self.node_visits, cfg.max_leaf_size,
+             self.head_to_node, self.head_to_end, self.head_flags, self.node_begin, self.node_end, self.node_count],
+        )
+        self._launch(
+            upper_sah.seed_clusters_kernel,
+            num_clusters,
+            [n, num_clusters, cfg.max_leaf_size, self.voxel_starts, self.head_to_node, self.head_to_end,
+             self.head_flags, self.node_begin, self.node_end, self.node_count],
+        )
+        self.emit_hierarchy(voxel_bits, 0)
+        self.split_exhausted_segments()
+
+        # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up.
+        timer.stage("cluster_costs")
+        first_cluster_root = num_clusters - 1
+        self._launch(metrics_kernels.reset_visits_kernel, 2 * n - 1, [self.node_visits])
+        self._launch(
+            metrics_kernels.bounds_and_cost_kernel,
+            2 * n - 1,
+            [first_cluster_root, self.node_count, self.node_left, self.node_right, self.node_parent,
+             self.node_begin, self.node_end, self.sorted_prim_ids, self.prim_lowers, self.prim_uppers,
+             wp.float64(cfg.sah_traversal_cost), wp.float64(cfg.sah_intersection_cost), self.node_visits,
+             self.node_lowers, self.node_uppers, self.node_cost],
+        )
+        top = self.top = _TopTree(num_clusters, self.device)
+        self._launch(
+            upper_sah.cluster_items_kernel,
+            num_clusters,
+            [n, num_clusters, self.voxel_starts, self.node_lowers, self.node_uppers, self.node_cost, self.node_left,
+             self.node_right, top.cluster_lowers, top.cluster_uppers, top.cluster_cost, top.cluster_left,
+             top.cluster_right, top.cluster_size],
+        )
+
+        # Top-level hierarchy: greedy SAH sweep over the clusters, weighted by their costs.
+        timer.stage("top_level_sah")
+        top.builder.sort_axes(top.cluster_lowers, top.cluster_uppers)
+        top.builder.build_levels(
+            top.cluster_lowers,
+            top.cluster_uppers,
+            top.cluster_cost,
+            mode=sah.MODE_SWEEP,
+            num_bins=cfg.sah_bins,
+            max_leaf_size=1,
+            terminate_leaf_size=0,
+            t_traversal=cfg.sah_traversal_cost,
+            t_intersect=cfg.sah_intersection_cost,
+            node_left=top.arena.node_left,
+            node_right=top.arena.node_right,
+            node_parent=top.arena.node_parent,
+            node_begin=top.arena.node_begin,
+            node_end=top.arena.node_end,
+            node_count=top.arena.node_count,
+            item_order=top.arena.prim_order,
+        )
+
+        # Join: top nodes take slots [0, 2C - 1), clusters move to where the top tree put them.
+        timer.stage("join")
+        cluster_order = top.arena.prim_order
+        self._launch(upper_sah.gather_cluster_sizes_kernel, num_clusters,
+                     [cluster_order, top.cluster_size, top.ordered_sizes])
+        wp.utils.array_scan(top.ordered_sizes, top.ordered_starts, inclusive=False)
+        self._launch(upper_sah.cluster_shift_kernel, num_clusters,
+                     [cluster_order, top.ordered_starts, self.voxel_starts, top.cluster_shift])
+        self._launch(
+            upper_sah.join_top_kernel,
+            2 * num_clusters - 1,
+            [n, num_clusters, top.arena.node_left, top.arena.node_right, top.arena.node_parent,
+             top.arena.node_begin, top.arena.node_end, cluster_order, top.ordered_starts, top.cluster_left,
+             top.cluster_right, self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end],
+        )
+        self._launch(
+            upper_sah.shift_treelets_kernel,
+            2 * n - 1,
+            [2 * num_clusters - 1, num_clusters, self.node_count, self.voxel_starts, top.cluster_shift,
+             self.node_begin, self.node_end],
+        )
+        self._launch(upper_sah.scatter_prim_order_kernel, n,
+                     [num_clusters, self.voxel_starts, top.cluster_shift, self.sorted_prim_ids, self.prim_order])
+
+        # Bounding boxes of all nodes, bottom-up.
+        timer.stage("bbox")
+        compute_bounds(self.device, self.node_count, self.node_left, self.node_right, self.node_parent,
+                       self.node_begin, self.node_end, self.prim_order, self.prim_lowers, self.prim_uppers,
+                       self.node_visits, self.node_lowers, self.node_uppers)
+        return timer.finish()
+
+
+class _TopTree:
+    """Scratch of the top-level SAH build over `num_clusters` clusters."""
+
+    def __init__(self, num_clusters: int, device):
+        c = num_clusters
+
+        def ints(count):
+            return wp.empty(count, dtype=wp.int32, device=device)
+
+        self.cluster_lowers = wp.empty(c, dtype=wp.vec3, device=device)
+        self.cluster_uppers = wp.empty(c, dtype=wp.vec3, device=device)
+        self.cluster_cost = wp.empty(c, dtype=wp.float64, device=device)
+        self.cluster_left = ints(c)
+        self.cluster_right = ints(c)
+        self.cluster_size = ints(c)
+        self.ordered_sizes = ints(c)
+        self.ordered_starts = ints(c)
+        self.cluster_shift = ints(c)
+        self.arena = _Arena(device, c, 2 * c - 1)
+        self.builder = TopDownBuilder(c, device)
+
+    def nbytes(self) -> int:
+        return array_bytes(self, self.arena, self.builder)
+
+
+def _top_down(method: str):
+    def run(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
+        return build_top_down(prim_lowers, prim_uppers, config, device, timer, method=method)
+
+    return run
+
+
+def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
+    n = prim_lowers.shape[0]
+    pipe = HlbvhSahPipeline(n, config, device)
+    wp.copy(pipe.prim_lowers, prim_lowers)
+    wp.copy(pipe.prim_uppers, prim_uppers)
+    timings = pipe.build_sah(timer)
+    bvh = Bvh(
+        method="hlbvh_sah",
+        config=config,
+        device=pipe.device,
+        prim_lowers=pipe.prim_lowers,
+        prim_uppers=pipe.prim_uppers,
+        prim_order=pipe.prim_order,
+        node_lowers=pipe.node_lowers,
+        node_uppers=pipe.node_uppers,
+        node_left=pipe.node_left,
+        node_right=pipe.node_right,
+        node_parent=pipe.node_parent,
+        node_begin=pipe.node_begin,
+        node_end=pipe.node_end,
+        node_count=pipe.node_count,
+        timings=timings,
+    )
+    bvh.buffer_bytes = array_bytes(pipe) + pipe.top.nbytes()
+    return bvh
+
+
+def pipeline_buffer_bytes(num_prims: int, config: BuildConfig, device) -> int:
+    """Bytes the plain HLBVH / LBVH pipeline allocates for `num_prims` primitives."""
+    return array_bytes(HlbvhPipeline(num_prims, config, device))
+
+
+for _name in TOP_DOWN_MODES:
+    api.BUILDERS[_name] = _top_down(_name)
+api.BUILDERS["hlbvh_sah"] = _hlbvh_sah
+
+__all__ = ["TopDownBuilder", "HlbvhSahPipeline", "build_top_down", "array_bytes", "pipeline_buffer_bytes"]

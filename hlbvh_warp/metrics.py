@@ -1,0 +1,73 @@
+"""Tree quality: the SAH cost of Pantaleoni & Luebke 2010 (eq. 1) and shape statistics.
+
+The cost is computed on the build device, bottom-up (kernels/metrics.py):
+
+    C(leaf) = T2 * N_prims
+    C(node) = T1 * N_children + sum_i C(child_i) * area(child_i) / area(node)
+
+with T1 = T2 = 1 as in the paper (the recursive-SAH paper of Wodniok & Goesele 2016 uses
+T1 = 1.2, T2 = 1.0). Areas are float64. A node whose box has zero area (a point or a segment)
+passes its children's costs through unscaled: P_hit = 1 when area(parent) = 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .bvh import Bvh
+from .kernels import metrics as kernels
+
+
+def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> wp.array:
+    """SAH cost of every node's subtree (float64, arena-sized; the used part is ``num_nodes``)."""
+    if t_traversal < 0 or t_intersect <= 0:
+        raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    device = bvh.device
+    capacity = bvh.node_left.shape[0]
+    visits = wp.empty(capacity, dtype=wp.int32, device=device)
+    costs = wp.zeros(capacity, dtype=wp.float64, device=device)
+    wp.launch(kernels.reset_visits_kernel, dim=capacity, inputs=[visits], device=device)
+    wp.launch(
+        kernels.sah_cost_kernel,
+        dim=capacity,
+        inputs=[0, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent, bvh.node_begin, bvh.node_end,
+                bvh.node_lowers, bvh.node_uppers, wp.float64(t_traversal), wp.float64(t_intersect), visits, costs],
+        device=device,
+    )
+    return costs
+
+
+def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> float:
+    """The tree's SAH cost: the root's C(node) (Pantaleoni & Luebke 2010, section 4.2)."""
+    return float(node_costs(bvh, t_traversal, t_intersect)[0:1].numpy()[0])
+
+
+def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> dict:
+    """Node and leaf counts, depth, leaf-size histogram and SAH cost, computed on the device.
+
+    ``leaf_size_histogram[k]`` is the number of leaves holding k primitives.
+    """
+    device = bvh.device
+    num_nodes = bvh.num_nodes
+    depths = wp.empty(num_nodes, dtype=wp.int32, device=device)
+    max_depth = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(kernels.node_depth_kernel, dim=num_nodes, inputs=[bvh.node_parent, depths, max_depth], device=device)
+    counts = wp.zeros(2, dtype=wp.int32, device=device)
+    wp.launch(kernels.leaf_sizes_kernel, dim=num_nodes, inputs=[bvh.node_left, bvh.node_begin, bvh.node_end, counts],
+              device=device)
+    num_leaves, largest = (int(x) for x in counts.numpy())
+    histogram = wp.zeros(largest + 1, dtype=wp.int32, device=device)
+    wp.launch(kernels.leaf_histogram_kernel, dim=num_nodes,
+              inputs=[bvh.node_left, bvh.node_begin, bvh.node_end, histogram], device=device)
+    hist = histogram.numpy().astype(np.int64)
+    return {
+        "num_prims": bvh.num_prims,
+        "num_nodes": num_nodes,
+        "num_leaves": num_leaves,
+        "num_interior": num_nodes - num_leaves,
+        "depth": int(max_depth.numpy()[0]),
+        "leaf_size_histogram": hist.tolist(),
+        "mean_leaf_size": float(bvh.num_prims / max(num_leaves, 1)),
+        "sah_cost": sah_cost(bvh, t_traversal, t_intersect),
+    }

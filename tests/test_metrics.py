@@ -1,0 +1,106 @@
+"""SAH cost and tree statistics against a float64 NumPy evaluation of the same formulas."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hlbvh_warp as hw
+from hlbvh_warp.metrics import sah_cost, tree_stats
+from oracles import random_soup
+
+
+def numpy_area(lo, hi):
+    d = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    return 2.0 * (d[..., 0] * d[..., 1] + d[..., 1] * d[..., 2] + d[..., 2] * d[..., 0])
+
+
+def numpy_sah(tree, t1=1.0, t2=1.0):
+    """Pantaleoni & Luebke 2010 eq. (1) by recursion from the root, boxes rebuilt from the
+    primitives (not read from the tree), P_hit = 1 under a zero-area parent."""
+    left, right = tree["node_left"], tree["node_right"]
+    begin, end, order = tree["node_begin"], tree["node_end"], tree["prim_order"]
+    plo, phi = tree["prim_lowers"].astype(np.float64), tree["prim_uppers"].astype(np.float64)
+
+    def box(node):
+        ids = order[begin[node]:end[node]]
+        return plo[ids].min(0), phi[ids].max(0)
+
+    def cost(node):
+        if left[node] < 0:
+            return t2 * (end[node] - begin[node])
+        parent_area = numpy_area(*box(node))
+        total = 2 * t1
+        for child in (left[node], right[node]):
+            ratio = numpy_area(*box(child)) / parent_area if parent_area > 0 else 1.0
+            total += cost(child) * ratio
+        return total
+
+    return cost(0)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "median", "sweep_sah"])
+@pytest.mark.parametrize("t1, t2", [(1.0, 1.0), (1.2, 1.0), (0.0, 2.5)])
+def test_sah_cost_matches_numpy(device, rng, method, t1, t2):
+    v, f = random_soup(rng, 40)
+    bvh = hw.build(v, f, method=method, device=device, config=hw.BuildConfig(max_leaf_size=3))
+    expected = numpy_sah(bvh.to_numpy(), t1, t2)
+    assert sah_cost(bvh, t1, t2) == pytest.approx(expected, rel=1e-6)
+
+
+def test_single_leaf_cost(device):
+    lo = np.array([[0, 0, 0], [1, 1, 1]], dtype=np.float32)
+    bvh = hw.build_from_bounds(lo, lo + 1, method="median", device=device, config=hw.BuildConfig(max_leaf_size=2))
+    assert bvh.num_nodes == 1
+    assert sah_cost(bvh, 1.0, 3.0) == pytest.approx(6.0)
+
+
+def test_hand_computed_cost(device):
+    # Two unit cubes side by side: root box 2x1x1 (area 10), each child area 6:
+    # C = 2 T1 + 2 * (T2 * 1) * 6 / 10 = 2 + 1.2 = 3.2 with T1 = T2 = 1.
+    lo = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
+    bvh = hw.build_from_bounds(lo, lo + 1, method="sweep_sah", device=device)
+    assert sah_cost(bvh) == pytest.approx(3.2)
+
+
+def test_zero_area_boxes_pass_costs_through(device):
+    # Every primitive is the same point: every box has zero area, so P_hit = 1 throughout and
+    # C = 2 T1 (N - 1) + T2 N for any binary tree with single-primitive leaves.
+    n = 9
+    pts = np.full((n, 3), 0.25, dtype=np.float32)
+    bvh = hw.build_from_bounds(pts, pts, method="median", device=device)
+    assert bvh.num_nodes == 2 * n - 1
+    got = sah_cost(bvh, 1.5, 1.0)
+    assert got == pytest.approx(2 * 1.5 * (n - 1) + n)
+    assert got == pytest.approx(numpy_sah(bvh.to_numpy(), 1.5, 1.0))
+
+
+def test_cost_is_scale_invariant_at_huge_coordinates(device, rng):
+    # At 1e19 an area term (1e19)^2 * 2 sits at float32's limit (3.4e38) and the ratios of such
+    # areas lose their digits; the float64 areas keep the cost equal to the unit-scale tree's.
+    lo = rng.random((30, 3)).astype(np.float32)
+    hi = lo + 0.1 * rng.random((30, 3)).astype(np.float32)
+    small = hw.build_from_bounds(lo, hi, method="sweep_sah", device=device)
+    big = hw.build_from_bounds(lo * np.float32(1e19), hi * np.float32(1e19), method="sweep_sah", device=device)
+    big_cost = sah_cost(big)
+    assert np.isfinite(big_cost)
+    assert big_cost == pytest.approx(sah_cost(small), rel=1e-4)
+    assert big_cost == pytest.approx(numpy_sah(big.to_numpy()), rel=1e-9)
+
+
+def test_tree_stats_match_numpy(device, rng):
+    v, f = random_soup(rng, 60)
+    bvh = hw.build(v, f, method="hlbvh", device=device, config=hw.BuildConfig(max_leaf_size=4))
+    tree = bvh.to_numpy()
+    stats = tree_stats(bvh)
+    left, begin, end, parent = tree["node_left"], tree["node_begin"], tree["node_end"], tree["node_parent"]
+    leaves = left < 0
+    depth = np.zeros(len(left), dtype=int)
+    for node in range(1, len(left)):  # children are numbered after their parents
+        depth[node] = depth[parent[node]] + 1
+    sizes = (end - begin)[leaves]
+    assert stats["num_nodes"] == len(left)
+    assert stats["num_leaves"] == int(leaves.sum())
+    assert stats["depth"] == int(depth.max())
+    assert stats["leaf_size_histogram"] == np.bincount(sizes).tolist()
+    assert stats["sah_cost"] == pytest.approx(numpy_sah(tree), rel=1e-6)
