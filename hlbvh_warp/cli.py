@@ -12,7 +12,6 @@ COMMANDS = {
     "demo": ("hlbvh_warp.demo", "build a generated scene with each method, check rays, print timings"),
     "bench": ("hlbvh_warp.bench", "build time against tree quality for every builder (JSON + plot)"),
     "bench-rays": ("hlbvh_warp.ray_bench", "closest-hit rays per second against wp.Mesh"),
-    "bench-build": ("hlbvh_warp.build_bench", "per-stage build times against wp.Bvh and wp.Mesh"),
 }
 
 

@@ -1,6 +1,14 @@
-"""Ray queries on a built BVH (host wrappers around the traversal kernels)."""
+"""Ray and box queries on a built BVH: host wrappers around ``kernels/traversal.py``.
+
+Batched calls (`intersect`, `occluded`, `intersect_all`, `query_aabb`) validate their input,
+launch one thread per ray or box on the BVH's device and return NumPy arrays. `view` hands the
+same data to user kernels, which call the ``@wp.func`` queries re-exported here
+(`bvh_closest_hit`, `bvh_any_hit`, `bvh_occluded`, `bvh_aabb_count`, `bvh_aabb_pairs`).
+"""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import warp as wp
@@ -8,40 +16,287 @@ import warp as wp
 from . import inputs
 from .bvh import Bvh
 from .kernels import traversal
+from .kernels.traversal import (  # noqa: F401  (re-exported for user kernels)
+    BvhView,
+    RayHit,
+    bvh_aabb_count,
+    bvh_aabb_pairs,
+    bvh_any_hit,
+    bvh_closest_hit,
+    bvh_occluded,
+)
 
 
-def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf")):
-    """Closest hit of every ray: ``(t, prim_id)`` as NumPy arrays; a miss is ``(inf, -1)``.
+@dataclasses.dataclass
+class TraversalStats:
+    """Per-ray counts of one batched query (Wodniok & Goesele, GI 2016, Sec. 5).
 
-    Rays with NaN or Inf components, or a zero direction, miss.
+    Attributes:
+        nodes_visited: n_s, traversal steps (interior and leaf nodes popped) per ray.
+        prims_tested: n_t, ray-triangle tests per ray.
     """
+
+    nodes_visited: np.ndarray
+    prims_tested: np.ndarray
+
+    def measured_cost(self, c_t: float = 1.2, c_i: float = 1.0) -> float:
+        """Average measured traversal cost m = n_s * c_t + n_t * c_i (the paper's eq. 10 and constants)."""
+        if self.nodes_visited.size == 0:
+            return 0.0
+        return float(self.nodes_visited.mean() * c_t + self.prims_tested.mean() * c_i)
+
+    def summary(self, c_t: float = 1.2, c_i: float = 1.0) -> dict:
+        return {
+            "mean_nodes_visited": float(self.nodes_visited.mean()) if self.nodes_visited.size else 0.0,
+            "mean_prims_tested": float(self.prims_tested.mean()) if self.prims_tested.size else 0.0,
+            "measured_cost": self.measured_cost(c_t, c_i),
+        }
+
+
+def view(bvh: Bvh) -> BvhView:
+    """The `BvhView` struct of ``bvh`` for user kernels (``wp.launch(k, inputs=[view(bvh), ...])``).
+
+    The view refers to the BVH's arrays, so it stays valid after a refit of the same BVH.
+    """
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"view() takes a Bvh, got {type(bvh).__name__}")
+    cached = bvh._cache.get("view")
+    if cached is not None:
+        return cached
+    v = BvhView()
+    v.node_lowers = bvh.node_lowers
+    v.node_uppers = bvh.node_uppers
+    v.node_left = bvh.node_left
+    v.node_right = bvh.node_right
+    v.node_begin = bvh.node_begin
+    v.node_end = bvh.node_end
+    v.prim_order = bvh.prim_order
+    v.prim_lowers = bvh.prim_lowers
+    v.prim_uppers = bvh.prim_uppers
+    # A BVH over bare boxes has no triangles: empty arrays, which only box queries accept.
+    device = bvh.device
+    v.vertices = bvh.vertices if bvh.vertices is not None else wp.zeros(0, dtype=wp.vec3, device=device)
+    v.faces = bvh.faces if bvh.faces is not None else wp.zeros((0, 3), dtype=wp.int32, device=device)
+    bvh._cache["view"] = v
+    return v
+
+
+def _require_mesh(bvh: Bvh, name: str):
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
     if bvh.vertices is None or bvh.faces is None:
-        raise ValueError("intersect() needs a BVH built over a mesh (build()), not over bare boxes")
+        raise ValueError(f"{name}() needs a BVH built over a mesh (build()), not over bare boxes")
+
+
+def _t_max_value(t_max) -> float:
+    try:
+        value = float(t_max)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"t_max must be a number, got {t_max!r}") from exc
+    return value
+
+
+def _empty(dtype, device, shape=0):
+    return wp.empty(shape, dtype=dtype, device=device)
+
+
+def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return_barycentrics: bool = False,
+              stats: bool = False):
+    """Closest hit of every ray, watertight (Woop et al. 2013) over a padded traversal (Ize 2013).
+
+    Args:
+        bvh: a BVH built over a mesh with `hlbvh_warp.build`.
+        origins, directions: ``(R, 3)`` rays (NumPy or Warp, any real dtype; a single ``(3,)`` ray
+            is accepted). Directions need not be normalized: t is in units of the direction.
+        t_max: only hits with t in (0, t_max) count.
+        return_barycentrics: also return ``u, v``, the weights of each hit triangle's second and
+            third vertex (0 on a miss).
+        stats: also return a `TraversalStats` (nodes visited, triangles tested per ray).
+
+    Returns:
+        ``(t, prim_id)`` NumPy arrays (float32, int32), a miss being ``(inf, -1)``; then ``u, v``
+        when asked, then the stats when asked. Rays with NaN or Inf components, or a zero
+        direction, miss.
+
+    Raises:
+        ValueError: a BVH over bare boxes, or origins/directions of a wrong shape or dtype.
+    """
+    _require_mesh(bvh, "intersect")
     o, d = inputs.ray_arrays(origins, directions)
+    t_max = _t_max_value(t_max)
     num_rays = o.shape[0]
     device = bvh.device
     hit_t = wp.empty(num_rays, dtype=float, device=device)
     hit_prim = wp.empty(num_rays, dtype=wp.int32, device=device)
+    bary = num_rays if return_barycentrics else 0
+    counted = num_rays if stats else 0
+    hit_u, hit_v = _empty(float, device, bary), _empty(float, device, bary)
+    visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
     if num_rays:
         wp.launch(
             traversal.closest_hit_kernel,
             dim=num_rays,
             inputs=[
-                bvh.node_lowers,
-                bvh.node_uppers,
-                bvh.node_left,
-                bvh.node_right,
-                bvh.node_begin,
-                bvh.node_end,
-                bvh.prim_order,
-                bvh.vertices,
-                bvh.faces,
+                view(bvh),
                 wp.array(o, dtype=wp.vec3, device=device),
                 wp.array(d, dtype=wp.vec3, device=device),
-                float(t_max),
+                t_max,
                 hit_t,
                 hit_prim,
+                hit_u,
+                hit_v,
+                visits,
+                tests,
             ],
             device=device,
         )
-    return hit_t.numpy(), hit_prim.numpy()
+    out = (hit_t.numpy(), hit_prim.numpy())
+    if return_barycentrics:
+        out += (hit_u.numpy(), hit_v.numpy())
+    if stats:
+        out += (TraversalStats(visits.numpy(), tests.numpy()),)
+    return out
+
+
+def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = False):
+    """Whether each ray hits any triangle with t in (0, t_max) (shadow rays; stops at the first hit).
+
+    Args:
+        t_max: one number, or one per ray (``(R,)``), e.g. the distance to a light.
+
+    Returns:
+        ``(R,)`` bool NumPy array, and a `TraversalStats` when ``stats``.
+    """
+    _require_mesh(bvh, "occluded")
+    o, d = inputs.ray_arrays(origins, directions)
+    num_rays = o.shape[0]
+    t_arr = np.asarray(t_max.numpy() if isinstance(t_max, wp.array) else t_max)
+    if t_arr.dtype.kind not in "fiu":
+        raise ValueError(f"t_max must hold real numbers, got dtype {t_arr.dtype}")
+    if t_arr.ndim == 0:
+        t_arr = np.full(num_rays, float(t_arr), dtype=np.float32)
+    elif t_arr.shape != (num_rays,):
+        raise ValueError(f"t_max must be a number or have shape ({num_rays},), got {t_arr.shape}")
+    device = bvh.device
+    result = wp.empty(num_rays, dtype=wp.int32, device=device)
+    counted = num_rays if stats else 0
+    visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
+    if num_rays:
+        wp.launch(
+            traversal.occluded_kernel,
+            dim=num_rays,
+            inputs=[
+                view(bvh),
+                wp.array(o, dtype=wp.vec3, device=device),
+                wp.array(d, dtype=wp.vec3, device=device),
+                wp.array(t_arr.astype(np.float32), dtype=float, device=device),
+                result,
+                visits,
+                tests,
+            ],
+            device=device,
+        )
+    hit = result.numpy().astype(bool)
+    if stats:
+        return hit, TraversalStats(visits.numpy(), tests.numpy())
+    return hit
+
+
+def _offsets(counts: wp.array) -> tuple[wp.array, int]:
+    """Exclusive prefix sum of the per-query counts, and the total (the one host read)."""
+    offsets = wp.empty_like(counts)
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    n = counts.shape[0]
+    total = int(offsets[n - 1 : n].numpy()[0] + counts[n - 1 : n].numpy()[0])
+    return offsets, total
+
+
+def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
+    """Every triangle each ray hits with t in (0, t_max) (trimesh's ``multiple_hits``).
+
+    Returns:
+        ``(ray_id, prim_id, t)`` NumPy arrays, sorted by ray, then t, then primitive. A ray
+        through a shared edge or vertex lists every triangle the watertight test accepts there.
+    """
+    _require_mesh(bvh, "intersect_all")
+    o, d = inputs.ray_arrays(origins, directions)
+    t_max = _t_max_value(t_max)
+    num_rays = o.shape[0]
+    if num_rays == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+    device = bvh.device
+    ow = wp.array(o, dtype=wp.vec3, device=device)
+    dw = wp.array(d, dtype=wp.vec3, device=device)
+    counts = wp.zeros(num_rays, dtype=wp.int32, device=device)
+    none_i, none_f = _empty(wp.int32, device), _empty(float, device)
+    # Count pass, prefix sum, write pass: each ray owns a slice, no atomics, deterministic.
+    wp.launch(traversal.all_hits_kernel, dim=num_rays,
+              inputs=[view(bvh), ow, dw, t_max, counts, counts, none_i, none_f], device=device)
+    offsets, total = _offsets(counts)
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+    out_prim = wp.empty(total, dtype=wp.int32, device=device)
+    out_t = wp.empty(total, dtype=float, device=device)
+    wp.launch(traversal.all_hits_kernel, dim=num_rays,
+              inputs=[view(bvh), ow, dw, t_max, offsets, counts, out_prim, out_t], device=device)
+    ray_id = np.repeat(np.arange(num_rays, dtype=np.int64), counts.numpy())
+    prim = out_prim.numpy().astype(np.int64)
+    t = out_t.numpy()
+    order = np.lexsort((prim, t, ray_id))
+    return ray_id[order], prim[order], t[order]
+
+
+def _box_arrays(lowers, uppers):
+    """Query boxes: shapes and dtypes are errors; NaN bounds overlap nothing, infinite ones are fine."""
+    out = []
+    for values, name in ((lowers, "lowers"), (uppers, "uppers")):
+        arr = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
+        if arr.dtype.kind not in "fiu":
+            raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+        if arr.shape == (3,):
+            arr = arr.reshape(1, 3)
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
+        out.append(np.ascontiguousarray(arr, dtype=np.float32))
+    if out[0].shape != out[1].shape:
+        raise ValueError(f"lowers and uppers differ in shape: {out[0].shape} vs {out[1].shape}")
+    return out[0], out[1]
+
+
+def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
+    """Primitives whose box overlaps each query box (closed boxes: touching counts).
+
+    Works on every BVH, built from a mesh (triangle boxes) or from bare boxes.
+
+    Args:
+        lowers, uppers: ``(Q, 3)`` query boxes.
+        return_pairs: also return the ``(P, 2)`` int64 ``(query, prim)`` pairs, sorted.
+
+    Returns:
+        ``(Q,)`` int32 counts, then the pairs when asked.
+    """
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"query_aabb() takes a Bvh, got {type(bvh).__name__}")
+    lo, hi = _box_arrays(lowers, uppers)
+    num_queries = lo.shape[0]
+    if num_queries == 0:
+        counts = np.zeros(0, np.int32)
+        return (counts, np.zeros((0, 2), np.int64)) if return_pairs else counts
+    device = bvh.device
+    lw = wp.array(lo, dtype=wp.vec3, device=device)
+    hw = wp.array(hi, dtype=wp.vec3, device=device)
+    counts = wp.zeros(num_queries, dtype=wp.int32, device=device)
+    none = _empty(wp.vec2i, device)
+    wp.launch(traversal.aabb_query_kernel, dim=num_queries, inputs=[view(bvh), lw, hw, counts, counts, none],
+              device=device)
+    if not return_pairs:
+        return counts.numpy()
+    offsets, total = _offsets(counts)
+    pairs = np.zeros((0, 2), np.int64)
+    if total:
+        out = wp.empty(total, dtype=wp.vec2i, device=device)
+        wp.launch(traversal.aabb_query_kernel, dim=num_queries, inputs=[view(bvh), lw, hw, offsets, counts, out],
+                  device=device)
+        pairs = out.numpy().astype(np.int64).reshape(-1, 2)
+        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    return counts.numpy(), pairs

@@ -1,10 +1,19 @@
-"""Ray traversal: watertight ray-triangle test and a conservative ray-box test.
+"""Ray and box queries on the canonical BVH layout, callable from any user ``@wp.kernel``.
 
 - Triangles: Woop, Benthin & Wald, "Watertight Ray/Triangle Intersection", JCGT 2013. Rays
   through shared edges and vertices of a closed mesh hit one of the triangles, never none.
 - Boxes: Ize, "Robust BVH Ray Traversal", JCGT 2013: the far slab distance is padded by
-  1 + 2 * gamma(3), and axes with a zero direction component are tested as a containment of the
-  origin instead of computing 0 * inf = NaN.
+  1 + 2 * gamma(3). A zero (or underflowing) direction component gives an inverse of +-inf; the
+  slab distance of an origin lying on that slab face is then 0 * inf = NaN, which every
+  comparison below ignores, so such an axis never constrains the interval.
+- Traversal is ordered front to back: the nearer child is visited next, the farther one deferred
+  on a fixed stack of ``TRAVERSAL_STACK_SIZE`` entries. Only deferred siblings are stacked, so a
+  tree of depth D needs at most D entries. The HLBVH builders keep D <= 3n + ceil(log2 N) <= 60
+  (config.py). For any other tree a node met with a full stack is treated as one leaf over its
+  whole primitive range (``node_begin``..``node_end``), so traversal is correct at any depth: it
+  only gets slower below depth 64, and never writes past the stack.
+- Statistics count traversal steps (nodes visited) and primitive tests per query: the n_s and
+  n_t of the measured traversal cost m = n_s * c_t + n_t * c_i (Wodniok & Goesele, GI 2016, eq. 10).
 """
 
 import warp as wp
@@ -14,10 +23,33 @@ wp.set_module_options({"enable_backward": False})
 
 TRAVERSAL_STACK_SIZE = 64
 vec64i = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.int32)
+vec64f = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.float32)
 
 # Ize 2013: 1 + 2 * gamma(3), gamma(n) = n * eps / (1 - n * eps), eps = 2^-24.
 FAR_PAD = wp.constant(1.0 + 2.0 * (3.0 * 5.960464477539063e-08) / (1.0 - 3.0 * 5.960464477539063e-08))
 INF = wp.constant(float("inf"))
+STACK_SIZE = wp.constant(TRAVERSAL_STACK_SIZE)
+
+
+@wp.struct
+class BvhView:
+    """Everything a query reads, passed by value into user kernels (see ``hlbvh_warp.query.view``).
+
+    Node fields follow ``hlbvh_warp.bvh.Bvh``; ``vertices`` and ``faces`` are empty arrays for a
+    BVH built from bare boxes, which supports box queries only.
+    """
+
+    node_lowers: wp.array(dtype=wp.vec3)
+    node_uppers: wp.array(dtype=wp.vec3)
+    node_left: wp.array(dtype=wp.int32)
+    node_right: wp.array(dtype=wp.int32)
+    node_begin: wp.array(dtype=wp.int32)
+    node_end: wp.array(dtype=wp.int32)
+    prim_order: wp.array(dtype=wp.int32)
+    prim_lowers: wp.array(dtype=wp.vec3)
+    prim_uppers: wp.array(dtype=wp.vec3)
+    vertices: wp.array(dtype=wp.vec3)
+    faces: wp.array(dtype=wp.int32, ndim=2)
 
 
 @wp.struct
@@ -26,6 +58,23 @@ class TriangleHit:
     u: float
     v: float
     hit: int
+
+
+@wp.struct
+class RayHit:
+    """Result of a ray query: ``prim`` is -1 and ``t`` inf on a miss.
+
+    ``u``, ``v`` weigh the triangle's second and third vertex (the hit point is
+    ``(1 - u - v) * a + u * b + v * c``); ``nodes_visited`` and ``prims_tested`` are the n_s and
+    n_t of Wodniok & Goesele 2016.
+    """
+
+    t: float
+    prim: int
+    u: float
+    v: float
+    nodes_visited: int
+    prims_tested: int
 
 
 @wp.func
@@ -46,6 +95,7 @@ def intersect_triangle_watertight(
         kz = 2
     kx = (kz + 1) % 3
     ky = (kx + 1) % 3
+    # Swapping kx and ky keeps the winding, so the sign of the edge functions means the same side.
     if direction[kz] < 0.0:
         tmp = kx
         kx = ky
@@ -70,130 +120,471 @@ def intersect_triangle_watertight(
     u = cx * by - cy * bx
     v = ax * cy - ay * cx
     w = bx * ay - by * ax
-    # An edge function of exactly zero is decided in float64 so that neighbours agree.
-    if u == 0.0 or v == 0.0 or w == 0.0:
-        u = float(wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx))
-        v = float(wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx))
-        w = float(wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax))
-    if (u < 0.0 or v < 0.0 or w < 0.0) and (u > 0.0 or v > 0.0 or w > 0.0):
-        return result
     det = u + v + w
-    if det == 0.0:
-        return result
     az = sz * pa[kz]
     bz = sz * pb[kz]
     cz = sz * pc[kz]
-    t_scaled = u * az + v * bz + w * cz
-    t = t_scaled / det
+    t = float(0.0)
+    bary_b = float(0.0)
+    bary_c = float(0.0)
+    if u == 0.0 or v == 0.0 or w == 0.0 or not wp.isfinite(det):
+        # An edge function of exactly zero is decided in float64 so that neighbours agree; the
+        # same path keeps coordinates near 1e19 (products overflow float32) finite.
+        u64 = wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx)
+        v64 = wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx)
+        w64 = wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax)
+        zero = wp.float64(0.0)
+        if (u64 < zero or v64 < zero or w64 < zero) and (u64 > zero or v64 > zero or w64 > zero):
+            return result
+        det64 = u64 + v64 + w64
+        # det == 0: the ray lies in the triangle's plane, or the triangle has no area (a point or
+        # a segment); both count as a miss, as in the paper.
+        if det64 == zero:
+            return result
+        t = float((u64 * wp.float64(az) + v64 * wp.float64(bz) + w64 * wp.float64(cz)) / det64)
+        bary_b = float(v64 / det64)
+        bary_c = float(w64 / det64)
+    else:
+        if (u < 0.0 or v < 0.0 or w < 0.0) and (u > 0.0 or v > 0.0 or w > 0.0):
+            return result
+        # Normalize before weighting the depths: u * az would overflow float32 (or underflow)
+        # for coordinates near 1e18 (or 1e-18), the barycentrics never do.
+        inv_det = 1.0 / det
+        bary_a = u * inv_det
+        bary_b = v * inv_det
+        bary_c = w * inv_det
+        t = bary_a * az + bary_b * bz + bary_c * cz
     if not (t > 0.0 and t < t_max):
         return result
     result.t = t
     # u weighs a, v weighs b, w weighs c: report (beta, gamma) of b and c.
-    result.u = v / det
-    result.v = w / det
+    result.u = bary_b
+    result.v = bary_c
     result.hit = 1
     return result
 
 
 @wp.func
-def ray_box_entry(origin: wp.vec3, inv_dir: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_max: float):
-    """Entry distance of the ray into the box, or INF when it misses within [0, t_max]."""
+def ray_inverse_direction(direction: wp.vec3):
+    """1 / d per axis; a zero component gives +-inf, which `ray_box_entry` is written to accept."""
+    return wp.vec3(1.0 / direction[0], 1.0 / direction[1], 1.0 / direction[2])
+
+
+@wp.func
+def ray_box_entry(origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_max: float):
+    """Entry distance of the ray into the box, or INF when it misses within [0, t_max].
+
+    Slab distances that are NaN (origin on a slab face, direction parallel to it) fail every
+    comparison and so leave [t0, t1] unchanged: the ray stays on that face, inside the slab.
+    """
     t0 = float(0.0)
     t1 = t_max
     for k in range(3):
-        if direction[k] == 0.0:
-            if origin[k] < lower[k] or origin[k] > upper[k]:
-                return INF
-        else:
-            near = (lower[k] - origin[k]) * inv_dir[k]
-            far = (upper[k] - origin[k]) * inv_dir[k]
-            if near > far:
-                tmp = near
-                near = far
-                far = tmp
-            t0 = wp.max(t0, near)
-            t1 = wp.min(t1, far * FAR_PAD)
+        near = (lower[k] - origin[k]) * inv_dir[k]
+        far = (upper[k] - origin[k]) * inv_dir[k]
+        if inv_dir[k] < 0.0:
+            tmp = near
+            near = far
+            far = tmp
+        if near > t0:
+            t0 = near
+        far = far * FAR_PAD
+        if far < t1:
+            t1 = far
     if t0 <= t1:
         return t0
     return INF
 
 
 @wp.func
-def ray_is_valid(origin: wp.vec3, direction: wp.vec3):
+def box_overlap(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: wp.vec3):
+    """Closed boxes overlap (touching counts); a NaN bound overlaps nothing."""
+    ok = int(1)
+    for k in range(3):
+        if not (lower_a[k] <= upper_b[k] and lower_b[k] <= upper_a[k]):
+            ok = 0
+    return ok
+
+
+@wp.func
+def ray_is_valid(origin: wp.vec3, direction: wp.vec3, t_max: float):
+    """NaN or Inf anywhere, a zero direction, or no positive t range: the ray misses."""
     ok = int(1)
     for k in range(3):
         if not wp.isfinite(origin[k]) or not wp.isfinite(direction[k]):
             ok = 0
     if direction[0] == 0.0 and direction[1] == 0.0 and direction[2] == 0.0:
         ok = 0
+    if not (t_max > 0.0):
+        ok = 0
     return ok
 
 
+@wp.func
+def bvh_triangle(bvh: BvhView, prim: int, origin: wp.vec3, direction: wp.vec3, t_max: float):
+    return intersect_triangle_watertight(
+        origin,
+        direction,
+        bvh.vertices[bvh.faces[prim, 0]],
+        bvh.vertices[bvh.faces[prim, 1]],
+        bvh.vertices[bvh.faces[prim, 2]],
+        t_max,
+    )
+
+
+@wp.func
+def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
+    """Front-to-back traversal shared by the closest-hit and the any-hit query."""
+    best_t = t_max
+    best_prim = int(-1)
+    best_u = float(0.0)
+    best_v = float(0.0)
+    visited = int(0)
+    tested = int(0)
+    node = int(-1)
+    # Deferred nodes and their entry distances: one popped behind the closest hit is skipped.
+    stack = vec64i()
+    stack_t = vec64f()
+    top = int(0)
+    inv = wp.vec3(0.0)
+    if ray_is_valid(origin, direction, t_max) == 1:
+        inv = ray_inverse_direction(direction)
+        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], best_t) < INF:
+            node = 0
+    while node >= 0:
+        visited += 1
+        left = bvh.node_left[node]
+        # A leaf, or an interior node whose far child could not be deferred: test its whole range.
+        if left < 0 or top >= STACK_SIZE:
+            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+                p = bvh.prim_order[k]
+                tested += 1
+                h = bvh_triangle(bvh, p, origin, direction, best_t)
+                if h.hit == 1:
+                    best_t = h.t
+                    best_prim = p
+                    best_u = h.u
+                    best_v = h.v
+                    if any_hit == 1:
+                        break
+            node = int(-1)
+            if not (any_hit == 1 and best_prim >= 0):
+                # Pop the nearest deferred node still in front of the closest hit so far.
+                while top > 0 and node < 0:
+                    top -= 1
+                    if stack_t[top] <= best_t:
+                        node = stack[top]
+        else:
+            right = bvh.node_right[node]
+            tl = ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], best_t)
+            tr = ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], best_t)
+            if tl < INF and tr < INF:
+                # Visit the nearer child next, defer the farther one.
+                if tl <= tr:
+                    node = left
+                    stack[top] = right
+                    stack_t[top] = tr
+                else:
+                    node = right
+                    stack[top] = left
+                    stack_t[top] = tl
+                top += 1
+            elif tl < INF:
+                node = left
+            elif tr < INF:
+                node = right
+            else:
+                node = int(-1)
+                while top > 0 and node < 0:
+                    top -= 1
+                    if stack_t[top] <= best_t:
+                        node = stack[top]
+    result = RayHit()
+    result.t = INF
+    result.prim = best_prim
+    result.u = best_u
+    result.v = best_v
+    if best_prim >= 0:
+        result.t = best_t
+    result.nodes_visited = visited
+    result.prims_tested = tested
+    return result
+
+
+@wp.func
+def bvh_closest_hit(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float):
+    """Closest triangle hit with t in (0, t_max), as a `RayHit` (prim -1 and t inf on a miss).
+
+    t is in units of ``direction`` (which need not be normalized). Rays with NaN or Inf, or a
+    zero direction, miss.
+    """
+    return bvh_ray_query(bvh, origin, direction, t_max, 0)
+
+
+@wp.func
+def bvh_any_hit(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float):
+    """The first triangle found with t in (0, t_max), not necessarily the closest (occlusion)."""
+    return bvh_ray_query(bvh, origin, direction, t_max, 1)
+
+
+@wp.func
+def bvh_occluded(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float):
+    """1 when some triangle lies on the ray with t in (0, t_max), else 0 (shadow rays)."""
+    h = bvh_ray_query(bvh, origin, direction, t_max, 1)
+    occluded = int(0)
+    if h.prim >= 0:
+        occluded = 1
+    return occluded
+
+
+@wp.func
+def bvh_ray_all_hits(
+    bvh: BvhView,
+    origin: wp.vec3,
+    direction: wp.vec3,
+    t_max: float,
+    out_prim: wp.array(dtype=wp.int32),
+    out_t: wp.array(dtype=float),
+    offset: int,
+    capacity: int,
+):
+    """Every triangle hit with t in (0, t_max), in traversal order; returns how many.
+
+    The first ``capacity`` hits go to ``out_prim`` / ``out_t`` from ``offset`` on: a count pass
+    (capacity 0), a prefix sum, then a write pass gives each ray its own slice without atomics.
+    """
+    count = int(0)
+    stack = vec64i()
+    top = int(0)
+    node = int(-1)
+    inv = wp.vec3(0.0)
+    if ray_is_valid(origin, direction, t_max) == 1:
+        inv = ray_inverse_direction(direction)
+        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], t_max) < INF:
+            node = 0
+    while node >= 0:
+        left = bvh.node_left[node]
+        if left < 0 or top >= STACK_SIZE - 1:
+            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+                p = bvh.prim_order[k]
+                h = bvh_triangle(bvh, p, origin, direction, t_max)
+                if h.hit == 1:
+                    if count < capacity:
+                        out_prim[offset + count] = p
+                        out_t[offset + count] = h.t
+                    count += 1
+            node = -1
+        else:
+            right = bvh.node_right[node]
+            node = -1
+            if ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], t_max) < INF:
+                stack[top] = left
+                top += 1
+            if ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], t_max) < INF:
+                stack[top] = right
+                top += 1
+        if top > 0:
+            top -= 1
+            node = stack[top]
+    return count
+
+
+@wp.func
+def bvh_aabb_query(
+    bvh: BvhView,
+    lower: wp.vec3,
+    upper: wp.vec3,
+    query: int,
+    out_pairs: wp.array(dtype=wp.vec2i),
+    offset: int,
+    capacity: int,
+):
+    """Every primitive whose box overlaps [lower, upper] (closed); returns how many.
+
+    The first ``capacity`` of them are written as ``(query, prim)`` to ``out_pairs`` from
+    ``offset`` on (pass capacity 0 to count only). Works for BVHs built from bare boxes too.
+    """
+    count = int(0)
+    stack = vec64i()
+    top = int(0)
+    node = int(-1)
+    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+        node = 0
+    while node >= 0:
+        left = bvh.node_left[node]
+        # Both children may be pushed: keep two free slots, else test the node's whole range.
+        if left < 0 or top >= STACK_SIZE - 1:
+            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+                p = bvh.prim_order[k]
+                if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
+                    if count < capacity:
+                        out_pairs[offset + count] = wp.vec2i(query, p)
+                    count += 1
+            node = -1
+        else:
+            right = bvh.node_right[node]
+            node = -1
+            if box_overlap(lower, upper, bvh.node_lowers[left], bvh.node_uppers[left]) == 1:
+                stack[top] = left
+                top += 1
+            if box_overlap(lower, upper, bvh.node_lowers[right], bvh.node_uppers[right]) == 1:
+                stack[top] = right
+                top += 1
+        if top > 0:
+            top -= 1
+            node = stack[top]
+    return count
+
+
+@wp.func
+def bvh_aabb_count(bvh: BvhView, lower: wp.vec3, upper: wp.vec3):
+    """How many primitives have a box overlapping [lower, upper] (closed)."""
+    return bvh_aabb_query(bvh, lower, upper, 0, wp.array(dtype=wp.vec2i), 0, 0)
+
+
+@wp.func
+def bvh_aabb_pairs(
+    bvh: BvhView,
+    lower: wp.vec3,
+    upper: wp.vec3,
+    query: int,
+    pairs: wp.array(dtype=wp.vec2i),
+    pair_count: wp.array(dtype=wp.int32),
+):
+    """Append ``(query, prim)`` for every overlapping primitive through an atomic counter.
+
+    ``pair_count[0]`` ends as the number of pairs found by all threads; pairs beyond
+    ``pairs.shape[0]`` are counted but not written, so a caller can detect overflow and rerun
+    with a larger array. Returns this query's count. Pair order depends on thread scheduling.
+    """
+    count = int(0)
+    stack = vec64i()
+    top = int(0)
+    node = int(-1)
+    capacity = pairs.shape[0]
+    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+        node = 0
+    while node >= 0:
+        left = bvh.node_left[node]
+        if left < 0 or top >= STACK_SIZE - 1:
+            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+                p = bvh.prim_order[k]
+                if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
+                    slot = wp.atomic_add(pair_count, 0, 1)
+                    if slot < capacity:
+                        pairs[slot] = wp.vec2i(query, p)
+                    count += 1
+            node = -1
+        else:
+            right = bvh.node_right[node]
+            node = -1
+            if box_overlap(lower, upper, bvh.node_lowers[left], bvh.node_uppers[left]) == 1:
+                stack[top] = left
+                top += 1
+            if box_overlap(lower, upper, bvh.node_lowers[right], bvh.node_uppers[right]) == 1:
+                stack[top] = right
+                top += 1
+        if top > 0:
+            top -= 1
+            node = stack[top]
+    return count
+
+
+# ------------------------------------------------------------------ kernels of the host calls
 @wp.kernel
 def closest_hit_kernel(
-    node_lowers: wp.array(dtype=wp.vec3),
-    node_uppers: wp.array(dtype=wp.vec3),
-    node_left: wp.array(dtype=wp.int32),
-    node_right: wp.array(dtype=wp.int32),
-    node_begin: wp.array(dtype=wp.int32),
-    node_end: wp.array(dtype=wp.int32),
-    prim_order: wp.array(dtype=wp.int32),
-    vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.int32, ndim=2),
+    bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
     t_max: float,
     hit_t: wp.array(dtype=float),
     hit_prim: wp.array(dtype=wp.int32),
+    hit_u: wp.array(dtype=float),
+    hit_v: wp.array(dtype=float),
+    nodes_visited: wp.array(dtype=wp.int32),
+    prims_tested: wp.array(dtype=wp.int32),
+):
+    """One ray per thread; ``hit_u``/``hit_v`` and the statistics are written when non-empty."""
+    tid = wp.tid()
+    h = bvh_closest_hit(bvh, origins[tid], directions[tid], t_max)
+    hit_t[tid] = h.t
+    hit_prim[tid] = h.prim
+    if hit_u.shape[0] > 0:
+        hit_u[tid] = h.u
+        hit_v[tid] = h.v
+    if nodes_visited.shape[0] > 0:
+        nodes_visited[tid] = h.nodes_visited
+        prims_tested[tid] = h.prims_tested
+
+
+@wp.kernel
+def occluded_kernel(
+    bvh: BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    t_max: wp.array(dtype=float),
+    occluded: wp.array(dtype=wp.int32),
+    nodes_visited: wp.array(dtype=wp.int32),
+    prims_tested: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
-    o = origins[tid]
-    d = directions[tid]
-    best_t = t_max
-    best_prim = int(-1)
-    if ray_is_valid(o, d) == 1:
-        inv = wp.vec3(1.0, 1.0, 1.0)
-        for k in range(3):
-            if d[k] != 0.0:
-                inv[k] = 1.0 / d[k]
-        stack = vec64i()
-        top = int(0)
-        if ray_box_entry(o, inv, d, node_lowers[0], node_uppers[0], best_t) < INF:
-            stack[0] = 0
-            top = 1
-        while top > 0:
-            top -= 1
-            node = stack[top]
-            left = node_left[node]
-            if left < 0:
-                for k in range(node_begin[node], node_end[node]):
-                    p = prim_order[k]
-                    h = intersect_triangle_watertight(
-                        o, d, vertices[faces[p, 0]], vertices[faces[p, 1]], vertices[faces[p, 2]], best_t
-                    )
-                    if h.hit == 1:
-                        best_t = h.t
-                        best_prim = p
-            else:
-                right = node_right[node]
-                tl = ray_box_entry(o, inv, d, node_lowers[left], node_uppers[left], best_t)
-                tr = ray_box_entry(o, inv, d, node_lowers[right], node_uppers[right], best_t)
-                # Push the far child first so the near one is visited next.
-                if tl <= tr:
-                    if tr < INF:
-                        stack[top] = right
-                        top += 1
-                    if tl < INF:
-                        stack[top] = left
-                        top += 1
-                else:
-                    if tl < INF:
-                        stack[top] = left
-                        top += 1
-                    if tr < INF:
-                        stack[top] = right
-                        top += 1
-    if best_prim < 0:
-        best_t = INF
-    hit_t[tid] = best_t
-    hit_prim[tid] = best_prim
+    h = bvh_any_hit(bvh, origins[tid], directions[tid], t_max[tid])
+    occluded[tid] = wp.where(h.prim >= 0, 1, 0)
+    if nodes_visited.shape[0] > 0:
+        nodes_visited[tid] = h.nodes_visited
+        prims_tested[tid] = h.prims_tested
+
+
+@wp.kernel
+def all_hits_kernel(
+    bvh: BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    t_max: float,
+    offsets: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    out_prim: wp.array(dtype=wp.int32),
+    out_t: wp.array(dtype=float),
+):
+    """Count pass when ``out_prim`` is empty (writes ``counts``), else write pass at ``offsets``."""
+    tid = wp.tid()
+    if out_prim.shape[0] == 0:
+        counts[tid] = bvh_ray_all_hits(bvh, origins[tid], directions[tid], t_max, out_prim, out_t, 0, 0)
+    else:
+        bvh_ray_all_hits(bvh, origins[tid], directions[tid], t_max, out_prim, out_t, offsets[tid], counts[tid])
+
+
+@wp.kernel
+def aabb_query_kernel(
+    bvh: BvhView,
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    offsets: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    out_pairs: wp.array(dtype=wp.vec2i),
+):
+    """Count pass when ``out_pairs`` is empty (writes ``counts``), else write pass at ``offsets``."""
+    tid = wp.tid()
+    if out_pairs.shape[0] == 0:
+        counts[tid] = bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, out_pairs, 0, 0)
+    else:
+        bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, out_pairs, offsets[tid], counts[tid])
+
+
+@wp.kernel
+def warp_mesh_closest_hit_kernel(
+    mesh: wp.uint64,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    hit_t: wp.array(dtype=float),
+    hit_prim: wp.array(dtype=wp.int32),
+):
+    """The benchmark's reference: Warp's own mesh BVH and ``wp.mesh_query_ray``, one ray per thread."""
+    tid = wp.tid()
+    q = wp.mesh_query_ray(mesh, origins[tid], directions[tid], 1.0e30)
+    if q.result:
+        hit_t[tid] = q.t
+        hit_prim[tid] = q.face
+    else:
+        hit_t[tid] = INF
+        hit_prim[tid] = -1
