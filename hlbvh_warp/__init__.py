@@ -12,9 +12,10 @@ if not _os.path.isdir(_os.path.join(_os.path.dirname(__file__), "kernels")) and 
     __path__.append(_checkout)  # noqa: F821 (package __path__)
 
 from .api import build, build_from_bounds  # noqa: E402
+from .builder import Builder  # noqa: E402
 from .bvh import Bvh  # noqa: E402
 from .config import BuildConfig  # noqa: E402
 from .query import intersect  # noqa: E402
 
-__all__ = ["Bvh", "BuildConfig", "build", "build_from_bounds", "intersect"]
+__all__ = ["Builder", "Bvh", "BuildConfig", "build", "build_from_bounds", "intersect"]
 __version__ = "0.1.0"

@@ -1,0 +1,384 @@
+"""Per-frame BVH builds for dynamic scenes: buffers allocated once, reused every frame.
+
+Pantaleoni & Luebke 2010 rebuild a dynamic scene from scratch every frame, feeding the
+primitives in the previous frame's BVH order so that the build's input is almost sorted
+(resorting, section 2.2). `Builder` does that, and can also refit, or skip a frame, when a
+per-frame policy finds the full rebuild unnecessary:
+
+- ``policy="rebuild"``: a full (resorted) rebuild every frame, the paper's setup.
+- ``policy="refit"``: recompute the boxes, keep the topology.
+- ``policy="auto"``: nothing moved -> no work; small motion -> refit while the SAH cost has
+  grown by at most ``sah_growth_limit`` over its lowest value since the last rebuild, for at
+  most ``max_refits`` frames in a row; large motion, too much SAH growth or too many refits
+  -> full (resorted) rebuild. Each decision and its reason land in ``Builder.last_report``.
+
+Only ``"auto"`` reads values back to the host (one displacement read, one SAH read per frame):
+it has to, to decide. ``rebuild`` and ``refit`` given device arrays never synchronize, and on
+CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``) when the pipeline
+supports ``sync_free`` builds.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+
+import numpy as np
+import warp as wp
+
+from . import inputs
+from .bvh import Bvh
+from .config import BuildConfig
+from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
+from .kernels import dynamic, morton
+
+POLICIES = ("rebuild", "refit", "auto")
+PIPELINE_METHODS = ("hlbvh", "lbvh")
+
+
+class Builder:
+    """BVH builds over a triangle mesh with a fixed face count, reusing every buffer.
+
+    Args:
+        num_prims: the number of triangles (faces) of every frame.
+        config: `BuildConfig`; defaults when ``None``.
+        device: Warp device; the current default device when ``None``.
+        method: ``"hlbvh"`` or ``"lbvh"`` (the pipeline's methods).
+        resort: feed each rebuild the primitives in the previous tree's order (paper 2.2).
+        policy: ``"rebuild"``, ``"refit"`` or ``"auto"`` for `update`.
+        sah_growth_limit: ``auto`` rebuilds once a refit tree's SAH cost exceeds the cost right
+            after the last rebuild by more than this fraction (default 10%).
+        large_motion: ``auto`` rebuilds without trying a refit when some vertex moved farther
+            than this fraction of the scene's diagonal since the previous frame.
+        max_refits: ``auto`` rebuilds after this many refit frames in a row even when the refit
+            tree's SAH cost holds: a deformation can make a fresh build better while the refit
+            tree's cost stays flat, which no measure of the refit tree alone can see.
+        timings: synchronize around every stage and record ms per stage in the reports.
+
+    Example::
+
+        builder = Builder(len(faces), device="cuda:0")
+        bvh = builder.build(vertices, faces)
+        for frame in frames:
+            report = builder.update(frame_vertices)   # bvh now describes this frame
+    """
+
+    def __init__(self, num_prims: int, config: BuildConfig | None = None, device=None, method: str = "hlbvh", *,
+                 resort: bool = True, policy: str = "rebuild", sah_growth_limit: float = 0.10,
+                 large_motion: float = 0.05, max_refits: int = 8, timings: bool = False):
+        if config is None:
+            config = BuildConfig()
+        if not isinstance(config, BuildConfig):
+            raise ValueError(f"config must be a BuildConfig, got {type(config).__name__}")
+        if method not in PIPELINE_METHODS:
+            raise ValueError(f"Builder method must be one of {PIPELINE_METHODS}, got {method!r}")
+        if policy not in POLICIES:
+            raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+        if not sah_growth_limit >= 0.0:
+            raise ValueError(f"sah_growth_limit must be >= 0, got {sah_growth_limit}")
+        if not large_motion > 0.0:
+            raise ValueError(f"large_motion must be > 0, got {large_motion}")
+        self.num_prims = n = int(num_prims)
+        self.config = config
+        self.device = device = wp.get_device(device)
+        self.method = method
+        self.resort = bool(resort)
+        self.policy = policy
+        self.sah_growth_limit = float(sah_growth_limit)
+        self.large_motion = float(large_motion)
+        if int(max_refits) < 0:
+            raise ValueError(f"max_refits must be >= 0, got {max_refits}")
+        self.max_refits = int(max_refits)
+        self.refits_since_rebuild = 0
+        # Frames left during which `auto` rebuilds without trying a refit (chaotic motion).
+        self.chaotic_frames = 0
+        self.timings = bool(timings)
+        self.pipeline = pipe = HlbvhPipeline(n, config, device)
+        self._sync_free_kw = "sync_free" in inspect.signature(pipe.build).parameters
+        # A CUDA rebuild keeps every count on the device where the pipeline can.
+        self.sync_free = self._sync_free_kw and device.is_cuda
+
+        self.faces = wp.empty((n, 3), dtype=wp.int32, device=device)
+        if self.resort:
+            # The build sees faces in input_order; the tree is mapped back to the user's indices.
+            self.input_order = wp.empty(n, dtype=wp.int32, device=device)
+            self.build_faces = wp.empty((n, 3), dtype=wp.int32, device=device)
+            self.prim_order = wp.empty(n, dtype=wp.int32, device=device)
+            self.prim_lowers = wp.empty(n, dtype=wp.vec3, device=device)
+            self.prim_uppers = wp.empty(n, dtype=wp.vec3, device=device)
+        else:
+            self.input_order = None
+            self.build_faces = self.faces
+            self.prim_order = pipe.sorted_prim_ids[:n]
+            self.prim_lowers = pipe.prim_lowers
+            self.prim_uppers = pipe.prim_uppers
+        self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
+        self.sah = wp.zeros(1, dtype=wp.float64, device=device)
+        # Vertex buffers: allocated by the first `build`, when the vertex count is known.
+        self.vertices = None
+        self.previous_vertices = None
+        self.bvh: Bvh | None = None
+        self.frame = 0
+        self.sah_reference = None
+        self.last_report: dict = {}
+        self.reports: list[dict] = []
+
+    # --------------------------------------------------------------- inputs
+    def _check_vertices(self, vertices) -> int:
+        """Shape and dtype checks only; NaN/Inf checks for NumPy input (already on the host)."""
+        if isinstance(vertices, wp.array):
+            if vertices.dtype == wp.vec3 and vertices.ndim == 1:
+                return vertices.shape[0]
+            if vertices.dtype == wp.float32 and vertices.ndim == 2 and vertices.shape[1] == 3:
+                return vertices.shape[0]
+            raise ValueError(f"vertices must be a wp.array of vec3 or float32 (V, 3), got {vertices.dtype} "
+                             f"with shape {vertices.shape}")
+        arr = np.asarray(vertices)
+        if arr.dtype.kind != "f" or arr.ndim != 2 or arr.shape[1] != 3:
+            raise ValueError(f"vertices must be floats of shape (V, 3), got {arr.dtype} {arr.shape}")
+        if not np.isfinite(arr).all():
+            row = int(np.argwhere(~np.isfinite(arr))[0][0])
+            raise ValueError(f"vertices has a NaN or Inf coordinate (first at row {row})")
+        return arr.shape[0]
+
+    def _load_vertices(self, vertices, dest: wp.array):
+        """Copy into a preallocated device buffer: no device allocation on the per-frame path."""
+        count = self._check_vertices(vertices)
+        if count != dest.shape[0]:
+            raise ValueError(f"vertices has {count} rows, the builder was set up with {dest.shape[0]}")
+        if isinstance(vertices, wp.array):
+            src = vertices
+            if vertices.dtype != wp.vec3:
+                if not vertices.is_contiguous:
+                    raise ValueError("float32 (V, 3) vertices must be contiguous")
+                src = wp.array(ptr=vertices.ptr, dtype=wp.vec3, shape=count, device=vertices.device)
+            if src.ptr != dest.ptr:
+                wp.copy(dest, src)
+        else:
+            host = np.ascontiguousarray(vertices, dtype=np.float32)
+            wp.copy(dest, wp.array(host, dtype=wp.vec3, device="cpu", copy=False))
+
+    # ---------------------------------------------------------------- build
+    def build(self, vertices, faces) -> Bvh:
+        """Set the mesh (faces are fixed from now on) and build its BVH from scratch.
+
+        This is the setup call: it validates everything on the host and allocates the vertex
+        buffers. Later frames call `update`, `rebuild` or `refit` with new vertices.
+        """
+        verts_np, faces_np = inputs.mesh_arrays(vertices, faces)
+        if faces_np.shape[0] != self.num_prims:
+            raise ValueError(f"faces has {faces_np.shape[0]} rows, the builder was set up for {self.num_prims}")
+        if self.vertices is None or self.vertices.shape[0] != verts_np.shape[0]:
+            self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+            self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+        self.vertices.assign(verts_np)
+        self.faces.assign(faces_np)
+        if self.resort:
+            wp.launch(dynamic.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
+        pipe = self.pipeline
+        self.bvh = Bvh(method=self.method, config=self.config, device=self.device, prim_lowers=self.prim_lowers,
+                       prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,
+                       node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
+                       node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
+                       node_count=pipe.node_count, vertices=self.vertices, faces=self.faces)
+        self.frame = 0
+        self.reports = []
+        start = time.perf_counter()
+        timer = StageTimer(self.device, self.timings)
+        self._rebuild(timer)
+        stages = self._finish(timer)
+        if self.policy == "auto":
+            self.sah_reference = self.sah_cost()
+        self._report("rebuild", "first build", start, stages)
+        return self.bvh
+
+    def _require_built(self):
+        if self.bvh is None:
+            raise RuntimeError("call build(vertices, faces) once before rebuild/refit/update")
+
+    def _rebuild(self, timer: StageTimer):
+        """The launches of one full build from `self.vertices`; no host reads unless timed."""
+        n, device, pipe = self.num_prims, self.device, self.pipeline
+        if self.resort:
+            # Resorting: the previous tree's order becomes this build's input order.
+            timer.stage("resort_gather")
+            wp.launch(dynamic.resort_gather_kernel, dim=n,
+                      inputs=[self.prim_order, self.faces, self.input_order, self.build_faces], device=device)
+        timer.stage("prim_bounds")
+        pipe.compute_triangle_bounds(self.vertices, self.build_faces)
+        pipeline_timings = timer.timings
+        if self._sync_free_kw:
+            pipe.build(self.method, timer, sync_free=self.sync_free)
+        else:
+            pipe.build(self.method, timer)
+        pipeline_timings.pop("total", None)
+        if self.resort:
+            # Map build-input ids back to the user's face indices, boxes to the user's order.
+            timer.stage("resort_map")
+            wp.launch(dynamic.resort_map_kernel, dim=n,
+                      inputs=[self.input_order, pipe.sorted_prim_ids, pipe.prim_lowers, pipe.prim_uppers,
+                              self.prim_order, self.prim_lowers, self.prim_uppers], device=device)
+
+    def _refit(self, timer: StageTimer):
+        timer.stage("prim_bounds")
+        wp.launch(morton.triangle_bounds_kernel, dim=self.num_prims,
+                  inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=self.device)
+        timer.stage("refit")
+        bvh, pipe = self.bvh, self.pipeline
+        compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
+                       bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
+                       pipe.node_visits, bvh.node_lowers, bvh.node_uppers)
+
+    def _finish(self, timer: StageTimer) -> dict:
+        self.bvh.invalidate()
+        timings = timer.finish()
+        return dict(timings)
+
+    def rebuild(self, vertices=None) -> Bvh:
+        """Full build over new vertices (or the current contents of ``self.vertices``).
+
+        Resorted when the builder was made with ``resort=True``. Given a device array (or None)
+        it launches work only: no host synchronization, no allocation.
+        """
+        self._require_built()
+        start = time.perf_counter()
+        if vertices is not None:
+            self._load_vertices(vertices, self.vertices)
+        timer = StageTimer(self.device, self.timings)
+        self._rebuild(timer)
+        stages = self._finish(timer)
+        self.sah_reference = None
+        self._report("rebuild", "rebuild requested", start, stages)
+        return self.bvh
+
+    def refit(self, vertices=None) -> Bvh:
+        """Recompute every box for new vertices, keeping the topology."""
+        self._require_built()
+        start = time.perf_counter()
+        if vertices is not None:
+            self._load_vertices(vertices, self.vertices)
+        timer = StageTimer(self.device, self.timings)
+        self._refit(timer)
+        stages = self._finish(timer)
+        self._report("refit", "refit requested", start, stages)
+        return self.bvh
+
+    def update(self, vertices=None) -> dict:
+        """One frame under the builder's policy; returns the frame report (also `last_report`)."""
+        self._require_built()
+        if self.policy == "rebuild":
+            self.rebuild(vertices)
+        elif self.policy == "refit":
+            self.refit(vertices)
+        else:
+            self._auto(vertices)
+        return self.last_report
+
+    # ----------------------------------------------------------------- auto
+    def sah_cost(self) -> float:
+        """SAH cost of the current tree (paper eq. 1, costs from the config), read to the host."""
+        self._require_built()
+        bvh = self.bvh
+        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats, self.sah], device=self.device)
+        wp.launch(dynamic.sah_cost_kernel, dim=bvh.node_left.shape[0],
+                  inputs=[bvh.node_count, bvh.node_lowers, bvh.node_uppers, bvh.node_left, bvh.node_begin,
+                          bvh.node_end, float(self.config.sah_traversal_cost),
+                          float(self.config.sah_intersection_cost), self.sah], device=self.device)
+        return float(self.sah.numpy()[0])
+
+    def _auto(self, vertices):
+        start = time.perf_counter()
+        timer = StageTimer(self.device, self.timings)
+        timer.stage("motion")
+        # Keep the previous frame's vertices, then measure the largest displacement on the device.
+        wp.copy(self.previous_vertices, self.vertices)
+        if vertices is not None:
+            self._load_vertices(vertices, self.vertices)
+        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats, self.sah], device=self.device)
+        wp.launch(dynamic.max_displacement_kernel, dim=self.vertices.shape[0],
+                  inputs=[self.previous_vertices, self.vertices, self.stats], device=self.device)
+        wp.launch(dynamic.root_diagonal_kernel, dim=1,
+                  inputs=[self.bvh.node_lowers, self.bvh.node_uppers, self.stats], device=self.device)
+        moved, diagonal = (float(x) for x in self.stats.numpy())
+        relative = moved / diagonal if diagonal > 0.0 else (0.0 if moved == 0.0 else float("inf"))
+        extra = {"max_displacement": moved, "relative_motion": relative}
+        skipped = []
+        if moved == 0.0:
+            decision, reason = "none", "no vertex moved since the previous frame"
+            skipped = ["prim_bounds", "refit", "rebuild"]
+        elif relative > self.large_motion or self.sah_reference is None:
+            decision = "rebuild"
+            reason = (f"large motion: a vertex moved {relative:.1%} of the scene diagonal "
+                      f"(limit {self.large_motion:.1%})" if self.sah_reference is not None
+                      else "no SAH reference yet")
+            self._rebuild(timer)
+        elif self.chaotic_frames > 0:
+            self.chaotic_frames -= 1
+            decision = "rebuild"
+            reason = ("chaotic motion: a refit tree recently exceeded the SAH limit on its first frame "
+                      f"(refit retried in {self.chaotic_frames + 1} frames)")
+            self._rebuild(timer)
+        elif self.refits_since_rebuild >= self.max_refits:
+            decision = "rebuild"
+            reason = (f"small motion ({relative:.2%} of the diagonal), but {self.refits_since_rebuild} refits in a row "
+                      f"(limit {self.max_refits})")
+            self._rebuild(timer)
+        else:
+            self._refit(timer)
+            timer.stage("sah")
+            sah = self.sah_cost()
+            # Growth over the best cost seen since the last rebuild: a deformation that lowers the
+            # cost of the refit tree lowers that of a fresh build too, so the rebuild's own cost
+            # would understate how far the refit tree has fallen behind.
+            growth = sah / self.sah_reference - 1.0
+            extra.update(sah_refit=sah, sah_growth=growth)
+            if growth > self.sah_growth_limit:
+                decision = "rebuild"
+                reason = (f"small motion ({relative:.2%} of the diagonal) but the refit SAH cost grew "
+                          f"{growth:+.1%} over its best since the last rebuild (limit {self.sah_growth_limit:.0%})")
+                if self.refits_since_rebuild == 0:
+                    # One frame of motion already ruins a fresh tree: stop trying refits for a while.
+                    self.chaotic_frames = max(self.max_refits, 1)
+                self._rebuild(timer)
+            else:
+                decision = "refit"
+                reason = (f"small motion ({relative:.2%} of the diagonal); SAH cost {growth:+.1%} over its best "
+                          f"since the last rebuild (limit {self.sah_growth_limit:.0%})")
+                skipped = ["rebuild"]
+                self.sah_reference = min(self.sah_reference, sah)
+        if decision == "refit":
+            self.refits_since_rebuild += 1
+        elif decision == "rebuild":
+            self.refits_since_rebuild = 0
+        if decision == "rebuild":
+            timer.stage("sah")
+            self.sah_reference = self.sah_cost()
+            extra["sah"] = self.sah_reference
+        elif decision == "refit":
+            extra["sah"] = extra["sah_refit"]
+        stages = self._finish(timer)
+        stages["skipped"] = list(stages.get("skipped", [])) + skipped
+        self._report(decision, reason, start, stages, **extra)
+
+    # --------------------------------------------------------------- report
+    def _report(self, decision: str, reason: str, start: float, stages: dict, **extra):
+        if self.timings:
+            wp.synchronize_device(self.device)
+        skipped = stages.pop("skipped", [])
+        stages.pop("total", None)
+        report = {
+            "frame": self.frame,
+            "decision": decision,
+            "reason": reason,
+            "policy": self.policy,
+            "resort": self.resort,
+            # Host time of the call; with timings=False on CUDA it excludes the queued device work.
+            "ms": (time.perf_counter() - start) * 1e3,
+            "stages_ms": stages,
+            "stages_skipped": list(skipped),
+        }
+        report.update(extra)
+        self.bvh.timings = stages
+        self.last_report = report
+        self.reports.append(report)
+        self.frame += 1

@@ -1,0 +1,90 @@
+"""Tiny offline renderer for the examples: primary rays cast with `hlbvh_warp.intersect`,
+Lambert shading against one directional light, PNG frames and an animated GIF."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from .query import intersect
+
+
+class Camera:
+    """A pinhole camera looking at the centre of a box from a fixed direction."""
+
+    def __init__(self, lower, upper, direction=(1.0, 0.55, 1.6), fov_degrees: float = 40.0, zoom: float = 1.0):
+        lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+        self.target = 0.5 * (lower + upper)
+        radius = 0.5 * float(np.linalg.norm(upper - lower)) or 1.0
+        back = np.asarray(direction, dtype=np.float64)
+        back /= np.linalg.norm(back)
+        self.tan_half = np.tan(np.radians(fov_degrees) / 2.0)
+        self.eye = self.target + back * (radius / np.sin(np.radians(fov_degrees) / 2.0)) / zoom
+        self.forward = -back
+        up = np.array([0.0, 1.0, 0.0]) if abs(back[1]) < 0.95 else np.array([0.0, 0.0, 1.0])
+        self.right = np.cross(self.forward, up)
+        self.right /= np.linalg.norm(self.right)
+        self.up = np.cross(self.right, self.forward)
+
+    @classmethod
+    def framing(cls, vertices, **kwargs) -> "Camera":
+        v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        return cls(v.min(axis=0), v.max(axis=0), **kwargs)
+
+    def rays(self, width: int, height: int):
+        """One ray through the centre of every pixel, row-major from the top-left."""
+        xs = (np.arange(width) + 0.5) / width * 2.0 - 1.0
+        ys = 1.0 - (np.arange(height) + 0.5) / height * 2.0
+        px, py = np.meshgrid(xs * self.tan_half * width / height, ys * self.tan_half)
+        d = self.forward + px[..., None] * self.right + py[..., None] * self.up
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        o = np.broadcast_to(self.eye, d.shape)
+        return o.reshape(-1, 3).astype(np.float32), d.reshape(-1, 3).astype(np.float32)
+
+
+def shade(vertices, faces, prim, directions, width: int, height: int, light=(0.4, 1.0, 0.6),
+          color=(0.85, 0.72, 0.5)) -> np.ndarray:
+    """An ``(height, width, 3)`` uint8 image: two-sided Lambert plus ambient; misses get a sky."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    light = np.asarray(light, dtype=np.float64)
+    light /= np.linalg.norm(light)
+    hit = prim >= 0
+    image = np.empty((prim.shape[0], 3))
+    sky = np.linspace(0.95, 0.7, height)[:, None].repeat(width, axis=1).reshape(-1)
+    image[:] = sky[:, None] * np.array([0.75, 0.85, 1.0])
+    tri = f[prim[hit]]
+    n = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    # Face the normal towards the viewer, then light it.
+    n *= -np.sign(np.einsum("ij,ij->i", n, directions[hit]))[:, None]
+    lambert = np.clip(n @ light, 0.0, 1.0)
+    image[hit] = (0.18 + 0.82 * lambert)[:, None] * np.asarray(color)
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8).reshape(height, width, 3)
+
+
+def render(bvh, camera: Camera, width: int = 256, height: int = 256) -> np.ndarray:
+    """Ray-cast one frame of a BVH built over a mesh; returns an ``(height, width, 3)`` uint8 image."""
+    origins, directions = camera.rays(width, height)
+    _, prim = intersect(bvh, origins, directions)
+    return shade(bvh.vertices.numpy(), bvh.faces.numpy(), prim, directions, width, height)
+
+
+def save_png(image: np.ndarray, path) -> pathlib.Path:
+    from PIL import Image
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image).save(path)
+    return path
+
+
+def save_gif(images, path, ms_per_frame: int = 80) -> pathlib.Path:
+    from PIL import Image
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames = [Image.fromarray(im) for im in images]
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=ms_per_frame, loop=0)
+    return path

@@ -1,0 +1,167 @@
+"""Device code for dynamic scenes: per-frame deformations, resorting, motion and SAH measures.
+
+Pantaleoni & Luebke 2010, section 2.2: a dynamic scene is rebuilt every frame, and feeding the
+primitives in the previous frame's BVH order (resorting) makes the next build's input almost
+sorted. The host side (``hlbvh_warp.builder``, ``hlbvh_warp.dynamic``) allocates and launches.
+"""
+
+import warp as wp
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+
+# ------------------------------------------------------------------ resorting
+@wp.kernel
+def iota_kernel(values: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    values[tid] = tid
+
+
+@wp.kernel
+def resort_gather_kernel(
+    prim_order: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    input_order: wp.array(dtype=wp.int32),
+    gathered: wp.array(dtype=wp.int32, ndim=2),
+):
+    # The previous tree's order becomes the build's input order: input i is user face order[i].
+    i = wp.tid()
+    f = prim_order[i]
+    input_order[i] = f
+    gathered[i, 0] = faces[f, 0]
+    gathered[i, 1] = faces[f, 1]
+    gathered[i, 2] = faces[f, 2]
+
+
+@wp.kernel
+def resort_map_kernel(
+    input_order: wp.array(dtype=wp.int32),
+    local_order: wp.array(dtype=wp.int32),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+    prim_order: wp.array(dtype=wp.int32),
+    user_lowers: wp.array(dtype=wp.vec3),
+    user_uppers: wp.array(dtype=wp.vec3),
+):
+    # Tree position k holds build input i = local_order[k], i.e. user face input_order[i]; its
+    # box goes back to the user's index too.
+    k = wp.tid()
+    i = local_order[k]
+    f = input_order[i]
+    prim_order[k] = f
+    user_lowers[f] = lowers[i]
+    user_uppers[f] = uppers[i]
+
+
+# --------------------------------------------------------- motion and quality
+@wp.kernel
+def reset_stats_kernel(stats: wp.array(dtype=wp.float32), sah: wp.array(dtype=wp.float64)):
+    stats[0] = 0.0
+    stats[1] = 0.0
+    sah[0] = wp.float64(0.0)
+
+
+@wp.kernel
+def max_displacement_kernel(
+    previous: wp.array(dtype=wp.vec3),
+    current: wp.array(dtype=wp.vec3),
+    stats: wp.array(dtype=wp.float32),
+):
+    # stats[0] = max |current - previous| over the vertices; a NaN coordinate counts as infinite.
+    tid = wp.tid()
+    d = wp.length(current[tid] - previous[tid])
+    if d != d:
+        d = 3.4e38
+    if d > 0.0:
+        wp.atomic_max(stats, 0, d)
+
+
+@wp.kernel
+def root_diagonal_kernel(
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    stats: wp.array(dtype=wp.float32),
+):
+    stats[1] = wp.length(node_uppers[0] - node_lowers[0])
+
+
+@wp.func
+def box_area(lower: wp.vec3, upper: wp.vec3):
+    d = wp.max(upper - lower, wp.vec3(0.0, 0.0, 0.0))
+    return wp.float64(2.0) * (wp.float64(d[0]) * wp.float64(d[1]) + wp.float64(d[1]) * wp.float64(d[2])
+                              + wp.float64(d[2]) * wp.float64(d[0]))
+
+
+@wp.kernel
+def sah_cost_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_left: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    traversal_cost: float,
+    intersection_cost: float,
+    sah: wp.array(dtype=wp.float64),
+):
+    # The paper's eq. 1 unrolled: sum over nodes of area(node) / area(root) times
+    # T1 * 2 for an interior node or T2 * N_prims for a leaf.
+    node = wp.tid()
+    if node >= node_count[0]:
+        return
+    root_area = box_area(node_lowers[0], node_uppers[0])
+    if root_area <= wp.float64(0.0):
+        root_area = wp.float64(1.0)
+    cost = wp.float64(0.0)
+    if node_left[node] >= 0:
+        cost = wp.float64(2.0 * traversal_cost)
+    else:
+        cost = wp.float64(intersection_cost) * wp.float64(node_end[node] - node_begin[node])
+    wp.atomic_add(sah, 0, cost * box_area(node_lowers[node], node_uppers[node]) / root_area)
+
+
+# --------------------------------------------------------------- deformations
+@wp.kernel
+def explode_kernel(
+    centroids: wp.array(dtype=wp.vec3),
+    offsets: wp.array(dtype=wp.vec3),
+    velocities: wp.array(dtype=wp.vec3),
+    axes: wp.array(dtype=wp.vec3),
+    spins: wp.array(dtype=float),
+    time: float,
+    vertices: wp.array(dtype=wp.vec3),
+):
+    # Triangle tid owns vertices 3 tid .. 3 tid + 2: its centroid flies, its corners spin.
+    tid = wp.tid()
+    q = wp.quat_from_axis_angle(axes[tid], spins[tid] * time)
+    c = centroids[tid] + velocities[tid] * time
+    for k in range(3):
+        vertices[3 * tid + k] = c + wp.quat_rotate(q, offsets[3 * tid + k])
+
+
+@wp.kernel
+def bend_kernel(
+    rest: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    length_axis: wp.vec3,
+    bend_axis: wp.vec3,
+    curvature: float,
+    vertices: wp.array(dtype=wp.vec3),
+):
+    # Bend the straight length axis into an arc of the given curvature (1 / radius), towards
+    # bend_axis; the third axis is unchanged. Zero curvature is the identity.
+    tid = wp.tid()
+    p = rest[tid] - origin
+    along = wp.dot(p, length_axis)
+    across = wp.dot(p, bend_axis)
+    other = p - along * length_axis - across * bend_axis
+    if wp.abs(curvature) < 1.0e-12:
+        vertices[tid] = rest[tid]
+        return
+    radius = 1.0 / curvature
+    theta = along * curvature
+    r = radius - across
+    new_along = r * wp.sin(theta)
+    new_across = radius - r * wp.cos(theta)
+    vertices[tid] = origin + new_along * length_axis + new_across * bend_axis + other

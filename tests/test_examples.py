@@ -1,0 +1,67 @@
+"""Every example runs headless (and rendered, at a tiny size) for a few frames on every device."""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+
+import numpy as np
+import pytest
+import warp as wp
+
+EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
+
+
+def load_example(name: str):
+    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("headless", [True, False])
+def test_exploding_mesh(device, headless, tmp_path):
+    module = load_example("example_exploding_mesh")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=2000, image_size=24, headless=headless)
+        for _ in range(3):
+            example.step()
+            example.render()
+    rows = example.animation.rows
+    assert [r["decision"] for r in rows] == ["rebuild"] * 3
+    if headless:
+        assert example.save(tmp_path) == []
+    else:
+        paths = example.save(tmp_path)
+        assert [p.suffix for p in paths] == [".png", ".gif"] and all(p.stat().st_size > 0 for p in paths)
+        image = example.animation.images[-1]
+        assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0
+
+
+def test_bending_mesh(device, tmp_path):
+    module = load_example("example_bending_mesh")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=2000, num_frames=24, image_size=16)
+        for _ in range(4):
+            example.step()
+            example.render()
+    rows = example.animation.rows
+    assert all(r["sah_ratio"] <= 1.10 for r in rows), rows
+    assert "refit" in {r["decision"] for r in rows}
+    assert len(example.save(tmp_path)) == 2
+
+
+def test_frame_timing(device, tmp_path):
+    module = load_example("example_frame_timing")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=1000, num_frames=3, modes=["hlbvh scratch", "hlbvh auto", "wp.Bvh sah"],
+                                 headless=True)
+        for _ in range(3):
+            example.step()
+            example.render()
+    table = example.table()
+    assert "hlbvh auto" in table and "wp.Bvh sah" in table
+    for seq in example.sequences.values():
+        assert all(len(ms) == 3 for ms in seq["ms"].values())
+    path = example.plot(str(tmp_path / "timing.png"))
+    assert pathlib.Path(path).stat().st_size > 0
