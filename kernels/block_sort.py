@@ -19,6 +19,9 @@ wp.set_module_options({"enable_backward": False})
 
 # Runs of this many elements are insertion-sorted before merging starts.
 INSERTION_RUN = 16
+# A block with at most this many descents (resorted input: the previous frame's order) is
+# insertion-sorted whole: O(k + inversions) instead of the merge sort's O(k log k).
+NEARLY_SORTED_DESCENTS = 8
 
 
 @wp.kernel
@@ -133,19 +136,24 @@ def block_sort_kernel(
         end = block_starts[b + 1]
 
     # A block that is already in order (resorted input) costs one read and no writes.
-    in_order = int(1)
+    descents = int(0)
     for i in range(begin + 1, end):
         if codes[i - 1] > codes[i]:
-            in_order = 0
-            break
-    if in_order == 1:
+            descents += 1
+            if descents > NEARLY_SORTED_DESCENTS:
+                break
+    if descents == 0:
         return
     wp.atomic_add(blocks_sorted, 0, 1)
 
-    # Stable insertion sort of short runs, then bottom-up merges ping-ponging with scratch.
+    # Stable insertion sort of short runs (of the whole block when it is nearly sorted), then
+    # bottom-up merges ping-ponging with scratch.
+    run_length = int(INSERTION_RUN)
+    if descents <= NEARLY_SORTED_DESCENTS:
+        run_length = end - begin
     run_begin = begin
     while run_begin < end:
-        run_end = wp.min(run_begin + INSERTION_RUN, end)
+        run_end = wp.min(run_begin + run_length, end)
         for i in range(run_begin + 1, run_end):
             key = codes[i]
             val = prim_ids[i]
@@ -158,7 +166,7 @@ def block_sort_kernel(
             prim_ids[j + 1] = val
         run_begin = run_end
 
-    width = int(INSERTION_RUN)
+    width = run_length
     in_scratch = int(0)
     while width < end - begin:
         if in_scratch == 0:

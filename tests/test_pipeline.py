@@ -338,3 +338,20 @@ def test_float64_and_wide_int_input(device):
     bvh2 = hb.build(wp.array(v.astype(np.float32), dtype=wp.vec3, device=device),
                     wp.array(f.astype(np.int32), dtype=wp.int32, device=device), device=device)
     assert bvh2.num_nodes == 3
+
+
+def test_voxel_sort_of_nearly_sorted_input(device, rng):
+    # The previous frame's order with a few primitives moved: blocks take the insertion path.
+    lo, hi = soup_bounds(rng, 6000, clusters=True)
+    pipe = make_pipeline(lo, hi, device)
+    pipe.compute_morton_codes()
+    order = np.argsort(pipe.morton_codes.numpy(), kind="stable")
+    lo, hi = lo[order].copy(), hi[order].copy()
+    swap = rng.choice(len(lo), size=(6, 2), replace=False)
+    for a, b in swap:
+        lo[[a, b]], hi[[a, b]] = lo[[b, a]], hi[[b, a]]
+    pipe = make_pipeline(lo, hi, device)
+    pipe.build("hlbvh")
+    np.testing.assert_array_equal(
+        pipe.sorted_prim_ids.numpy()[: len(lo)], np.argsort(pipe.morton_codes.numpy(), kind="stable")
+    )
