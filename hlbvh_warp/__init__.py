@@ -15,7 +15,42 @@ from .api import build, build_from_bounds  # noqa: E402
 from .builder import Builder  # noqa: E402
 from .bvh import Bvh  # noqa: E402
 from .config import BuildConfig  # noqa: E402
-from .query import intersect  # noqa: E402
+from .query import (  # noqa: E402
+    BvhView,
+    RayHit,
+    TraversalStats,
+    bvh_aabb_count,
+    bvh_aabb_pairs,
+    bvh_any_hit,
+    bvh_closest_hit,
+    bvh_occluded,
+    intersect,
+    intersect_all,
+    occluded,
+    query_aabb,
+    view,
+)
+from .trimesh_adapter import RayMeshIntersector  # noqa: E402
 
-__all__ = ["Builder", "Bvh", "BuildConfig", "build", "build_from_bounds", "intersect"]
+__all__ = [
+    "Builder",
+    "Bvh",
+    "BvhView",
+    "BuildConfig",
+    "RayHit",
+    "RayMeshIntersector",
+    "TraversalStats",
+    "build",
+    "build_from_bounds",
+    "bvh_aabb_count",
+    "bvh_aabb_pairs",
+    "bvh_any_hit",
+    "bvh_closest_hit",
+    "bvh_occluded",
+    "intersect",
+    "intersect_all",
+    "occluded",
+    "query_aabb",
+    "view",
+]
 __version__ = "0.1.0"

@@ -102,6 +102,12 @@ class Bvh:
             self._cache[key] = out
         return self._cache[key]
 
+    def view(self):
+        """A `BvhView` struct of this tree for user kernels (``bvh_closest_hit`` and friends)."""
+        from .query import view
+
+        return view(self)
+
     def invalidate(self):
         """Forget host copies after the device arrays changed (refit, rebuild)."""
         self._cache.clear()

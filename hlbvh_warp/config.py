@@ -8,7 +8,10 @@ import dataclasses
 MAX_BITS_PER_AXIS = 10
 #: A treelet pass keeps its 2^p - 1 split slots in a fixed-size local vector.
 MAX_PLANES_PER_PASS = 4
-#: Traversal stacks are this deep; `BuildConfig` keeps every tree's depth below it.
+#: Traversal stacks are this deep. HLBVH trees are at most 3n + ceil(log2 N) < 64 deep; the top-down
+#: builders split exact SAH ties at the middle, so duplicates do not chain; a deeper tree (possible
+#: for hand-made topologies) is still traversed exactly: a node met with a full stack is tested as
+#: one leaf over its whole primitive range.
 TRAVERSAL_STACK_SIZE = 64
 
 

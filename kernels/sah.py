@@ -180,8 +180,12 @@ def choose_splits_kernel(
                 prev_bin = next_bin
             if candidate:
                 cost = box_area64(lower, upper) * w + suffix_area[i] * suffix_weight[i]
-                # Strictly smaller: ties go to the lower axis, then the leftmost position.
-                if cost < best_cost:
+                # Exact ties go to the position nearest the middle (then the lower axis): equal or
+                # zero-area boxes tie everywhere, and leftmost ties would chain them N deep.
+                better = cost < best_cost
+                if cost == best_cost and best_pos >= 0:
+                    better = wp.abs(2 * i - b - e) < wp.abs(2 * best_pos - b - e)
+                if better:
                     best_cost = cost
                     best_axis = a
                     best_pos = i

@@ -439,7 +439,32 @@ def bvh_aabb_query(
 @wp.func
 def bvh_aabb_count(bvh: BvhView, lower: wp.vec3, upper: wp.vec3):
     """How many primitives have a box overlapping [lower, upper] (closed)."""
-    return bvh_aabb_query(bvh, lower, upper, 0, wp.array(dtype=wp.vec2i), 0, 0)
+    count = int(0)
+    stack = vec64i()
+    top = int(0)
+    node = int(-1)
+    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+        node = 0
+    while node >= 0:
+        left = bvh.node_left[node]
+        if left < 0 or top >= STACK_SIZE - 1:
+            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+                p = bvh.prim_order[k]
+                count += box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p])
+            node = -1
+        else:
+            right = bvh.node_right[node]
+            node = -1
+            if box_overlap(lower, upper, bvh.node_lowers[left], bvh.node_uppers[left]) == 1:
+                stack[top] = left
+                top += 1
+            if box_overlap(lower, upper, bvh.node_lowers[right], bvh.node_uppers[right]) == 1:
+                stack[top] = right
+                top += 1
+        if top > 0:
+            top -= 1
+            node = stack[top]
+    return count
 
 
 @wp.func

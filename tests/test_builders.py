@@ -108,8 +108,9 @@ def greedy_sweep_reference(lo, hi):
                 left, right = ordered[:k], ordered[k:]
                 c = area64(lo[left].min(0), hi[left].max(0)) * k + area64(lo[right].min(0), hi[right].max(0)) * (
                     len(ordered) - k)
-                if best is None or c < best[0]:
-                    best = (c, left, right)
+                unbalance = abs(2 * k - len(ordered))
+                if best is None or c < best[0] or (c == best[0] and unbalance < best[3]):
+                    best = (c, left, right, unbalance)
         rec(best[1])
         rec(best[2])
 

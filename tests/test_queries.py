@@ -1,0 +1,190 @@
+"""Batched queries (intersect, occluded, intersect_all, query_aabb) and queries from user kernels."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from conftest import REPO_ROOT
+from oracles import assert_hits_match, brute_force_closest_hit, random_rays
+
+import hlbvh_warp
+from hlbvh_warp import query
+
+
+@pytest.fixture
+def scene(rng):
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    mesh = trimesh.util.concatenate([mesh, trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((2, 0, 0))])
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+
+
+def test_intersect_barycentrics_and_stats(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 500)
+    t, prim, u, v, stats = query.intersect(bvh, o, d, return_barycentrics=True, stats=True)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    assert_hits_match(t, prim, t_ref, prim_ref)
+    hit = prim >= 0
+    tri = verts[faces[prim[hit]]].astype(np.float64)
+    on_tri = (1 - u[hit] - v[hit])[:, None] * tri[:, 0] + u[hit, None] * tri[:, 1] + v[hit, None] * tri[:, 2]
+    on_ray = o[hit] + t[hit, None] * d[hit]
+    assert np.allclose(on_tri, on_ray, atol=1e-5)
+    assert (u[hit] >= 0).all() and (v[hit] >= 0).all() and (u[hit] + v[hit] <= 1 + 1e-6).all()
+    # Statistics: every ray that enters the root visits it; hits tested at least one triangle.
+    assert stats.nodes_visited.shape == (500,) and (stats.prims_tested[hit] >= 1).all()
+    assert stats.measured_cost(1.2, 1.0) == pytest.approx(1.2 * stats.nodes_visited.mean() + stats.prims_tested.mean())
+    # The old two-value call still works, and t_max cuts hits.
+    t2, prim2 = query.intersect(bvh, o, d, t_max=float(np.median(t[hit])))
+    assert ((prim2 >= 0) == (hit & (t < np.median(t[hit])))).all()
+
+
+def test_axis_parallel_rays_from_slab_faces(device):
+    """Directions with zero components, origins exactly on box faces: no 0 * inf = NaN misses."""
+    mesh = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    bvh = hlbvh_warp.build(mesh, device=device)
+    v = np.asarray(mesh.vertices, np.float32)
+    o, d = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            for p in v:
+                direction = np.zeros(3, np.float32)
+                direction[axis] = sign
+                o.append(p - 3 * direction)  # through a corner, along an edge of the box
+                d.append(direction)
+            # Along the box's face plane, through its middle.
+            origin = np.zeros(3, np.float32)
+            origin[(axis + 1) % 3] = 1.0
+            origin[axis] = -3.0 * sign
+            direction = np.zeros(3, np.float32)
+            direction[axis] = sign
+            o.append(origin)
+            d.append(direction)
+    t, prim = query.intersect(bvh, np.array(o), np.array(d))
+    t_ref, prim_ref = brute_force_closest_hit(v, mesh.faces, np.array(o), np.array(d))
+    # Corner rays hit the box (the triangles perpendicular to the ray at the corner).
+    corner = np.ones(len(o), bool)
+    corner[8::9] = False
+    assert (prim[corner] >= 0).all()
+    assert np.allclose(t[corner], t_ref[corner])
+    assert np.isfinite(t[prim >= 0]).all()
+    assert ((prim >= 0) | (prim_ref < 0)).all()
+
+
+def test_occluded_matches_closest_hit(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 400)
+    t, prim = query.intersect(bvh, o, d)
+    t_max = rng.uniform(0.0, 6.0, 400).astype(np.float32)
+    occ, stats = query.occluded(bvh, o, d, t_max=t_max, stats=True)
+    expected = (prim >= 0) & (t < t_max)
+    near_boundary = np.isclose(t, t_max, rtol=1e-5)
+    assert np.array_equal(occ[~near_boundary], expected[~near_boundary])
+    assert np.array_equal(query.occluded(bvh, o, d), prim >= 0)
+    # Any-hit stops at the first triangle: never more work than the closest hit.
+    _, _, closest_stats = query.intersect(bvh, o, d, stats=True)
+    assert stats.prims_tested.sum() <= closest_stats.prims_tested.sum()
+
+
+def test_intersect_all_lists_every_crossing(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 200)
+    ray_id, prim, t = query.intersect_all(bvh, o, d)
+    # Closed meshes: every ray that hits crosses an even number of times (edge hits aside).
+    _, first = query.intersect(bvh, o, d)
+    assert set(np.unique(ray_id)) == set(np.nonzero(first >= 0)[0])
+    for r in np.unique(ray_id)[:50]:
+        sel = ray_id == r
+        assert prim[sel][0] == first[r] or np.isclose(t[sel][0], query.intersect(bvh, o[r], d[r])[0][0])
+        assert (np.diff(t[sel]) >= 0).all()
+
+
+def _brute_overlaps(lo, hi, q_lo, q_hi):
+    return ((lo[None] <= q_hi[:, None]) & (hi[None] >= q_lo[:, None])).all(-1)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
+def test_query_aabb_on_boxes_and_meshes(device, rng, method):
+    lo = rng.random((2000, 3)).astype(np.float32)
+    hi = lo + rng.random((2000, 3)).astype(np.float32) * 0.05
+    bvh = hlbvh_warp.build_from_bounds(lo, hi, device=device, method=method)
+    q_lo = rng.random((300, 3)).astype(np.float32)
+    q_hi = q_lo + 0.1
+    q_hi[0] = q_lo[0] - 1.0  # inverted: overlaps nothing
+    q_lo[1], q_hi[1] = -np.inf, np.inf  # everything
+    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    ref = _brute_overlaps(lo, hi, q_lo, q_hi)
+    assert np.array_equal(counts, ref.sum(1))
+    assert np.array_equal(pairs, np.argwhere(ref))
+    assert counts[0] == 0 and counts[1] == 2000
+    assert np.array_equal(query.query_aabb(bvh, q_lo, q_hi), counts)
+    with pytest.raises(ValueError):
+        query.intersect(bvh, q_lo, q_hi)
+
+
+@wp.kernel
+def _user_queries_kernel(
+    bvh: query.BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    box_lowers: wp.array(dtype=wp.vec3),
+    box_uppers: wp.array(dtype=wp.vec3),
+    hit_t: wp.array(dtype=float),
+    hit_prim: wp.array(dtype=int),
+    occluded: wp.array(dtype=int),
+    box_counts: wp.array(dtype=int),
+    pairs: wp.array(dtype=wp.vec2i),
+    pair_count: wp.array(dtype=wp.int32),
+):
+    tid = wp.tid()
+    h = query.bvh_closest_hit(bvh, origins[tid], directions[tid], 1.0e30)
+    hit_t[tid] = h.t
+    hit_prim[tid] = h.prim
+    occluded[tid] = query.bvh_occluded(bvh, origins[tid], directions[tid], 1.0e30)
+    box_counts[tid] = query.bvh_aabb_count(bvh, box_lowers[tid], box_uppers[tid])
+    query.bvh_aabb_pairs(bvh, box_lowers[tid], box_uppers[tid], tid, pairs, pair_count)
+
+
+def test_queries_from_a_user_kernel(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 300)
+    q_lo = (verts[rng.integers(0, len(verts), 300)] - 0.05).astype(np.float32)
+    q_hi = q_lo + 0.1
+    n = len(o)
+    out = [wp.zeros(n, dtype=float, device=device), wp.zeros(n, dtype=int, device=device),
+           wp.zeros(n, dtype=int, device=device), wp.zeros(n, dtype=int, device=device)]
+    pairs = wp.zeros(100_000, dtype=wp.vec2i, device=device)
+    pair_count = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(_user_queries_kernel, dim=n, device=device,
+              inputs=[query.view(bvh)] + [wp.array(a, dtype=wp.vec3, device=device) for a in (o, d, q_lo, q_hi)]
+              + out + [pairs, pair_count])
+    t, prim = query.intersect(bvh, o, d)
+    assert np.array_equal(out[1].numpy(), prim) and np.array_equal(out[0].numpy(), t)
+    assert np.array_equal(out[2].numpy().astype(bool), prim >= 0)
+    counts, ref_pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(out[3].numpy(), counts)
+    total = int(pair_count.numpy()[0])
+    assert total == counts.sum()
+    got = pairs.numpy()[:total].astype(np.int64)
+    assert np.array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], ref_pairs)
+
+
+def test_example_user_kernel_runs_headless(device):
+    path = REPO_ROOT / "examples" / "example_user_kernel.py"
+    spec = importlib.util.spec_from_file_location("example_user_kernel", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with wp.ScopedDevice(device):
+        example = module.Example(resolution=24)
+        for _ in range(2):
+            example.step()
+            example.render(None)
+    image = example.image.numpy()
+    assert np.isfinite(image).all() and image.max() > 0.5 and (example.crowding.numpy() > 0).any()

@@ -1,0 +1,179 @@
+"""Stress suite: every builder in api.BUILDERS on adversarial scenes, against a float64 oracle.
+
+Run with ``-s`` to see one row per (family, builder): depth, nodes, disagreements and the ones
+that are not near-ties (see ``hlbvh_warp.stress_report`` for the documented tolerance).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from conftest import shared_mesh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from oracles import brute_force_closest_hit
+
+from hlbvh_warp import api, query, stress_report
+from hlbvh_warp.bvh import bvh_from_numpy
+from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
+
+api._load_optional_builders()
+METHODS = sorted(api.BUILDERS)
+#: The builders whose depth bound config.py states (3n + ceil(log2 N) < 64).
+PIPELINE_METHODS = ("hlbvh", "lbvh")
+_REFERENCE_CACHE: dict = {}
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("family", list(stress_report.SCENE_FAMILIES))
+def test_scene_family(device, family, method):
+    row = stress_report.run_family(family, method, device, seed=0, reference_cache=_REFERENCE_CACHE)
+    print("\n" + stress_report.format_row(row), row["per_rays"])
+    assert row["unexplained"] == 0, f"{row['unexplained']} rays disagree with the float64 oracle beyond near-ties"
+
+
+def _inside_origin(mesh, bvh):
+    """A point inside the closed mesh: odd crossing counts along three axes (ray parity)."""
+    step = max(1, len(mesh.faces) // 50)
+    below_faces = mesh.triangles_center[::step] - 1e-3 * mesh.scale * mesh.face_normals[::step]
+    candidates = [mesh.bounds.mean(axis=0), mesh.vertices.mean(axis=0)] + list(below_faces)
+    axes = np.array([[1, 0.1, 0.2], [-0.3, 1, 0.1], [0.2, -0.1, -1]], dtype=np.float64)
+    for c in candidates:
+        o = np.repeat(np.asarray(c, dtype=np.float32)[None], 3, axis=0)
+        ray_id, _, _ = query.intersect_all(bvh, o, axes)
+        if (np.bincount(ray_id, minlength=3) % 2 == 1).all():
+            return np.asarray(c, dtype=np.float64)
+    pytest.skip("no interior point found")
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("mesh_name", ["icosphere", "armadillo"])
+def test_closed_mesh_from_inside_never_escapes(device, method, mesh_name):
+    """Watertightness (Woop et al. 2013): rays from inside exactly at vertices and edge midpoints all hit."""
+    if mesh_name == "icosphere":
+        mesh = trimesh.creation.icosphere(subdivisions=4)
+    else:
+        mesh = shared_mesh("armadillo")
+        assert mesh.is_watertight
+    bvh = api.build(mesh, method=method, device=device)
+    origin = _inside_origin(mesh, bvh)
+    v = np.asarray(mesh.vertices, dtype=np.float32).astype(np.float64)
+    edges = mesh.edges_unique
+    targets = np.concatenate([v, 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])])
+    d = targets - origin
+    t, prim = query.intersect(bvh, np.repeat(origin[None], len(d), axis=0), d)
+    escaped = int((prim < 0).sum())
+    print(f"\n{mesh_name:10s} {method:10s} rays {len(d):7d} escaped {escaped}")
+    assert escaped == 0, f"{escaped} of {len(d)} rays through vertices/edges escaped the closed mesh"
+    assert np.isfinite(t).all()
+    # The shadow-ray query agrees.
+    assert query.occluded(bvh, np.repeat(origin[None], len(d), axis=0), d).all()
+
+
+def _depth_scenes(num_prims):
+    dup_lo = np.zeros((num_prims, 3), np.float32)
+    dup_hi = np.ones((num_prims, 3), np.float32)
+    # Centroids 2^-k: Morton codes collapse at the origin while the extent spans 2^120.
+    k = np.arange(num_prims) % 120
+    exp_pts = np.exp2(-k).astype(np.float32)[:, None] * np.array([[1.0, 0.5, 0.25]], np.float32)
+    return {"duplicates": (dup_lo, dup_hi), "exponential": (exp_pts, exp_pts * 1.0001)}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_deepest_trees_stay_within_the_stack(device, method):
+    """The deepest trees a builder makes: all-duplicate boxes and an exponential distribution, leaf 1."""
+    # Reference builders are host-side and may be quadratic on duplicates: a smaller N for them.
+    num_prims = 100_000 if method in PIPELINE_METHODS else 2_000
+    config = BuildConfig(max_leaf_size=1)
+    too_deep = []
+    for name, (lo, hi) in _depth_scenes(num_prims).items():
+        bvh = api.build_from_bounds(lo, hi, method=method, device=device, config=config)
+        depth = bvh.depth
+        print(f"\n{name:12s} {method:10s} N {num_prims:7d} depth {depth}")
+        # Box queries stay exact whatever the depth (the stack never overflows).
+        q_lo, q_hi = lo[:50] - 1e-3, hi[:50] + 1e-3
+        counts = query.query_aabb(bvh, q_lo, q_hi)
+        ref = ((lo[None] <= q_hi[:, None]) & (hi[None] >= q_lo[:, None])).all(-1).sum(1)
+        assert np.array_equal(counts, ref)
+        if depth >= TRAVERSAL_STACK_SIZE:
+            too_deep.append(f"{name}: depth {depth}")
+    assert not too_deep, f"{method} exceeds the traversal stack depth {TRAVERSAL_STACK_SIZE}: {too_deep}"
+
+
+def test_traversal_exact_on_a_chain_deeper_than_the_stack(device, rng):
+    """A caterpillar tree of depth 299: the full-stack fallback keeps every query exact."""
+    n = 300
+    verts, faces = stress_report.scene_soup(rng)[0][: 3 * n], np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+    # Node 2k is interior (k < n - 1) with a leaf left child 2k + 1 and the rest of the chain right.
+    num_nodes = 2 * n - 1
+    left = np.full(num_nodes, -1, np.int32)
+    right = np.full(num_nodes, -1, np.int32)
+    begin = np.zeros(num_nodes, np.int32)
+    end = np.zeros(num_nodes, np.int32)
+    for k in range(n - 1):
+        left[2 * k], right[2 * k] = 2 * k + 1, 2 * k + 2
+        begin[2 * k], end[2 * k] = k, n
+        begin[2 * k + 1], end[2 * k + 1] = k, k + 1
+    begin[num_nodes - 1], end[num_nodes - 1] = n - 1, n
+    tri = verts.reshape(-1, 3, 3)
+    bvh = bvh_from_numpy(
+        method="chain", config=BuildConfig(), device=device, prim_lowers=tri.min(1), prim_uppers=tri.max(1),
+        prim_order=np.arange(n), node_left=left, node_right=right, node_begin=begin, node_end=end,
+        vertices=wp.array(verts, dtype=wp.vec3, device=device), faces=wp.array(faces, dtype=wp.int32, device=device),
+    )
+    assert bvh.depth == n - 1 > TRAVERSAL_STACK_SIZE
+    rays = stress_report.ray_families(rng, verts, faces, num_rays=200)
+    o, d = rays["random"]
+    t, prim = query.intersect(bvh, o, d)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    assert stress_report.classify(verts, faces, o, d, t, prim, t_ref, prim_ref)[1] == 0
+    assert np.array_equal(query.occluded(bvh, o, d), prim_ref >= 0)
+    counts = query.query_aabb(bvh, tri.min(1), tri.max(1))
+    assert (counts >= 1).all()
+
+
+def test_nan_inf_rays_miss_and_bad_shapes_raise(device, rng):
+    verts, faces = stress_report.scene_soup(rng)
+    bvh = api.build(verts, faces, device=device)
+    o = np.array([[np.nan, 0, 0], [0, np.inf, 0], [0.5, 0.5, -1], [0.5, 0.5, -1], [0.5, 0.5, -1], [0, 0, -np.inf]],
+                 np.float32)
+    d = np.array([[0, 0, 1], [0, 0, 1], [np.nan, 0, 1], [0, -np.inf, 1], [0, 0, 0], [0, 0, 1]], np.float32)
+    t, prim = query.intersect(bvh, o, d)
+    assert (prim == -1).all() and np.isinf(t).all()
+    assert not query.occluded(bvh, o, d).any()
+    t, prim = query.intersect(bvh, o[2:3], np.array([[0, 0, 1]]), t_max=float("nan"))
+    assert prim[0] == -1
+    with pytest.raises(ValueError):
+        query.intersect(bvh, np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError):
+        query.intersect(bvh, np.zeros((4, 3)), np.zeros((5, 3)))
+    with pytest.raises(ValueError):
+        query.occluded(bvh, np.zeros((4, 3)), np.ones((4, 3)), t_max=np.ones(3))
+    with pytest.raises(ValueError):
+        query.query_aabb(bvh, np.zeros((4, 3)), np.zeros((4, 4)))
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    num_tris=st.integers(1, 60),
+    exponent=st.integers(-15, 15),
+    duplicate=st.booleans(),
+    flat_axis=st.sampled_from([None, 0, 1, 2]),
+    method=st.sampled_from(METHODS),
+)
+def test_fuzzed_soups(device, seed, num_tris, exponent, duplicate, flat_axis, method):
+    rng = np.random.default_rng(seed)
+    verts, faces = stress_report._soup(rng, num_tris, scale=10.0**exponent, offset=rng.normal() * 10.0**exponent)
+    if duplicate:
+        faces = np.concatenate([faces, faces[: max(1, num_tris // 2)]])
+    if flat_axis is not None:
+        verts[:, flat_axis] = verts[0, flat_axis]
+    bvh = api.build(verts, faces, method=method, device=device)
+    for o, d in stress_report.ray_families(rng, verts, faces, num_rays=40).values():
+        t, prim = query.intersect(bvh, o, d)
+        t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+        _, unexplained = stress_report.classify(verts, faces, o, d, t, prim, t_ref, prim_ref)
+        assert unexplained == 0

@@ -1,0 +1,100 @@
+"""hlbvh_warp.trimesh_adapter.RayMeshIntersector against trimesh's own RayMeshIntersector."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from oracles import random_rays
+from trimesh.ray import ray_triangle
+
+from hlbvh_warp.trimesh_adapter import RayMeshIntersector
+
+
+class _BoxTree:
+    """The two calls trimesh makes on its r-tree, by brute force, when rtree is not installed."""
+
+    def __init__(self, triangles):
+        self.lo, self.hi = triangles.min(axis=1), triangles.max(axis=1)
+        self.bounds = np.concatenate([self.lo.min(0), self.hi.max(0)])
+
+    def intersection(self, box):
+        box = np.asarray(box, dtype=np.float64)
+        ok = (self.lo <= box[3:]).all(1) & (self.hi >= box[:3]).all(1)
+        return np.nonzero(ok)[0].tolist()
+
+
+@pytest.fixture
+def reference(monkeypatch):
+    """trimesh's intersector, with a brute-force stand-in for the optional rtree dependency."""
+    try:
+        import rtree  # noqa: F401
+    except ImportError:
+        monkeypatch.setattr(trimesh.Trimesh, "triangles_tree", property(lambda m: _BoxTree(m.triangles)))
+    return ray_triangle.RayMeshIntersector
+
+
+def _scene(rng):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    mesh = trimesh.util.concatenate([mesh, trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((2, 0, 0))])
+    o, d = random_rays(rng, mesh.vertices, 300)
+    # Unnormalized directions too: t is parametric in trimesh and here.
+    d = d * rng.uniform(0.5, 3.0, size=(len(d), 1)).astype(np.float32)
+    return mesh, o.astype(np.float64), d.astype(np.float64)
+
+
+def test_intersects_first_and_any(device, rng, reference):
+    mesh, o, d = _scene(rng)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    first, first_ref = ours.intersects_first(o, d), ref.intersects_first(o, d)
+    assert first.dtype == first_ref.dtype and first.shape == first_ref.shape
+    assert np.array_equal(first, first_ref)
+    anyhit, anyhit_ref = ours.intersects_any(o, d), ref.intersects_any(o, d)
+    assert anyhit.dtype == bool and np.array_equal(anyhit, anyhit_ref)
+
+
+def test_intersects_id_and_location(device, rng, reference):
+    mesh, o, d = _scene(rng)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    # All hits: same (ray, triangle) pairs.
+    tri, ray = ours.intersects_id(o, d)
+    tri_ref, ray_ref = ref.intersects_id(o, d)
+    assert set(zip(ray.tolist(), tri.tolist())) == set(zip(ray_ref.tolist(), tri_ref.tolist()))
+    # First hits only.
+    tri, ray, loc = ours.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    tri_ref, ray_ref, loc_ref = ref.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    order, order_ref = np.argsort(ray), np.argsort(ray_ref)
+    assert np.array_equal(ray[order], ray_ref[order_ref]) and np.array_equal(tri[order], tri_ref[order_ref])
+    assert np.allclose(loc[order], loc_ref[order_ref], atol=1e-5)
+    # Unique locations.
+    loc, ray, tri = ours.intersects_location(o, d)
+    loc_ref, ray_ref, tri_ref = ref.intersects_location(o, d)
+    assert loc.shape == loc_ref.shape and ray.shape == ray_ref.shape
+    key = np.lexsort((loc[:, 2], loc[:, 1], loc[:, 0], ray))
+    key_ref = np.lexsort((loc_ref[:, 2], loc_ref[:, 1], loc_ref[:, 0], ray_ref))
+    assert np.array_equal(ray[key], ray_ref[key_ref])
+    assert np.allclose(loc[key], loc_ref[key_ref], atol=1e-5)
+
+
+def test_empty_results_and_contains(device, rng, reference):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    o = np.array([[5.0, 5.0, 5.0]])
+    d = np.array([[1.0, 0.0, 0.0]])
+    tri, ray = ours.intersects_id(o, d)
+    assert tri.shape == (0,) and ray.shape == (0,)
+    loc, ray, tri = ours.intersects_location(o, d)
+    assert len(loc) == 0
+    assert ours.intersects_first(o, d).tolist() == [-1]
+    pts = rng.uniform(-1.2, 1.2, size=(200, 3))
+    assert np.array_equal(ours.contains_points(pts), ref.contains_points(pts))
+
+
+def test_rebuilds_after_mesh_change(device):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    ours = RayMeshIntersector(mesh, device=device)
+    o, d = np.array([[0.0, 0.0, 5.0]]), np.array([[0.0, 0.0, -1.0]])
+    before = ours.intersects_location(o, d)[0][0, 2]
+    mesh.apply_translation((0.0, 0.0, 1.0))
+    after = ours.intersects_location(o, d)[0][0, 2]
+    assert np.isclose(after - before, 1.0, atol=1e-5)
