@@ -6,20 +6,17 @@ import subprocess
 import sys
 import zipfile
 
-import pytest
-
 from conftest import REPO_ROOT
 
 
 def test_wheel_maps_kernels_into_the_package(tmp_path):
-    try:
-        subprocess.run(
-            [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path),
-             str(REPO_ROOT)],
-            check=True, capture_output=True, timeout=300,
-        )
-    except subprocess.CalledProcessError as exc:  # e.g. setuptools too old for package-dir editable
-        pytest.skip(f"could not build a wheel here: {exc.stderr.decode()[-300:]}")
+    # No build isolation: the test extra installs setuptools and wheel, and CI needs no download.
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path),
+         str(REPO_ROOT)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, f"building the wheel failed:\n{result.stdout[-2000:]}\n{result.stderr[-2000:]}"
     wheel = next(tmp_path.glob("*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
     for module in ("__init__", "morton", "compress", "block_sort", "treelets", "bounds", "traversal"):
