@@ -30,7 +30,7 @@ from . import inputs
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
-from .kernels import dynamic, morton
+from .kernels import compress, dynamic, morton
 
 POLICIES = ("rebuild", "refit", "auto")
 PIPELINE_METHODS = ("hlbvh", "lbvh")
@@ -174,7 +174,7 @@ class Builder:
         self.vertices.assign(verts_np)
         self.faces.assign(faces_np)
         if self.resort:
-            wp.launch(dynamic.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
+            wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
         pipe = self.pipeline
         self.bvh = Bvh(method=self.method, config=self.config, device=self.device, prim_lowers=self.prim_lowers,
                        prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,

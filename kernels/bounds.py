@@ -12,6 +12,29 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def leaf_box(
+    node: int,
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    p = prim_order[node_begin[node]]
+    lower = prim_lowers[p]
+    upper = prim_uppers[p]
+    for k in range(node_begin[node] + 1, node_end[node]):
+        p = prim_order[k]
+        lower = wp.min(lower, prim_lowers[p])
+        upper = wp.max(upper, prim_uppers[p])
+    node_lowers[node] = lower
+    node_uppers[node] = upper
+    return 0
+
+
 @wp.kernel
 def reset_visits_kernel(node_visits: wp.array(dtype=wp.int32)):
     node_visits[wp.tid()] = 0
@@ -35,15 +58,7 @@ def node_bounds_kernel(
     node = wp.tid()
     if node >= node_count[0] or node_left[node] >= 0:
         return
-    p = prim_order[node_begin[node]]
-    lower = prim_lowers[p]
-    upper = prim_uppers[p]
-    for k in range(node_begin[node] + 1, node_end[node]):
-        p = prim_order[k]
-        lower = wp.min(lower, prim_lowers[p])
-        upper = wp.max(upper, prim_uppers[p])
-    node_lowers[node] = lower
-    node_uppers[node] = upper
+    leaf_box(node, node_begin, node_end, prim_order, prim_lowers, prim_uppers, node_lowers, node_uppers)
 
     parent = node_parent[node]
     while parent >= 0:
@@ -72,15 +87,7 @@ def leaf_bounds_kernel(
     node = wp.tid()
     if node >= node_count[0] or node_left[node] >= 0:
         return
-    p = prim_order[node_begin[node]]
-    lower = prim_lowers[p]
-    upper = prim_uppers[p]
-    for k in range(node_begin[node] + 1, node_end[node]):
-        p = prim_order[k]
-        lower = wp.min(lower, prim_lowers[p])
-        upper = wp.max(upper, prim_uppers[p])
-    node_lowers[node] = lower
-    node_uppers[node] = upper
+    leaf_box(node, node_begin, node_end, prim_order, prim_lowers, prim_uppers, node_lowers, node_uppers)
 
 
 @wp.kernel

@@ -13,12 +13,6 @@ wp.set_module_options({"enable_backward": False})
 
 # ------------------------------------------------------------------ resorting
 @wp.kernel
-def iota_kernel(values: wp.array(dtype=wp.int32)):
-    tid = wp.tid()
-    values[tid] = tid
-
-
-@wp.kernel
 def resort_gather_kernel(
     prim_order: wp.array(dtype=wp.int32),
     faces: wp.array(dtype=wp.int32, ndim=2),
