@@ -14,19 +14,18 @@ per-frame policy finds the full rebuild unnecessary:
 
 Only ``"auto"`` reads values back to the host (one displacement read, one SAH read per frame):
 it has to, to decide. ``rebuild`` and ``refit`` given device arrays never synchronize, and on
-CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``) when the pipeline
-supports ``sync_free`` builds.
+CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``): there it runs the
+pipeline's ``sync_free`` build.
 """
 
 from __future__ import annotations
 
-import inspect
 import time
 
 import numpy as np
 import warp as wp
 
-from . import inputs
+from . import inputs, metrics
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
@@ -94,9 +93,8 @@ class Builder:
         self.chaotic_frames = 0
         self.timings = bool(timings)
         self.pipeline = pipe = HlbvhPipeline(n, config, device)
-        self._sync_free_kw = "sync_free" in inspect.signature(pipe.build).parameters
-        # A CUDA rebuild keeps every count on the device where the pipeline can.
-        self.sync_free = self._sync_free_kw and device.is_cuda
+        # A CUDA rebuild keeps every count on the device, so it never waits and can be captured.
+        self.sync_free = device.is_cuda
 
         self.faces = wp.empty((n, 3), dtype=wp.int32, device=device)
         if self.resort:
@@ -113,7 +111,9 @@ class Builder:
             self.prim_lowers = pipe.prim_lowers
             self.prim_uppers = pipe.prim_uppers
         self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
-        self.sah = wp.zeros(1, dtype=wp.float64, device=device)
+        # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
+        self.sah_scratch = (wp.empty(2 * n - 1, dtype=wp.int32, device=device),
+                            wp.zeros(2 * n - 1, dtype=wp.float64, device=device))
         # Vertex buffers: allocated by the first `build`, when the vertex count is known.
         self.vertices = None
         self.previous_vertices = None
@@ -207,10 +207,7 @@ class Builder:
         timer.stage("prim_bounds")
         pipe.compute_triangle_bounds(self.vertices, self.build_faces)
         pipeline_timings = timer.timings
-        if self._sync_free_kw:
-            pipe.build(self.method, timer, sync_free=self.sync_free)
-        else:
-            pipe.build(self.method, timer)
+        pipe.build(self.method, timer, sync_free=self.sync_free)
         pipeline_timings.pop("total", None)
         if self.resort:
             # Map build-input ids back to the user's face indices, boxes to the user's order.
@@ -278,13 +275,8 @@ class Builder:
     def sah_cost(self) -> float:
         """SAH cost of the current tree (paper eq. 1, costs from the config), read to the host."""
         self._require_built()
-        bvh = self.bvh
-        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats, self.sah], device=self.device)
-        wp.launch(dynamic.sah_cost_kernel, dim=bvh.node_left.shape[0],
-                  inputs=[bvh.node_count, bvh.node_lowers, bvh.node_uppers, bvh.node_left, bvh.node_begin,
-                          bvh.node_end, float(self.config.sah_traversal_cost),
-                          float(self.config.sah_intersection_cost), self.sah], device=self.device)
-        return float(self.sah.numpy()[0])
+        return metrics.sah_cost(self.bvh, self.config.sah_traversal_cost, self.config.sah_intersection_cost,
+                                self.sah_scratch)
 
     def _auto(self, vertices):
         start = time.perf_counter()
@@ -294,7 +286,7 @@ class Builder:
         wp.copy(self.previous_vertices, self.vertices)
         if vertices is not None:
             self._load_vertices(vertices, self.vertices)
-        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats, self.sah], device=self.device)
+        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats], device=self.device)
         wp.launch(dynamic.max_displacement_kernel, dim=self.vertices.shape[0],
                   inputs=[self.previous_vertices, self.vertices, self.stats], device=self.device)
         wp.launch(dynamic.root_diagonal_kernel, dim=1,

@@ -19,14 +19,21 @@ from .bvh import Bvh
 from .kernels import metrics as kernels
 
 
-def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> wp.array:
-    """SAH cost of every node's subtree (float64, arena-sized; the used part is ``num_nodes``)."""
+def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scratch=None) -> wp.array:
+    """SAH cost of every node's subtree (float64, arena-sized; the used part is ``num_nodes``).
+
+    ``scratch``: an optional ``(visits int32, costs float64)`` pair of arena-sized arrays, so that a
+    per-frame caller (``Builder``) allocates nothing; the returned array is then ``costs``.
+    """
     if t_traversal < 0 or t_intersect <= 0:
         raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
     device = bvh.device
     capacity = bvh.node_left.shape[0]
-    visits = wp.empty(capacity, dtype=wp.int32, device=device)
-    costs = wp.zeros(capacity, dtype=wp.float64, device=device)
+    if scratch is None:
+        visits = wp.empty(capacity, dtype=wp.int32, device=device)
+        costs = wp.zeros(capacity, dtype=wp.float64, device=device)
+    else:
+        visits, costs = scratch
     wp.launch(kernels.reset_visits_kernel, dim=capacity, inputs=[visits], device=device)
     wp.launch(
         kernels.sah_cost_kernel,
@@ -38,9 +45,9 @@ def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> 
     return costs
 
 
-def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> float:
+def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scratch=None) -> float:
     """The tree's SAH cost: the root's C(node) (Pantaleoni & Luebke 2010, section 4.2)."""
-    return float(node_costs(bvh, t_traversal, t_intersect)[0:1].numpy()[0])
+    return float(node_costs(bvh, t_traversal, t_intersect, scratch)[0:1].numpy()[0])
 
 
 def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> dict:

@@ -50,10 +50,9 @@ def resort_map_kernel(
 
 # --------------------------------------------------------- motion and quality
 @wp.kernel
-def reset_stats_kernel(stats: wp.array(dtype=wp.float32), sah: wp.array(dtype=wp.float64)):
+def reset_stats_kernel(stats: wp.array(dtype=wp.float32)):
     stats[0] = 0.0
     stats[1] = 0.0
-    sah[0] = wp.float64(0.0)
 
 
 @wp.kernel
@@ -78,41 +77,6 @@ def root_diagonal_kernel(
     stats: wp.array(dtype=wp.float32),
 ):
     stats[1] = wp.length(node_uppers[0] - node_lowers[0])
-
-
-@wp.func
-def box_area(lower: wp.vec3, upper: wp.vec3):
-    d = wp.max(upper - lower, wp.vec3(0.0, 0.0, 0.0))
-    return wp.float64(2.0) * (wp.float64(d[0]) * wp.float64(d[1]) + wp.float64(d[1]) * wp.float64(d[2])
-                              + wp.float64(d[2]) * wp.float64(d[0]))
-
-
-@wp.kernel
-def sah_cost_kernel(
-    node_count: wp.array(dtype=wp.int32),
-    node_lowers: wp.array(dtype=wp.vec3),
-    node_uppers: wp.array(dtype=wp.vec3),
-    node_left: wp.array(dtype=wp.int32),
-    node_begin: wp.array(dtype=wp.int32),
-    node_end: wp.array(dtype=wp.int32),
-    traversal_cost: float,
-    intersection_cost: float,
-    sah: wp.array(dtype=wp.float64),
-):
-    # The paper's eq. 1 unrolled: sum over nodes of area(node) / area(root) times
-    # T1 * 2 for an interior node or T2 * N_prims for a leaf.
-    node = wp.tid()
-    if node >= node_count[0]:
-        return
-    root_area = box_area(node_lowers[0], node_uppers[0])
-    if root_area <= wp.float64(0.0):
-        root_area = wp.float64(1.0)
-    cost = wp.float64(0.0)
-    if node_left[node] >= 0:
-        cost = wp.float64(2.0 * traversal_cost)
-    else:
-        cost = wp.float64(intersection_cost) * wp.float64(node_end[node] - node_begin[node])
-    wp.atomic_add(sah, 0, cost * box_area(node_lowers[node], node_uppers[node]) / root_area)
 
 
 # --------------------------------------------------------------- deformations
