@@ -23,6 +23,7 @@ from . import api
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
+from .kernels import bounds as bounds_kernels
 from .kernels import metrics as metrics_kernels
 from .kernels import sah, treelets, upper_sah
 
@@ -279,33 +280,47 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # Voxel hierarchy: one treelet segment per cluster, emitted over the low 3(n - m) bits.
         timer.stage("voxel_hierarchy")
         num_clusters = int(self.voxel_count.numpy()[0])
-        self._launch(
-            treelets.init_nodes_kernel,
-            2 * n - 1,
-            [n, self.node_left, self.node_right, self.node_parent, self.node_visits, cfg.max_leaf_size,
-             self.head_to_node, self.head_to_end, self.head_flags, self.node_begin, self.node_end, self.node_count],
-        )
-        self._launch(
-            upper_sah.seed_clusters_kernel,
-            num_clusters,
-            [n, num_clusters, cfg.max_leaf_size, self.voxel_starts, self.head_to_node, self.head_to_end,
-             self.head_flags, self.node_begin, self.node_end, self.node_count],
-        )
-        self.emit_hierarchy(voxel_bits, 0)
-        self.split_exhausted_segments()
+        if self.emission == "depth_first":
+            # The top tree's 2C - 1 slots are taken; treelet nodes are numbered after them.
+            self.node_count.fill_(2 * num_clusters - 1)
+            self.emit_depth_first(self.voxel_starts, self.voxel_count, num_clusters - 1, num_clusters)
+        else:
+            self._launch(
+                treelets.init_nodes_kernel,
+                2 * n - 1,
+                [n, self.node_left, self.node_right, self.node_parent, self.node_visits, cfg.max_leaf_size,
+                 self.head_to_node, self.head_to_end, self.head_flags, self.node_begin, self.node_end,
+                 self.node_count],
+            )
+            self._launch(
+                upper_sah.seed_clusters_kernel,
+                num_clusters,
+                [n, num_clusters, cfg.max_leaf_size, self.voxel_starts, self.head_to_node, self.head_to_end,
+                 self.head_flags, self.node_begin, self.node_end, self.node_count],
+            )
+            self.emit_hierarchy(voxel_bits, 0)
+            self.split_exhausted_segments()
 
         # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up.
         timer.stage("cluster_costs")
         first_cluster_root = num_clusters - 1
-        self._launch(metrics_kernels.reset_visits_kernel, 2 * n - 1, [self.node_visits])
-        self._launch(
-            metrics_kernels.bounds_and_cost_kernel,
-            2 * n - 1,
-            [first_cluster_root, self.node_count, self.node_left, self.node_right, self.node_parent,
-             self.node_begin, self.node_end, self.sorted_prim_ids, self.prim_lowers, self.prim_uppers,
-             wp.float64(cfg.sah_traversal_cost), wp.float64(cfg.sah_intersection_cost), self.node_visits,
-             self.node_lowers, self.node_uppers, self.node_cost],
-        )
+        t_traversal, t_intersect = wp.float64(cfg.sah_traversal_cost), wp.float64(cfg.sah_intersection_cost)
+        if self.emission == "depth_first":
+            self._launch(
+                metrics_kernels.bounds_and_cost_sweep_kernel,
+                1,
+                [first_cluster_root, self.node_count, self.node_left, self.node_right, self.node_begin,
+                 self.node_end, t_traversal, t_intersect, self.node_lowers, self.node_uppers, self.node_cost],
+            )
+        else:
+            self._launch(metrics_kernels.reset_visits_kernel, 2 * n - 1, [self.node_visits])
+            self._launch(
+                metrics_kernels.bounds_and_cost_kernel,
+                2 * n - 1,
+                [first_cluster_root, self.node_count, self.node_left, self.node_right, self.node_parent,
+                 self.node_begin, self.node_end, self.sorted_prim_ids, self.prim_lowers, self.prim_uppers,
+                 t_traversal, t_intersect, self.node_visits, self.node_lowers, self.node_uppers, self.node_cost],
+            )
         top = self.top = _TopTree(num_clusters, self.device)
         self._launch(
             upper_sah.cluster_items_kernel,
@@ -363,9 +378,15 @@ class HlbvhSahPipeline(HlbvhPipeline):
 
         # Bounding boxes of all nodes, bottom-up.
         timer.stage("bbox")
-        compute_bounds(self.device, self.node_count, self.node_left, self.node_right, self.node_parent,
-                       self.node_begin, self.node_end, self.prim_order, self.prim_lowers, self.prim_uppers,
-                       self.node_visits, self.node_lowers, self.node_uppers)
+        if self.emission == "depth_first":
+            # Cluster subtrees were boxed while costing them; only the top tree's 2C - 1 are new.
+            self._launch(bounds_kernels.bounds_sweep_kernel, 1,
+                         [2 * num_clusters - 1, self.node_left, self.node_right, self.node_begin, self.node_end,
+                          self.prim_order, self.prim_lowers, self.prim_uppers, self.node_lowers, self.node_uppers])
+        else:
+            compute_bounds(self.device, self.node_count, self.node_left, self.node_right, self.node_parent,
+                           self.node_begin, self.node_end, self.prim_order, self.prim_lowers, self.prim_uppers,
+                           self.node_visits, self.node_lowers, self.node_uppers)
         return timer.finish()
 
 

@@ -8,6 +8,8 @@ import dataclasses
 MAX_BITS_PER_AXIS = 10
 #: A treelet pass keeps its 2^p - 1 split slots in a fixed-size local vector.
 MAX_PLANES_PER_PASS = 4
+#: Schedules of the hierarchy emission (stage 6); "auto" picks by device.
+EMISSIONS = ("auto", "treelets", "depth_first")
 #: Traversal stacks are this deep. HLBVH trees are at most 3n + ceil(log2 N) < 64 deep; the top-down
 #: builders split exact SAH ties at the middle, so duplicates do not chain; a deeper tree (possible
 #: for hand-made topologies) is still traversed exactly: a node met with a full stack is tested as
@@ -33,6 +35,15 @@ class BuildConfig:
         sah_traversal_cost: T1 of the paper's SAH cost (eq. 1), per child visited.
         sah_intersection_cost: T2 of the paper's SAH cost, per primitive in a leaf.
         sah_bins: bins per axis of the ``binned_sah`` builder.
+        emission: how the hierarchy emission is scheduled; both give the same tree, up to node
+            numbering. ``"treelets"`` is the paper's: passes of p bit planes over every open
+            segment at once, each pass a foreach over primitives, a scan of split counts and a
+            foreach over segments (Fig. 4) -- data-parallel, for CUDA. ``"depth_first"`` gives
+            one thread a whole subtree and walks it with a stack, splitting each range at its
+            highest differing bit by binary search: for Warp's CPU device, which runs a launch's
+            threads one after another, so that passes rescanning all N primitives cost time
+            without buying parallelism. ``"auto"`` (default) picks ``"depth_first"`` on the CPU
+            and ``"treelets"`` elsewhere.
     """
 
     bits_per_axis: int = 10
@@ -43,6 +54,7 @@ class BuildConfig:
     sah_traversal_cost: float = 1.0
     sah_intersection_cost: float = 1.0
     sah_bins: int = 16
+    emission: str = "auto"
 
     def __post_init__(self):
         checks = [
@@ -57,6 +69,7 @@ class BuildConfig:
             (self.sah_traversal_cost >= 0.0, "sah_traversal_cost must be >= 0"),
             (self.sah_intersection_cost > 0.0, "sah_intersection_cost must be > 0"),
             (2 <= self.sah_bins <= 256, "sah_bins must be in [2, 256]"),
+            (self.emission in EMISSIONS, f"emission must be one of {EMISSIONS}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -68,6 +81,12 @@ class BuildConfig:
             return self.coarse_bits
         m = 6 if num_prims <= (1 << 21) else 7
         return min(m, self.bits_per_axis)
+
+    def resolved_emission(self, device) -> str:
+        """The emission schedule on `device` (a ``wp.Device``): ``"auto"`` resolved by device kind."""
+        if self.emission != "auto":
+            return self.emission
+        return "depth_first" if device.is_cpu else "treelets"
 
     def replace(self, **changes) -> "BuildConfig":
         return dataclasses.replace(self, **changes)

@@ -16,6 +16,9 @@ from .bvh import Bvh
 from .config import BuildConfig
 from .kernels import block_sort, bounds, compress, morton, treelets
 
+#: Primitives per thread of the centroid-bounds reduction on the CPU device.
+CPU_REDUCTION_CHUNK = 4096
+
 
 class StageTimer:
     """Milliseconds per stage label, only when asked: no host synchronization otherwise."""
@@ -65,6 +68,7 @@ class HlbvhPipeline:
         self.config = config
         self.device = device = wp.get_device(device)
         self.coarse_bits = config.resolved_coarse_bits(n)
+        self.emission = config.resolved_emission(device)
         num_node_slots = 2 * n - 1
         stride = (1 << config.planes_per_pass) - 1
 
@@ -122,6 +126,9 @@ class HlbvhPipeline:
         self.node_end = ints(num_node_slots)
         self.node_visits = ints(num_node_slots)
         self.node_count = ints(1)
+        # The depth-first emission's one seed: the root segment [0, N).
+        self.root_seed_start = wp.zeros(1, dtype=wp.int32, device=device)
+        self.root_seed_count = wp.full(1, 1, dtype=wp.int32, device=device)
         self.sync_free = False
 
     # ------------------------------------------------------------------ stages
@@ -134,7 +141,9 @@ class HlbvhPipeline:
     def compute_morton_codes(self):
         n = self.num_prims
         self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
-        self._launch(morton.centroid_bounds_kernel, n, [self.prim_lowers, self.prim_uppers, self.scene_bounds])
+        chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
+        self._launch(morton.centroid_bounds_kernel, (n + chunk - 1) // chunk,
+                     [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds])
         self._launch(
             morton.morton_codes_kernel,
             n,
@@ -229,6 +238,7 @@ class HlbvhPipeline:
             num_runs,
             [
                 n,
+                3 * (self.config.bits_per_axis - self.coarse_bits),
                 self.block_count,
                 self.block_starts,
                 self.sorted_codes,
@@ -364,6 +374,25 @@ class HlbvhPipeline:
             )
             self._emit(num_segments, 0, 1, stride, 1)
 
+    def emit_depth_first(self, seed_starts: wp.array | None = None, seed_count: wp.array | None = None,
+                         first_seed_node: int = 0, num_seeds: int = 1):
+        """The depth-first schedule of the emission (``BuildConfig.emission``): one thread per
+        seed segment (default: the root, [0, N)) emits its whole subtree and its leaf boxes.
+        With seeds given, the caller has set `node_count` past the seeds' nodes and links their
+        parents afterwards."""
+        n = self.num_prims
+        if seed_starts is None:
+            seed_starts, seed_count = self.root_seed_start, self.root_seed_count
+            self.node_count.fill_(1)
+        self._launch(
+            treelets.emit_depth_first_kernel,
+            num_seeds,
+            [n, seed_starts, seed_count, first_seed_node, self.config.max_leaf_size, self.sorted_codes,
+             self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.node_count, self.node_left,
+             self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
+             self.node_uppers],
+        )
+
     def compute_node_bounds(self):
         compute_bounds(
             self.device,
@@ -426,30 +455,37 @@ class HlbvhPipeline:
 
         # Emit the hierarchy by treelets, p bit planes per pass, then split what the bits cannot.
         timer.stage("hierarchy")
-        self._launch(
-            treelets.init_nodes_kernel,
-            2 * n - 1,
-            [
-                n,
-                self.node_left,
-                self.node_right,
-                self.node_parent,
-                self.node_visits,
-                self.config.max_leaf_size,
-                self.head_to_node,
-                self.head_to_end,
-                self.head_flags,
-                self.node_begin,
-                self.node_end,
-                self.node_count,
-            ],
-        )
-        self.emit_hierarchy(bits, 0)
-        self.split_exhausted_segments()
+        if self.emission == "depth_first":
+            self.emit_depth_first()
+        else:
+            self._launch(
+                treelets.init_nodes_kernel,
+                2 * n - 1,
+                [
+                    n,
+                    self.node_left,
+                    self.node_right,
+                    self.node_parent,
+                    self.node_visits,
+                    self.config.max_leaf_size,
+                    self.head_to_node,
+                    self.head_to_end,
+                    self.head_flags,
+                    self.node_begin,
+                    self.node_end,
+                    self.node_count,
+                ],
+            )
+            self.emit_hierarchy(bits, 0)
+            self.split_exhausted_segments()
 
-        # Bounding boxes of all nodes, bottom-up.
+        # Bounding boxes of all nodes, bottom-up (leaf boxes already written by depth-first).
         timer.stage("bbox")
-        self.compute_node_bounds()
+        if self.emission == "depth_first":
+            self._launch(bounds.interior_bounds_sweep_kernel, 1,
+                         [self.node_count, self.node_left, self.node_right, self.node_lowers, self.node_uppers])
+        else:
+            self.compute_node_bounds()
         return timer.finish()
 
 

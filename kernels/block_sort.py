@@ -115,9 +115,54 @@ def merge_pass(
     return 0
 
 
+@wp.func
+def sort_range(
+    codes: wp.array(dtype=wp.int32),
+    prim_ids: wp.array(dtype=wp.int32),
+    scratch_codes: wp.array(dtype=wp.int32),
+    scratch_ids: wp.array(dtype=wp.int32),
+    begin: int,
+    end: int,
+    run_length: int,
+):
+    # Stable insertion sort of runs of `run_length`, then bottom-up merges ping-ponging with
+    # scratch (a range no longer than one run is just insertion-sorted).
+    run_begin = begin
+    while run_begin < end:
+        run_end = wp.min(run_begin + run_length, end)
+        for i in range(run_begin + 1, run_end):
+            key = codes[i]
+            if codes[i - 1] > key:
+                val = prim_ids[i]
+                j = i - 1
+                while j >= run_begin and codes[j] > key:
+                    codes[j + 1] = codes[j]
+                    prim_ids[j + 1] = prim_ids[j]
+                    j -= 1
+                codes[j + 1] = key
+                prim_ids[j + 1] = val
+        run_begin = run_end
+
+    width = run_length
+    in_scratch = int(0)
+    while width < end - begin:
+        if in_scratch == 0:
+            merge_pass(codes, prim_ids, scratch_codes, scratch_ids, begin, end, width)
+        else:
+            merge_pass(scratch_codes, scratch_ids, codes, prim_ids, begin, end, width)
+        in_scratch = 1 - in_scratch
+        width *= 2
+    if in_scratch == 1:
+        for i in range(begin, end):
+            codes[i] = scratch_codes[i]
+            prim_ids[i] = scratch_ids[i]
+    return 0
+
+
 @wp.kernel
 def block_sort_kernel(
     num_prims: int,
+    voxel_shift: int,
     block_count: wp.array(dtype=wp.int32),
     block_starts: wp.array(dtype=wp.int32),
     codes: wp.array(dtype=wp.int32),
@@ -146,36 +191,22 @@ def block_sort_kernel(
         return
     wp.atomic_add(blocks_sorted, 0, 1)
 
-    # Stable insertion sort of short runs (of the whole block when it is nearly sorted), then
-    # bottom-up merges ping-ponging with scratch.
-    run_length = int(INSERTION_RUN)
     if descents <= NEARLY_SORTED_DESCENTS:
-        run_length = end - begin
-    run_begin = begin
-    while run_begin < end:
-        run_end = wp.min(run_begin + run_length, end)
-        for i in range(run_begin + 1, run_end):
-            key = codes[i]
-            val = prim_ids[i]
-            j = i - 1
-            while j >= run_begin and codes[j] > key:
-                codes[j + 1] = codes[j]
-                prim_ids[j + 1] = prim_ids[j]
-                j -= 1
-            codes[j + 1] = key
-            prim_ids[j + 1] = val
-        run_begin = run_end
-
-    width = run_length
-    in_scratch = int(0)
-    while width < end - begin:
-        if in_scratch == 0:
-            merge_pass(codes, prim_ids, scratch_codes, scratch_ids, begin, end, width)
-        else:
-            merge_pass(scratch_codes, scratch_ids, codes, prim_ids, begin, end, width)
-        in_scratch = 1 - in_scratch
-        width *= 2
-    if in_scratch == 1:
-        for i in range(begin, end):
-            codes[i] = scratch_codes[i]
-            prim_ids[i] = scratch_ids[i]
+        # Nearly sorted (the previous frame's order): one insertion sort, O(k + inversions).
+        sort_range(codes, prim_ids, scratch_codes, scratch_ids, begin, end, end - begin)
+        return
+    # The block's voxels are already in order among themselves (the codes' high 3m bits), so
+    # sorting the block is sorting each voxel: small voxels (a few primitives on a surface
+    # mesh) are insertion-sorted in place and only a large voxel pays for merging.
+    segment = begin
+    voxel = codes[begin] >> voxel_shift
+    for i in range(begin + 1, end + 1):
+        boundary = i == end
+        if not boundary:
+            boundary = (codes[i] >> voxel_shift) != voxel
+        if boundary:
+            if i - segment > 1:
+                sort_range(codes, prim_ids, scratch_codes, scratch_ids, segment, i, INSERTION_RUN)
+            if i < end:
+                segment = i
+                voxel = codes[i] >> voxel_shift

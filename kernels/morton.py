@@ -35,14 +35,27 @@ def reset_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3)):
 
 @wp.kernel
 def centroid_bounds_kernel(
+    num_prims: int,
+    chunk: int,
     prim_lowers: wp.array(dtype=wp.vec3),
     prim_uppers: wp.array(dtype=wp.vec3),
     scene_bounds: wp.array(dtype=wp.vec3),
 ):
-    tid = wp.tid()
-    c = 0.5 * (prim_lowers[tid] + prim_uppers[tid])
-    wp.atomic_min(scene_bounds, 0, c)
-    wp.atomic_max(scene_bounds, 1, c)
+    # Thread t reduces primitives [t * chunk, (t + 1) * chunk) and publishes with one atomic per
+    # corner: chunk 1 on CUDA (one thread per primitive); on the CPU, whose launches run threads
+    # in sequence, long chunks save the per-primitive atomics.
+    begin = wp.tid() * chunk
+    end = wp.min(begin + chunk, num_prims)
+    if begin >= end:
+        return
+    lower = 0.5 * (prim_lowers[begin] + prim_uppers[begin])
+    upper = lower
+    for i in range(begin + 1, end):
+        c = 0.5 * (prim_lowers[i] + prim_uppers[i])
+        lower = wp.min(lower, c)
+        upper = wp.max(upper, c)
+    wp.atomic_min(scene_bounds, 0, lower)
+    wp.atomic_max(scene_bounds, 1, upper)
 
 
 @wp.func

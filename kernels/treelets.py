@@ -392,3 +392,133 @@ def max_segment_size_kernel(
         return
     size = segment_ends[s] - segment_heads[s]
     wp.atomic_max(max_size, 0, size)
+
+
+# --------------------------------------------------------------------------- depth-first schedule
+# The same splits, scheduled for a device that runs a launch's threads one after another (Warp's
+# CPU device): one thread per seed segment walks its subtree depth first, so no pass rescans all
+# N primitives, and each node's children are written next to it while its range is in cache.
+
+#: Depth of the explicit stack: radix levels (3n <= 30) plus index-median levels (<= 31).
+DEPTH_FIRST_STACK = 64
+
+vec64i = wp.types.vector(length=DEPTH_FIRST_STACK, dtype=wp.int32)
+
+
+@wp.func
+def highest_bit_mask(x: int):
+    # Smear the top set bit of x > 0 downwards, then keep only it:
+    #   x = 0b0010_1100  ->  0b0011_1111  ->  0b0010_0000
+    s = x | (x >> 1)
+    s = s | (s >> 2)
+    s = s | (s >> 4)
+    s = s | (s >> 8)
+    s = s | (s >> 16)
+    return s ^ (s >> 1)
+
+
+@wp.func
+def radix_split(codes: wp.array(dtype=wp.int32), begin: int, end: int):
+    # Split of the sorted range [begin, end) at the highest bit where its codes differ: its codes
+    # share every bit above it, so the first code with the bit set is found by binary search.
+    # Equal codes (duplicates, or bits exhausted) split at the index median, as the passes do.
+    x = codes[begin] ^ codes[end - 1]
+    if x == 0:
+        return (begin + end + 1) // 2
+    bit = highest_bit_mask(x)
+    lo = begin + 1
+    hi = end - 1
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if (codes[mid] & bit) != 0:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@wp.kernel
+def emit_depth_first_kernel(
+    num_prims: int,
+    seed_starts: wp.array(dtype=wp.int32),
+    seed_count: wp.array(dtype=wp.int32),
+    first_seed_node: int,
+    max_leaf_size: int,
+    codes: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    node_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    """Emit the subtree of seed segment s: [seed_starts[s], seed_starts[s + 1] or N), rooted at
+    node first_seed_node + s, parentless until the caller links it.
+
+    Topology equals the treelet passes' (a top-down radix split at the highest differing bit,
+    index medians for equal codes, leaves at `max_leaf_size`), only the node numbering differs:
+    children are allocated in pairs when their parent is popped, so they follow it. Leaf boxes
+    are written as leaves are popped; interior boxes are left to the bottom-up sweep.
+    """
+    s = wp.tid()
+    num_seeds = seed_count[0]
+    if s >= num_seeds:
+        return
+    begin = seed_starts[s]
+    end = num_prims
+    if s + 1 < num_seeds:
+        end = seed_starts[s + 1]
+    root = first_seed_node + s
+    node_begin[root] = begin
+    node_end[root] = end
+    node_parent[root] = -1
+
+    stack_begin = vec64i()
+    stack_end = vec64i()
+    stack_node = vec64i()
+    stack_begin[0] = begin
+    stack_end[0] = end
+    stack_node[0] = root
+    top = int(1)
+    while top > 0:
+        top -= 1
+        a = stack_begin[top]
+        b = stack_end[top]
+        node = stack_node[top]
+        if b - a <= max_leaf_size:
+            node_left[node] = -1
+            node_right[node] = -1
+            p = prim_order[a]
+            lower = prim_lowers[p]
+            upper = prim_uppers[p]
+            for k in range(a + 1, b):
+                p = prim_order[k]
+                lower = wp.min(lower, prim_lowers[p])
+                upper = wp.max(upper, prim_uppers[p])
+            node_lowers[node] = lower
+            node_uppers[node] = upper
+            continue
+        split = radix_split(codes, a, b)
+        left = wp.atomic_add(node_count, 0, 2)
+        right = left + 1
+        node_left[node] = left
+        node_right[node] = right
+        node_parent[left] = node
+        node_parent[right] = node
+        node_begin[left] = a
+        node_end[left] = split
+        node_begin[right] = split
+        node_end[right] = b
+        # Right below left: the left subtree is emitted first, right after its parent.
+        stack_begin[top] = split
+        stack_end[top] = b
+        stack_node[top] = right
+        stack_begin[top + 1] = a
+        stack_end[top + 1] = split
+        stack_node[top + 1] = left
+        top += 2

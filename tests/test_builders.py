@@ -43,14 +43,24 @@ def test_shared_mesh(device, rng, method):
     check_rays(bvh, v, f, rng)
 
 
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
 @pytest.mark.parametrize("coarse_bits", [0, 1, 3, 10])
-def test_hlbvh_sah_cluster_counts(device, rng, coarse_bits):
+def test_hlbvh_sah_cluster_counts(device, rng, coarse_bits, emission):
     # m = 0: one cluster (no top tree); m = n: clusters are whole Morton cells, no treelets.
     v, f = random_soup(rng, 200)
-    cfg = hw.BuildConfig(coarse_bits=coarse_bits, max_leaf_size=2)
+    cfg = hw.BuildConfig(coarse_bits=coarse_bits, max_leaf_size=2, emission=emission)
     bvh = hw.build(v, f, method="hlbvh_sah", device=device, config=cfg)
     check_tree_invariants(bvh.to_numpy(), 200, 2)
     check_rays(bvh, v, f, rng, num_rays=48)
+
+
+def test_hlbvh_sah_emissions_agree(device, rng):
+    # Both schedules emit the same cluster subtrees, so the trees have the same SAH cost.
+    v, f = random_soup(rng, 2000)
+    costs = [hw.metrics.sah_cost(hw.build(v, f, method="hlbvh_sah", device=device,
+                                          config=hw.BuildConfig(emission=e)))
+             for e in ("treelets", "depth_first")]
+    assert costs[0] == pytest.approx(costs[1], rel=1e-9)
 
 
 @pytest.mark.parametrize("method", NEW_METHODS)

@@ -140,14 +140,20 @@ def test_voxel_sort_equals_stable_argsort(device, rng, capacity):
     assert pipe.sorted_prim_ids.numpy()[: len(codes)].shape == order.shape
 
 
+EMISSIONS = ["treelets", "depth_first"]
+
+
+@pytest.mark.parametrize("emission", EMISSIONS)
 @pytest.mark.parametrize("planes", [1, 2, 3, 4])
 @pytest.mark.parametrize("leaf", [1, 3])
-def test_emitted_topology_matches_radix_tree(device, rng, planes, leaf):
+def test_emitted_topology_matches_radix_tree(device, rng, planes, leaf, emission):
+    if emission == "depth_first" and planes != 3:
+        pytest.skip("the depth-first schedule has no passes: p does not apply")
     lo, hi = soup_bounds(rng, 3000, clusters=True)
     # Duplicated boxes force equal codes: those segments must be split at the index median.
     lo = np.concatenate([lo, np.repeat(lo[:5], 40, axis=0)])
     hi = np.concatenate([hi, np.repeat(hi[:5], 40, axis=0)])
-    pipe = make_pipeline(lo, hi, device, planes_per_pass=planes, max_leaf_size=leaf)
+    pipe = make_pipeline(lo, hi, device, planes_per_pass=planes, max_leaf_size=leaf, emission=emission)
     pipe.build("hlbvh")
     bvh = hb.api.bvh_from_pipeline(pipe, "hlbvh", {})
     tree = bvh.to_numpy()
@@ -156,20 +162,22 @@ def test_emitted_topology_matches_radix_tree(device, rng, planes, leaf):
     check_tree_invariants(tree, len(lo), max_leaf_size=leaf)
 
 
+@pytest.mark.parametrize("emission", EMISSIONS)
 @pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
-def test_distinct_codes_give_2n_minus_1_nodes(device, method):
+def test_distinct_codes_give_2n_minus_1_nodes(device, method, emission):
     # A 3D grid of points: every centroid in its own Morton cell.
     g = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-    bvh = hb.build_from_bounds(g, g + 0.5, method=method, device=device)
+    bvh = hb.build_from_bounds(g, g + 0.5, method=method, device=device, config=hb.BuildConfig(emission=emission))
     check_tree_invariants(bvh.to_numpy(), len(g), exact_node_count=2 * len(g) - 1)
     assert bvh.num_nodes == 2 * len(g) - 1
     assert bvh.num_leaves == len(g)
 
 
+@pytest.mark.parametrize("emission", EMISSIONS)
 @pytest.mark.parametrize("n", [1, 2, 3, 1000])
-def test_all_identical_boxes(device, n):
+def test_all_identical_boxes(device, n, emission):
     lo = np.zeros((n, 3), np.float32)
-    bvh = hb.build_from_bounds(lo, lo + 1, device=device)
+    bvh = hb.build_from_bounds(lo, lo + 1, device=device, config=hb.BuildConfig(emission=emission))
     check_tree_invariants(bvh.to_numpy(), n, exact_node_count=2 * n - 1)
     # Index-median splits of equal codes give a balanced tree.
     assert bvh.depth == int(np.ceil(np.log2(n)))
@@ -217,14 +225,7 @@ def test_sync_free_build_matches(device, rng):
     np.testing.assert_array_equal(got["prim_order"], ref["prim_order"])
 
 
-@pytest.mark.parametrize("strategy", ["climb", "sweep"])
-def test_node_bounds_match_numpy_bottom_up(device, rng, strategy):
-    lo, hi = soup_bounds(rng, 2000)
-    bvh = hb.build_from_bounds(lo, hi, device=device)
-    bvh.node_lowers.zero_()
-    bvh.node_uppers.zero_()
-    hb.hlbvh.refit_bounds(bvh, strategy=strategy)
-    tree = bvh.to_numpy()
+def numpy_bottom_up_boxes(tree, lo, hi):
     # Children are numbered after parents: a reverse sweep is an independent bottom-up.
     nlo = np.zeros_like(tree["node_lowers"])
     nhi = np.zeros_like(tree["node_uppers"])
@@ -234,9 +235,51 @@ def test_node_bounds_match_numpy_bottom_up(device, rng, strategy):
             prims = tree["prim_order"][tree["node_begin"][i] : tree["node_end"][i]]
             nlo[i], nhi[i] = lo[prims].min(0), hi[prims].max(0)
         else:
+            assert l > i and r > i
             nlo[i], nhi[i] = np.minimum(nlo[l], nlo[r]), np.maximum(nhi[l], nhi[r])
+    return nlo, nhi
+
+
+@pytest.mark.parametrize("strategy", ["climb", "sweep"])
+def test_node_bounds_match_numpy_bottom_up(device, rng, strategy):
+    lo, hi = soup_bounds(rng, 2000)
+    bvh = hb.build_from_bounds(lo, hi, device=device)
+    bvh.node_lowers.zero_()
+    bvh.node_uppers.zero_()
+    hb.hlbvh.refit_bounds(bvh, strategy=strategy)
+    tree = bvh.to_numpy()
+    nlo, nhi = numpy_bottom_up_boxes(tree, lo, hi)
     np.testing.assert_array_equal(tree["node_lowers"], nlo)
     np.testing.assert_array_equal(tree["node_uppers"], nhi)
+
+
+@pytest.mark.parametrize("emission", EMISSIONS)
+@pytest.mark.parametrize("leaf", [1, 4])
+def test_built_boxes_match_numpy_bottom_up(device, rng, emission, leaf):
+    # The depth-first schedule writes leaf boxes during emission: check the build's own boxes.
+    lo, hi = soup_bounds(rng, 2000, clusters=True)
+    config = hb.BuildConfig(emission=emission, max_leaf_size=leaf)
+    tree = hb.build_from_bounds(lo, hi, device=device, config=config).to_numpy()
+    nlo, nhi = numpy_bottom_up_boxes(tree, lo, hi)
+    np.testing.assert_array_equal(tree["node_lowers"], nlo)
+    np.testing.assert_array_equal(tree["node_uppers"], nhi)
+    assert tree["node_parent"][0] == -1
+    children = np.flatnonzero(tree["node_left"] >= 0)
+    np.testing.assert_array_equal(tree["node_parent"][tree["node_left"][children]], children)
+    np.testing.assert_array_equal(tree["node_parent"][tree["node_right"][children]], children)
+
+
+@pytest.mark.parametrize("emission", EMISSIONS)
+def test_sync_free_matches_across_emissions(device, rng, emission):
+    lo, hi = soup_bounds(rng, 3000, clusters=True)
+    ref = make_pipeline(lo, hi, device, emission="treelets")
+    ref.build("hlbvh")
+    pipe = make_pipeline(lo, hi, device, emission=emission)
+    pipe.build("hlbvh", StageTimer(device, False), sync_free=True)
+    a = hb.api.bvh_from_pipeline(ref, "hlbvh", {}).to_numpy()
+    b = hb.api.bvh_from_pipeline(pipe, "hlbvh", {}).to_numpy()
+    assert node_set(a) == node_set(b)
+    assert sah_reference(a) == pytest.approx(sah_reference(b), rel=1e-9)
 
 
 # --------------------------------------------------------------------------- rays
