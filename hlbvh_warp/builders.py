@@ -121,10 +121,10 @@ class TopDownBuilder:
             self._launch(
                 sah.choose_splits_kernel,
                 count,
-                [self.level_count, self.level_nodes, node_begin, node_end, self.order, k, item_lowers, item_uppers,
-                 item_weights, mode, num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal),
-                 wp.float64(t_intersect), self.suffix_area, self.suffix_weight, self.split_axis, self.split_pos,
-                 self.split_flag],
+                [self.level_count, self.level_nodes, node_begin, node_end, self.order, k, item_lowers,
+                 item_uppers, item_weights, mode, num_bins, max_leaf_size, terminate_leaf_size,
+                 wp.float64(t_traversal), wp.float64(t_intersect), self.suffix_area, self.suffix_weight,
+                 self.split_axis, self.split_pos, self.split_flag],
             )
             # Number the children of the splitting nodes without holes.
             wp.utils.array_scan(self.split_flag[:count], self.split_offset[:count], inclusive=False)
@@ -367,14 +367,17 @@ class HlbvhSahPipeline(HlbvhPipeline):
              top.arena.node_begin, top.arena.node_end, cluster_order, top.ordered_starts, top.cluster_left,
              top.cluster_right, self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end],
         )
+        # Free since the voxel sort: which cluster each sorted position belongs to.
+        position_cluster = self.scratch_ids
+        self._launch(upper_sah.scatter_clusters_kernel, num_clusters,
+                     [n, num_clusters, self.voxel_starts, top.cluster_shift, self.sorted_prim_ids, self.prim_order,
+                      position_cluster])
         self._launch(
             upper_sah.shift_treelets_kernel,
             2 * n - 1,
-            [2 * num_clusters - 1, num_clusters, self.node_count, self.voxel_starts, top.cluster_shift,
-             self.node_begin, self.node_end],
+            [2 * num_clusters - 1, self.node_count, position_cluster, top.cluster_shift, self.node_begin,
+             self.node_end],
         )
-        self._launch(upper_sah.scatter_prim_order_kernel, n,
-                     [num_clusters, self.voxel_starts, top.cluster_shift, self.sorted_prim_ids, self.prim_order])
 
         # Bounding boxes of all nodes, bottom-up.
         timer.stage("bbox")

@@ -27,20 +27,6 @@ def cluster_end(voxel_starts: wp.array(dtype=wp.int32), num_clusters: int, num_p
     return num_prims
 
 
-@wp.func
-def cluster_of_position(voxel_starts: wp.array(dtype=wp.int32), num_clusters: int, pos: int) -> int:
-    # Last cluster whose start is <= pos (voxel_starts is increasing, voxel_starts[0] == 0).
-    lo = int(0)
-    hi = num_clusters - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if voxel_starts[mid] <= pos:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
 @wp.kernel
 def seed_clusters_kernel(
     num_prims: int,
@@ -171,9 +157,8 @@ def join_top_kernel(
 @wp.kernel
 def shift_treelets_kernel(
     first_node: int,
-    num_clusters: int,
     node_count: wp.array(dtype=wp.int32),
-    voxel_starts: wp.array(dtype=wp.int32),
+    position_cluster: wp.array(dtype=wp.int32),
     cluster_shift: wp.array(dtype=wp.int32),
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
@@ -181,19 +166,26 @@ def shift_treelets_kernel(
     node = wp.tid()
     if node < first_node or node >= node_count[0]:
         return
-    c = cluster_of_position(voxel_starts, num_clusters, node_begin[node])
+    c = position_cluster[node_begin[node]]
     node_begin[node] = node_begin[node] + cluster_shift[c]
     node_end[node] = node_end[node] + cluster_shift[c]
 
 
 @wp.kernel
-def scatter_prim_order_kernel(
+def scatter_clusters_kernel(
+    num_prims: int,
     num_clusters: int,
     voxel_starts: wp.array(dtype=wp.int32),
     cluster_shift: wp.array(dtype=wp.int32),
     sorted_prim_ids: wp.array(dtype=wp.int32),
     prim_order: wp.array(dtype=wp.int32),
+    position_cluster: wp.array(dtype=wp.int32),
 ):
-    pos = wp.tid()
-    c = cluster_of_position(voxel_starts, num_clusters, pos)
-    prim_order[pos + cluster_shift[c]] = sorted_prim_ids[pos]
+    # One thread per cluster (a few primitives each): move its primitives to their top-tree
+    # place, and record which cluster every old position belongs to for the node shift, so that
+    # neither pass searches voxel_starts per element.
+    c = wp.tid()
+    shift = cluster_shift[c]
+    for pos in range(voxel_starts[c], cluster_end(voxel_starts, num_clusters, num_prims, c)):
+        prim_order[pos + shift] = sorted_prim_ids[pos]
+        position_cluster[pos] = c

@@ -139,3 +139,48 @@ def test_sweep_sah_equals_exhaustive_greedy(device, seed):
     order, begin, end = tree["prim_order"], tree["node_begin"], tree["node_end"]
     got = sorted((frozenset(order[b:e].tolist()) for b, e in zip(begin, end)), key=sorted)
     assert got == greedy_sweep_reference(lo, hi)
+
+
+def binned_root_split_reference(lo, hi, num_bins):
+    """Root split of binned SAH (Wald 2007) in float64: bins of equal width over the centroid
+    extent per axis, every non-trivial bin boundary priced as area(L) * |L| + area(R) * |R|."""
+    c = (np.float32(0.5) * (lo + hi)).astype(np.float32)
+    best = None
+    for axis in range(3):
+        cmin, cmax = c[:, axis].min(), c[:, axis].max()
+        if not cmax > cmin:
+            continue
+        scale = np.float32(num_bins) / (cmax - cmin)
+        bins = np.clip(((c[:, axis] - cmin) * scale).astype(np.int64), 0, num_bins - 1)
+        for j in range(1, num_bins):
+            left = bins < j
+            k = int(left.sum())
+            if k == 0 or k == len(lo):
+                continue
+
+            def area(mask):
+                d = hi[mask].max(0).astype(np.float64) - lo[mask].min(0).astype(np.float64)
+                return 2 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+            cost = area(left) * k + area(~left) * (len(lo) - k)
+            if best is None or cost < best[0] * (1 - 1e-12):
+                best = (cost, axis, k)
+    return best
+
+
+@pytest.mark.parametrize("num_bins", [4, 16, 32])
+@pytest.mark.parametrize("seed", range(4))
+def test_binned_root_split_matches_numpy(device, num_bins, seed):
+    rng = np.random.default_rng(100 + seed)
+    n = 400
+    lo = (rng.random((n, 3)) * [10, 3, 6]).astype(np.float32)
+    hi = lo + (rng.random((n, 3)) * 0.5).astype(np.float32)
+    tree = hw.build_from_bounds(lo, hi, method="binned_sah", device=device,
+                                config=hw.BuildConfig(sah_bins=num_bins)).to_numpy()
+    cost, axis, k = binned_root_split_reference(lo, hi, num_bins)
+    left = tree["node_left"][0]
+    left_prims = tree["prim_order"][tree["node_begin"][left]:tree["node_end"][left]]
+    assert len(left_prims) == k
+    # The left child is exactly the items below the chosen boundary on the chosen axis.
+    c = np.float32(0.5) * (lo[:, axis] + hi[:, axis])
+    assert set(left_prims.tolist()) == set(np.argsort(c, kind="stable")[:k].tolist())
