@@ -4,7 +4,10 @@ For each mesh and builder: check a batch of rays against the float64 brute force
 before anything is timed, then time the build (median, min, max of ``--repeats`` runs after a
 warm-up), record the per-stage breakdown, the SAH cost of Pantaleoni & Luebke 2010 (eq. 1) and
 its ratio to the greedy full-sweep SAH tree (their Table 3 reference), the node count and the
-bytes of device buffers per triangle. One fixed-format row per builder is printed and all rows
+bytes of device buffers per triangle. A second time, "rebuild", times per-frame rebuilds on
+buffers allocated once (our reusable pipelines against ``wp.Bvh.rebuild``): a one-shot build
+also pays for first touching fresh memory, which on some machines costs as much as the build
+itself. One fixed-format row per builder is printed and all rows
 are written as JSON. Peers on the same device: ``wp.Bvh`` with the "sah", "median" and "lbvh"
 constructors and ``wp.Mesh`` (time only: their nodes are not readable here).
 
@@ -39,10 +42,10 @@ PEERS = ("wp.Bvh:sah", "wp.Bvh:median", "wp.Bvh:lbvh", "wp.Mesh")
 REFERENCE = "sweep_sah"
 
 ROW_FORMAT = "{mesh:>12s} {tris:>9d} {builder:>14s} {setting:>12s} {median:>10.2f} {min:>9.2f} {max:>9.2f} " \
-             "{sah:>9s} {ratio:>7s} {nodes:>9s} {bytes:>8s} {rays:>6s}"
-HEADER = "{:>12s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}".format(
-    "mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "SAH", "ratio", "nodes", "B/tri",
-    "rays")
+             "{rebuild:>10s} {sah:>9s} {ratio:>7s} {nodes:>9s} {bytes:>8s} {rays:>6s}"
+HEADER = "{:>12s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>10s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}".format(
+    "mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "rebuild ms", "SAH", "ratio", "nodes",
+    "B/tri", "rays")
 
 
 def generated_scene(num_tris: int = 60000, seed: int = 7):
@@ -102,6 +105,34 @@ def _time(fn, device, repeats: int, warmup: int) -> list[float]:
     return times
 
 
+def _summary(times: list[float]) -> dict:
+    return {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times}
+
+
+def _rebuild_times(builder, lowers, uppers, config, device, args) -> dict | None:
+    """Per-frame rebuilds on buffers allocated once (what `Builder` does every frame), timed like
+    the one-shot builds; None for builders without reusable buffers."""
+    from .builders import HlbvhSahPipeline
+    from .hlbvh import HlbvhPipeline
+
+    n = lowers.shape[0]
+    if builder in ("hlbvh", "lbvh"):
+        pipe = HlbvhPipeline(n, config, device)
+
+        def run():
+            pipe.build(builder)
+    elif builder == "hlbvh_sah":
+        pipe = HlbvhSahPipeline(n, config, device)
+
+        def run():
+            pipe.build_sah(StageTimer(device, False))
+    else:
+        return None
+    wp.copy(pipe.prim_lowers, lowers)
+    wp.copy(pipe.prim_uppers, uppers)
+    return _summary(_time(run, device, args.repeats, args.warmup))
+
+
 def _bytes_per_tri(bvh, num_tris: int, config: BuildConfig, device) -> float:
     """Device buffers of the build (pipeline scratch and the tree) plus the primitive boxes."""
     from .builders import pipeline_buffer_bytes
@@ -152,10 +183,12 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
             fn(lowers, uppers, config, device, StageTimer(device, False))
 
         times = _time(run, device, args.repeats, args.warmup)
+        rebuild = _rebuild_times(builder, lowers, uppers, config, device, args)
         cost = sah_cost(bvh, config.sah_traversal_cost, config.sah_intersection_cost)
         rows.append({
             "mesh": name, "num_tris": n, "builder": builder, "setting": label, "config": overrides,
             "time_ms": {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times},
+            "rebuild_ms": rebuild,
             "stages_ms": {k: v for k, v in bvh.timings.items() if k != "skipped"},
             "sah": cost, "sah_ratio": cost / reference_cost[config.max_leaf_size],
             "num_nodes": bvh.num_nodes, "bytes_per_tri": _bytes_per_tri(bvh, n, config, device),
@@ -175,17 +208,23 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
             def run(constructor=constructor):
                 wp.Bvh(lowers, uppers, constructor=constructor)
 
+        rebuild = None
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 times = _time(run, device, args.repeats, args.warmup)
+                if peer != "wp.Mesh":
+                    # In-place rebuild on the same buffers: the peer of our reused pipelines.
+                    peer_bvh = wp.Bvh(lowers, uppers, constructor=constructor)
+                    rebuild = _summary(_time(lambda: peer_bvh.rebuild(constructor), device, args.repeats,
+                                             args.warmup))
         except Exception as exc:  # a constructor this device lacks (e.g. lbvh on some versions)
             rows.append({"mesh": name, "builder": peer, "setting": "default", "error": str(exc)})
             continue
         rows.append({
             "mesh": name, "num_tris": n, "builder": peer, "setting": "default", "config": {},
             "time_ms": {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times},
-            "stages_ms": {}, "sah": None, "sah_ratio": None, "num_nodes": None, "bytes_per_tri": None,
+            "rebuild_ms": rebuild, "stages_ms": {}, "sah": None, "sah_ratio": None, "num_nodes": None, "bytes_per_tri": None,
             "rays_checked": 0,
             # e.g. wp.Bvh's lbvh constructor falls back to sah on the CPU: say so in the row.
             "notes": sorted({str(w.message) for w in caught}),
@@ -209,6 +248,7 @@ def format_row(row: dict) -> str:
     return ROW_FORMAT.format(
         mesh=row["mesh"][:12], tris=row["num_tris"], builder=row["builder"], setting=row["setting"][:12],
         median=row["time_ms"]["median"], min=row["time_ms"]["min"], max=row["time_ms"]["max"],
+        rebuild=opt((row.get("rebuild_ms") or {}).get("median"), ".2f"),
         sah=opt(row["sah"], ".2f"), ratio=opt(row["sah_ratio"], ".3f"), nodes=opt(row["num_nodes"], "d"),
         bytes=opt(row["bytes_per_tri"], ".0f"), rays="ok" if row["rays_checked"] else "-",
     )

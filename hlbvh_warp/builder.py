@@ -100,13 +100,11 @@ class Builder:
         if self.resort:
             # The build sees faces in input_order; the tree is mapped back to the user's indices.
             self.input_order = wp.empty(n, dtype=wp.int32, device=device)
-            self.build_faces = wp.empty((n, 3), dtype=wp.int32, device=device)
             self.prim_order = wp.empty(n, dtype=wp.int32, device=device)
             self.prim_lowers = wp.empty(n, dtype=wp.vec3, device=device)
             self.prim_uppers = wp.empty(n, dtype=wp.vec3, device=device)
         else:
             self.input_order = None
-            self.build_faces = self.faces
             self.prim_order = pipe.sorted_prim_ids[:n]
             self.prim_lowers = pipe.prim_lowers
             self.prim_uppers = pipe.prim_uppers
@@ -199,13 +197,14 @@ class Builder:
     def _rebuild(self, timer: StageTimer):
         """The launches of one full build from `self.vertices`; no host reads unless timed."""
         n, device, pipe = self.num_prims, self.device, self.pipeline
+        timer.stage("prim_bounds")
         if self.resort:
             # Resorting: the previous tree's order becomes this build's input order.
-            timer.stage("resort_gather")
-            wp.launch(dynamic.resort_gather_kernel, dim=n,
-                      inputs=[self.prim_order, self.faces, self.input_order, self.build_faces], device=device)
-        timer.stage("prim_bounds")
-        pipe.compute_triangle_bounds(self.vertices, self.build_faces)
+            wp.launch(dynamic.resort_bounds_kernel, dim=n,
+                      inputs=[self.prim_order, self.vertices, self.faces, self.input_order, pipe.prim_lowers,
+                              pipe.prim_uppers], device=device)
+        else:
+            pipe.compute_triangle_bounds(self.vertices, self.faces)
         pipeline_timings = timer.timings
         pipe.build(self.method, timer, sync_free=self.sync_free)
         pipeline_timings.pop("total", None)

@@ -13,19 +13,24 @@ wp.set_module_options({"enable_backward": False})
 
 # ------------------------------------------------------------------ resorting
 @wp.kernel
-def resort_gather_kernel(
+def resort_bounds_kernel(
     prim_order: wp.array(dtype=wp.int32),
+    vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.int32, ndim=2),
     input_order: wp.array(dtype=wp.int32),
-    gathered: wp.array(dtype=wp.int32, ndim=2),
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
 ):
     # The previous tree's order becomes the build's input order: input i is user face order[i].
+    # Its box is computed straight from the user's faces, so no gathered copy of them is made.
     i = wp.tid()
     f = prim_order[i]
     input_order[i] = f
-    gathered[i, 0] = faces[f, 0]
-    gathered[i, 1] = faces[f, 1]
-    gathered[i, 2] = faces[f, 2]
+    a = vertices[faces[f, 0]]
+    b = vertices[faces[f, 1]]
+    c = vertices[faces[f, 2]]
+    lowers[i] = wp.min(wp.min(a, b), c)
+    uppers[i] = wp.max(wp.max(a, b), c)
 
 
 @wp.kernel
