@@ -109,8 +109,16 @@ class Bvh:
         return view(self)
 
     def invalidate(self):
-        """Forget host copies after the device arrays changed (refit, rebuild)."""
+        """Forget host copies after the device arrays changed (refit, rebuild).
+
+        The ray traversal layout, once `view` has made one, is derived from the node boxes and the
+        vertices: it is rewritten in place (launches only), so views handed out earlier stay valid.
+        """
+        layout = self._cache.get("traversal_layout")
         self._cache.clear()
+        if layout is not None:
+            layout.refresh(self)
+            self._cache["traversal_layout"] = layout
 
     def __repr__(self) -> str:
         return f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, device={self.device})"

@@ -53,10 +53,46 @@ class TraversalStats:
         }
 
 
+class TraversalLayout:
+    """The packed ray traversal layout of one mesh BVH (see ``kernels/traversal.py``).
+
+    Derived from the node boxes, the topology and the vertices, so it is refreshed, in place, by
+    every `Bvh.invalidate` (which refits and rebuilds call): views handed out earlier keep working.
+    Costs 64 bytes per interior node and 36 per triangle, plus 4 per node of scratch.
+    """
+
+    def __init__(self, bvh: Bvh):
+        device = bvh.device
+        num_prims = bvh.num_prims
+        self.first_steps = wp.zeros(bvh.node_left.shape[0], dtype=wp.int32, device=device)
+        # Positions of interior nodes lie below N - 1; keep one record for a single-leaf tree.
+        self.nodes = wp.zeros(max(num_prims - 1, 1), dtype=traversal.PackedNode, device=device)
+        self.triangles = wp.zeros(num_prims, dtype=traversal.PackedTriangle, device=device)
+        self.refresh(bvh)
+
+    def refresh(self, bvh: Bvh):
+        """Rewrite the layout from the BVH's current arrays: launches only, no host reads."""
+        device = bvh.device
+        nodes = [bvh.node_count, bvh.node_lowers, bvh.node_uppers, bvh.node_left, bvh.node_right, bvh.node_begin,
+                 bvh.node_end, self.first_steps, self.nodes]
+        if device.is_cpu:
+            # One sequential pass: on the CPU a thread per node costs more than the work it does.
+            wp.launch(traversal.pack_nodes_sweep_kernel, dim=1, inputs=nodes, device=device)
+        else:
+            capacity = bvh.node_left.shape[0]
+            wp.launch(traversal.first_steps_climb_kernel, dim=capacity, device=device,
+                      inputs=[bvh.node_count, bvh.node_parent, bvh.node_begin, self.first_steps])
+            wp.launch(traversal.pack_nodes_kernel, dim=capacity, inputs=nodes, device=device)
+        wp.launch(traversal.pack_triangles_kernel, dim=bvh.num_prims, device=device,
+                  inputs=[bvh.prim_order, bvh.vertices, bvh.faces, self.triangles])
+
+
 def view(bvh: Bvh) -> BvhView:
     """The `BvhView` struct of ``bvh`` for user kernels (``wp.launch(k, inputs=[view(bvh), ...])``).
 
-    The view refers to the BVH's arrays, so it stays valid after a refit of the same BVH.
+    The view refers to the BVH's arrays and to its `TraversalLayout` (made on the first call for a
+    mesh BVH), which refits and rebuilds refresh in place: it stays valid after a refit of the
+    same BVH.
     """
     if not isinstance(bvh, Bvh):
         raise ValueError(f"view() takes a Bvh, got {type(bvh).__name__}")
@@ -77,6 +113,15 @@ def view(bvh: Bvh) -> BvhView:
     device = bvh.device
     v.vertices = bvh.vertices if bvh.vertices is not None else wp.zeros(0, dtype=wp.vec3, device=device)
     v.faces = bvh.faces if bvh.faces is not None else wp.zeros((0, 3), dtype=wp.int32, device=device)
+    if bvh.vertices is not None and bvh.faces is not None:
+        layout = bvh._cache.get("traversal_layout")
+        if layout is None:
+            layout = bvh._cache["traversal_layout"] = TraversalLayout(bvh)
+        v.packed_nodes = layout.nodes
+        v.packed_triangles = layout.triangles
+    else:
+        v.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=device)
+        v.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=device)
     bvh._cache["view"] = v
     return v
 
@@ -133,23 +178,13 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     hit_u, hit_v = _empty(float, device, bary), _empty(float, device, bary)
     visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
     if num_rays:
-        wp.launch(
-            traversal.closest_hit_kernel,
-            dim=num_rays,
-            inputs=[
-                view(bvh),
-                wp.array(o, dtype=wp.vec3, device=device),
-                wp.array(d, dtype=wp.vec3, device=device),
-                t_max,
-                hit_t,
-                hit_prim,
-                hit_u,
-                hit_v,
-                visits,
-                tests,
-            ],
-            device=device,
-        )
+        args = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device),
+                t_max, hit_t, hit_prim]
+        if return_barycentrics or stats:
+            wp.launch(traversal.closest_hit_details_kernel, dim=num_rays, inputs=args + [hit_u, hit_v, visits, tests],
+                      device=device)
+        else:
+            wp.launch(traversal.closest_hit_kernel, dim=num_rays, inputs=args, device=device)
     out = (hit_t.numpy(), hit_prim.numpy())
     if return_barycentrics:
         out += (hit_u.numpy(), hit_v.numpy())

@@ -91,11 +91,9 @@ def run(mesh_path: pathlib.Path, method: str, num_rays: int, repeats: int, devic
         dw = wp.array(d, dtype=wp.vec3, device=device)
         ours_t, ours_p = wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device)
         ref_t, ref_p = wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device)
-        none_f, none_i = wp.empty(0, dtype=float, device=device), wp.empty(0, dtype=wp.int32, device=device)
 
         def ours():
-            wp.launch(traversal.closest_hit_kernel, dim=n,
-                      inputs=[bvh_view, ow, dw, float("inf"), ours_t, ours_p, none_f, none_f, none_i, none_i],
+            wp.launch(traversal.closest_hit_kernel, dim=n, inputs=[bvh_view, ow, dw, float("inf"), ours_t, ours_p],
                       device=device)
 
         def reference():

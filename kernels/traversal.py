@@ -14,6 +14,15 @@
   only gets slower below depth 64, and never writes past the stack.
 - Statistics count traversal steps (nodes visited) and primitive tests per query: the n_s and
   n_t of the measured traversal cost m = n_s * c_t + n_t * c_i (Wodniok & Goesele, GI 2016, eq. 10).
+- Ray queries read a traversal layout derived from the canonical arrays (``pack_nodes_kernel``,
+  ``pack_triangles_kernel``; built and kept current by ``hlbvh_warp.query``): every interior node
+  is one 64-byte `PackedNode` holding both children's boxes and references, so the two box tests of
+  a step read one cache line, and a leaf child costs no node read at all (the child boxes stored in
+  the parent, as in the multi-BVH nodes of Ernst & Greiner, "Multi Bounding Volume Hierarchies",
+  RT 2008, here with two children). Records sit in depth-first order, so a node's first child is
+  the next record, and triangles are copied in tree order next to each other. Incoherent rays are
+  bound by memory latency, not arithmetic: both children's records are prefetched before their
+  boxes are tested.
 """
 
 import warp as wp
@@ -32,11 +41,44 @@ STACK_SIZE = wp.constant(TRAVERSAL_STACK_SIZE)
 
 
 @wp.struct
+class PackedNode:
+    """One interior node of the traversal layout: 64 bytes, one cache line.
+
+    Child ``a`` is the one whose primitive range starts where the parent's does, ``b`` the other
+    (the canonical left/right order does not matter to a ray). ``child_*`` is the position of the
+    child's own record, or minus its primitive count for a leaf; ``count_*`` is the number of
+    primitives under the child, so a traversal that knows where a node's range begins knows where
+    each child's begins.
+    """
+
+    lower_a: wp.vec3
+    upper_a: wp.vec3
+    lower_b: wp.vec3
+    upper_b: wp.vec3
+    child_a: wp.int32
+    child_b: wp.int32
+    count_a: wp.int32
+    count_b: wp.int32
+
+
+@wp.struct
+class PackedTriangle:
+    """The vertices of the triangle at one position of ``prim_order``: one read instead of a face
+    row and three scattered vertex rows."""
+
+    a: wp.vec3
+    b: wp.vec3
+    c: wp.vec3
+
+
+@wp.struct
 class BvhView:
     """Everything a query reads, passed by value into user kernels (see ``hlbvh_warp.query.view``).
 
     Node fields follow ``hlbvh_warp.bvh.Bvh``; ``vertices`` and ``faces`` are empty arrays for a
-    BVH built from bare boxes, which supports box queries only.
+    BVH built from bare boxes, which supports box queries only. ``packed_nodes`` and
+    ``packed_triangles`` are the ray traversal layout of the module docstring; ray queries on a view
+    without them (empty arrays) walk the canonical arrays instead, with the same results.
     """
 
     node_lowers: wp.array(dtype=wp.vec3)
@@ -50,6 +92,8 @@ class BvhView:
     prim_uppers: wp.array(dtype=wp.vec3)
     vertices: wp.array(dtype=wp.vec3)
     faces: wp.array(dtype=wp.int32, ndim=2)
+    packed_nodes: wp.array(dtype=PackedNode)
+    packed_triangles: wp.array(dtype=PackedTriangle)
 
 
 @wp.struct
@@ -233,8 +277,8 @@ def bvh_triangle(bvh: BvhView, prim: int, origin: wp.vec3, direction: wp.vec3, t
 
 
 @wp.func
-def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
-    """Front-to-back traversal shared by the closest-hit and the any-hit query."""
+def canonical_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
+    """`packed_ray_query` on the canonical arrays, for a view that carries no traversal layout."""
     best_t = t_max
     best_prim = int(-1)
     best_u = float(0.0)
@@ -309,6 +353,184 @@ def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: floa
     result.nodes_visited = visited
     result.prims_tested = tested
     return result
+
+
+# Software prefetch of one record. A traversal step depends on the record the previous step chose,
+# so an incoherent ray waits for memory at every step; asking for both children's records before
+# their boxes are tested overlaps that wait with the tests. A hint only: no effect on results, and
+# nothing on CUDA, where other warps hide the latency.
+_PREFETCH_NODE = """
+#if !defined(__CUDA_ARCH__)
+    __builtin_prefetch((const char*)nodes.data + (size_t)index * (size_t)nodes.strides[0]);
+#endif
+"""
+_PREFETCH_TRIANGLE = """
+#if !defined(__CUDA_ARCH__)
+    __builtin_prefetch((const char*)triangles.data + (size_t)index * (size_t)triangles.strides[0]);
+#endif
+"""
+
+
+@wp.func_native(_PREFETCH_NODE)
+def prefetch_node(nodes: wp.array(dtype=PackedNode), index: int): ...
+
+
+@wp.func_native(_PREFETCH_TRIANGLE)
+def prefetch_triangle(triangles: wp.array(dtype=PackedTriangle), index: int): ...
+
+
+@wp.func
+def prefetch_child(
+    nodes: wp.array(dtype=PackedNode), triangles: wp.array(dtype=PackedTriangle), child: int, begin: int
+):
+    # The arrays, not the view: a struct argument is passed by value.
+    if child >= 0:
+        prefetch_node(nodes, child)
+    else:
+        prefetch_triangle(triangles, begin)
+
+
+@wp.func
+def packed_ray_query(
+    nodes: wp.array(dtype=PackedNode),
+    triangles: wp.array(dtype=PackedTriangle),
+    prim_order: wp.array(dtype=wp.int32),
+    root_lower: wp.vec3,
+    root_upper: wp.vec3,
+    root_begin: int,
+    root: int,
+    origin: wp.vec3,
+    direction: wp.vec3,
+    t_max: float,
+    any_hit: int,
+):
+    """Front-to-back traversal of the packed layout, shared by the closest-hit and any-hit queries.
+
+    Takes the arrays it reads rather than the `BvhView`, which is passed by value: a copy of the
+    whole struct per call costs incoherent rays several percent.
+
+    A node reference is a `PackedNode` position, or minus the primitive count for a leaf; the
+    traversal carries where the current node's primitive range begins, so a leaf needs no read
+    besides its triangles, and the stack-overflow fallback knows the range of any node. Each step
+    tests both children's boxes from the parent's record, continues with the nearer child and
+    defers the farther one with its entry distance (the padded test of Ize 2013 orders the
+    children); a deferred node entered behind the closest hit found since is dropped when popped.
+    """
+    best_t = t_max
+    best_k = int(-1)
+    best_u = float(0.0)
+    best_v = float(0.0)
+    visited = int(0)
+    tested = int(0)
+    stack = vec64i()
+    stack_begin = vec64i()
+    stack_t = vec64f()
+    top = int(0)
+    inv = wp.vec3(0.0)
+    node = int(0)
+    begin = int(0)
+    active = int(0)
+    if ray_is_valid(origin, direction, t_max) == 1:
+        inv = ray_inverse_direction(direction)
+        if ray_box_entry(origin, inv, root_lower, root_upper, best_t) < INF:
+            active = 1
+            node = root
+            begin = root_begin
+    while active == 1:
+        visited += 1
+        if node >= 0 and top >= STACK_SIZE:
+            # No room to defer a child: test the node's whole range as one leaf.
+            full = nodes[node]
+            node = -(full.count_a + full.count_b)
+        if node < 0:
+            for k in range(begin, begin - node):
+                tested += 1
+                tri = triangles[k]
+                h = intersect_triangle_watertight(origin, direction, tri.a, tri.b, tri.c, best_t)
+                if h.hit == 1:
+                    best_t = h.t
+                    best_k = k
+                    best_u = h.u
+                    best_v = h.v
+                    if any_hit == 1:
+                        break
+            active = int(0)
+            if not (any_hit == 1 and best_k >= 0):
+                # Pop the nearest deferred node still in front of the closest hit so far.
+                while top > 0 and active == 0:
+                    top -= 1
+                    if stack_t[top] <= best_t:
+                        node = stack[top]
+                        begin = stack_begin[top]
+                        active = 1
+        else:
+            n = nodes[node]
+            begin_b = begin + n.count_a
+            prefetch_child(nodes, triangles, n.child_a, begin)
+            prefetch_child(nodes, triangles, n.child_b, begin_b)
+            ta = ray_box_entry(origin, inv, n.lower_a, n.upper_a, best_t)
+            tb = ray_box_entry(origin, inv, n.lower_b, n.upper_b, best_t)
+            if ta < INF and tb < INF:
+                # Visit the nearer child next, defer the farther one.
+                if ta <= tb:
+                    stack[top] = n.child_b
+                    stack_begin[top] = begin_b
+                    stack_t[top] = tb
+                    node = n.child_a
+                else:
+                    stack[top] = n.child_a
+                    stack_begin[top] = begin
+                    stack_t[top] = ta
+                    node = n.child_b
+                    begin = begin_b
+                top += 1
+            elif ta < INF:
+                node = n.child_a
+            elif tb < INF:
+                node = n.child_b
+                begin = begin_b
+            else:
+                active = int(0)
+                while top > 0 and active == 0:
+                    top -= 1
+                    if stack_t[top] <= best_t:
+                        node = stack[top]
+                        begin = stack_begin[top]
+                        active = 1
+    result = RayHit()
+    result.t = INF
+    result.prim = int(-1)
+    result.u = best_u
+    result.v = best_v
+    if best_k >= 0:
+        result.t = best_t
+        result.prim = prim_order[best_k]
+    result.nodes_visited = visited
+    result.prims_tested = tested
+    return result
+
+
+@wp.func
+def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
+    """Front-to-back traversal shared by the closest-hit and the any-hit query."""
+    if bvh.packed_nodes.shape[0] > 0:
+        root_begin = bvh.node_begin[0]
+        # The root's record is at position 0; a root that is a leaf has none.
+        root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
+        return packed_ray_query(
+            bvh.packed_nodes,
+            bvh.packed_triangles,
+            bvh.prim_order,
+            bvh.node_lowers[0],
+            bvh.node_uppers[0],
+            root_begin,
+            root,
+            origin,
+            direction,
+            t_max,
+            any_hit,
+        )
+    return canonical_ray_query(bvh, origin, direction, t_max, any_hit)
 
 
 @wp.func
@@ -515,9 +737,158 @@ def bvh_aabb_pairs(
     return count
 
 
+# ------------------------------------------------------------------ traversal layout
+# Depth-first positions without a traversal. Call a node's child "first" when its range starts
+# where the node's does, and let L(i) count the first-child steps on the path from the root to i.
+# Then begin(i) + L(i) is the depth-first (pre-order) position of interior node i among interior
+# nodes when leaves hold one primitive, and for any leaf sizes still distinct and below N - 1 (a
+# subtree of k primitives holds at most k - 1 interior nodes): an N - 1 record array holds every
+# tree over N primitives, and a node's first child is the very next record.
+
+
+@wp.func
+def packed_child_reference(node_left: wp.array(dtype=wp.int32), node_begin: wp.array(dtype=wp.int32),
+                           node_end: wp.array(dtype=wp.int32), first_steps: wp.array(dtype=wp.int32), child: int):
+    if node_left[child] < 0:
+        return node_begin[child] - node_end[child]
+    return node_begin[child] + first_steps[child]
+
+
+@wp.func
+def pack_node(
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    first_steps: wp.array(dtype=wp.int32),
+    packed: wp.array(dtype=PackedNode),
+    i: int,
+):
+    """Write interior node i's record at begin + L; L of its children must be known."""
+    a = node_left[i]
+    b = node_right[i]
+    if node_begin[a] != node_begin[i]:
+        tmp = a
+        a = b
+        b = tmp
+    n = PackedNode()
+    n.lower_a = node_lowers[a]
+    n.upper_a = node_uppers[a]
+    n.lower_b = node_lowers[b]
+    n.upper_b = node_uppers[b]
+    n.child_a = packed_child_reference(node_left, node_begin, node_end, first_steps, a)
+    n.child_b = packed_child_reference(node_left, node_begin, node_end, first_steps, b)
+    n.count_a = node_end[a] - node_begin[a]
+    n.count_b = node_end[b] - node_begin[b]
+    packed[node_begin[i] + first_steps[i]] = n
+
+
+@wp.kernel
+def pack_nodes_sweep_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    first_steps: wp.array(dtype=wp.int32),
+    packed: wp.array(dtype=PackedNode),
+):
+    """All records in one thread, parents first (children are numbered after parents): L flows
+    down in the same pass. For the CPU, where a thread per node costs more than the work."""
+    first_steps[0] = 0
+    for i in range(node_count[0]):
+        left = node_left[i]
+        if left >= 0:
+            right = node_right[i]
+            steps = first_steps[i]
+            first_steps[left] = steps + wp.where(node_begin[left] == node_begin[i], 1, 0)
+            first_steps[right] = steps + wp.where(node_begin[right] == node_begin[i], 1, 0)
+            pack_node(node_lowers, node_uppers, node_left, node_right, node_begin, node_end, first_steps, packed, i)
+
+
+@wp.kernel
+def first_steps_climb_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    first_steps: wp.array(dtype=wp.int32),
+):
+    """L(i) with one thread per node climbing to the root: for devices with many threads."""
+    i = wp.tid()
+    if i >= node_count[0]:
+        return
+    steps = int(0)
+    child = i
+    parent = node_parent[i]
+    while parent >= 0:
+        if node_begin[child] == node_begin[parent]:
+            steps += 1
+        child = parent
+        parent = node_parent[parent]
+    first_steps[i] = steps
+
+
+@wp.kernel
+def pack_nodes_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    first_steps: wp.array(dtype=wp.int32),
+    packed: wp.array(dtype=PackedNode),
+):
+    """One record per interior node, one thread each, after `first_steps_climb_kernel`."""
+    i = wp.tid()
+    if i < node_count[0] and node_left[i] >= 0:
+        pack_node(node_lowers, node_uppers, node_left, node_right, node_begin, node_end, first_steps, packed, i)
+
+
+@wp.kernel
+def pack_triangles_kernel(
+    prim_order: wp.array(dtype=wp.int32),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    packed: wp.array(dtype=PackedTriangle),
+):
+    k = wp.tid()
+    p = prim_order[k]
+    tri = PackedTriangle()
+    tri.a = vertices[faces[p, 0]]
+    tri.b = vertices[faces[p, 1]]
+    tri.c = vertices[faces[p, 2]]
+    packed[k] = tri
+
+
 # ------------------------------------------------------------------ kernels of the host calls
 @wp.kernel
 def closest_hit_kernel(
+    bvh: BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    t_max: float,
+    hit_t: wp.array(dtype=float),
+    hit_prim: wp.array(dtype=wp.int32),
+):
+    """One ray per thread, distance and triangle only.
+
+    Kept apart from `closest_hit_details_kernel`: on the CPU every thread copies the kernel's
+    arguments, and four unused output arrays cost coherent rays about a tenth of their time.
+    """
+    tid = wp.tid()
+    h = bvh_closest_hit(bvh, origins[tid], directions[tid], t_max)
+    hit_t[tid] = h.t
+    hit_prim[tid] = h.prim
+
+
+@wp.kernel
+def closest_hit_details_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
