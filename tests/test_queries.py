@@ -13,6 +13,9 @@ from oracles import assert_hits_match, brute_force_closest_hit, random_rays
 
 import hlbvh_warp
 from hlbvh_warp import query
+from hlbvh_warp.builder import Builder
+from hlbvh_warp.config import BuildConfig
+from hlbvh_warp.kernels import traversal
 
 
 @pytest.fixture
@@ -188,3 +191,81 @@ def test_example_user_kernel_runs_headless(device):
             example.render(None)
     image = example.image.numpy()
     assert np.isfinite(image).all() and image.max() > 0.5 and (example.crowding.numpy() > 0).any()
+
+
+@wp.kernel
+def _closest_hit_from_view_kernel(
+    bvh: query.BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    hit_t: wp.array(dtype=float),
+    hit_prim: wp.array(dtype=int),
+):
+    tid = wp.tid()
+    h = query.bvh_closest_hit(bvh, origins[tid], directions[tid], 1.0e30)
+    hit_t[tid] = h.t
+    hit_prim[tid] = h.prim
+
+
+def _trace_view(view, o, d, device):
+    n = len(o)
+    t, prim = wp.zeros(n, dtype=float, device=device), wp.zeros(n, dtype=int, device=device)
+    wp.launch(_closest_hit_from_view_kernel, dim=n, device=device,
+              inputs=[view, wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device),
+                      t, prim])
+    return t.numpy(), prim.numpy()
+
+
+_CANONICAL_FIELDS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_begin", "node_end", "prim_order",
+                     "prim_lowers", "prim_uppers", "vertices", "faces")
+
+
+@pytest.mark.parametrize("max_leaf_size", [1, 4])
+def test_packed_layout_matches_the_canonical_walk(device, rng, scene, max_leaf_size):
+    """The packed traversal layout and a hand-made view without it (canonical arrays) agree."""
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device, config=BuildConfig(max_leaf_size=max_leaf_size))
+    packed = query.view(bvh)
+    assert packed.packed_nodes.shape[0] == len(faces) - 1
+    canonical = query.BvhView()
+    for name in _CANONICAL_FIELDS:
+        setattr(canonical, name, getattr(packed, name))
+    canonical.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=device)
+    canonical.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=device)
+    o, d = random_rays(rng, verts, 400)
+    t, prim = _trace_view(packed, o, d, device)
+    t_canonical, prim_canonical = _trace_view(canonical, o, d, device)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    assert_hits_match(t, prim, t_ref, prim_ref)
+    assert_hits_match(t_canonical, prim_canonical, t_ref, prim_ref)
+    assert_hits_match(t, prim, t_canonical, prim_canonical)
+
+
+def test_single_triangle_root_leaf(device):
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    bvh = hlbvh_warp.build(verts, np.array([[0, 1, 2]], np.int32), device=device)
+    o = np.array([[0.2, 0.2, 1.0], [0.8, 0.8, 1.0]], np.float32)
+    d = np.array([[0, 0, -1], [0, 0, -1]], np.float32)
+    t, prim = query.intersect(bvh, o, d)
+    assert prim.tolist() == [0, -1] and t[0] == pytest.approx(1.0)
+
+
+def test_view_stays_valid_after_refit_and_rebuild(device, rng, scene):
+    """The packed layout is derived from boxes and vertices: refits and rebuilds refresh it in place."""
+    verts, faces = scene
+    builder = Builder(len(faces), device=device, resort=True)
+    bvh = builder.build(verts, faces)
+    view = query.view(bvh)
+    o, d = random_rays(rng, verts, 300)
+    frames = [verts, verts * np.float32(1.2) + np.float32(0.1)]
+    wobble = verts + (0.05 * rng.standard_normal(verts.shape)).astype(np.float32)
+    frames.append(wobble[:, [1, 2, 0]])
+    for k, frame in enumerate(frames):
+        if k == 1:
+            builder.refit(frame)
+        elif k == 2:
+            builder.rebuild(frame)
+        t, prim = _trace_view(view, o, d, device)
+        t_ref, prim_ref = brute_force_closest_hit(frame, faces, o, d)
+        assert_hits_match(t, prim, t_ref, prim_ref)
+        assert (prim_ref >= 0).sum() > 50
