@@ -1,4 +1,4 @@
-"""Ray and box queries on the canonical BVH layout, callable from any user ``@wp.kernel``.
+"""Ray and box queries on a built BVH, callable from any user ``@wp.kernel``.
 
 - Triangles: Woop, Benthin & Wald, "Watertight Ray/Triangle Intersection", JCGT 2013. Rays
   through shared edges and vertices of a closed mesh hit one of the triangles, never none.
@@ -14,8 +14,10 @@
   only gets slower below depth 64, and never writes past the stack.
 - Statistics count traversal steps (nodes visited) and primitive tests per query: the n_s and
   n_t of the measured traversal cost m = n_s * c_t + n_t * c_i (Wodniok & Goesele, GI 2016, eq. 10).
-- Ray queries read a traversal layout derived from the canonical arrays (``pack_nodes_kernel``,
-  ``pack_triangles_kernel``; built and kept current by ``hlbvh_warp.query``): every interior node
+- Box queries and ``bvh_ray_all_hits`` walk the canonical arrays. Closest-hit and any-hit ray
+  queries read a traversal layout derived from them (``pack_nodes_sweep_kernel`` on the CPU,
+  ``pack_nodes_kernel`` elsewhere, ``pack_triangles_kernel``; made and kept current by
+  ``hlbvh_warp.query.TraversalLayout``): every interior node
   is one 64-byte `PackedNode` holding both children's boxes and references, so the two box tests of
   a step read one cache line, and a leaf child costs no node read at all (the child boxes stored in
   the parent, as in the multi-BVH nodes of Ernst & Greiner, "Multi Bounding Volume Hierarchies",
