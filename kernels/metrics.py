@@ -38,6 +38,25 @@ def child_term(cost: wp.float64, child_area: wp.float64, parent_area: wp.float64
     return cost
 
 
+@wp.func
+def interior_cost(
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_cost: wp.array(dtype=wp.float64),
+    left: int,
+    right: int,
+    lower: wp.vec3,
+    upper: wp.vec3,
+    t_traversal: wp.float64,
+) -> wp.float64:
+    # Eq. (1) for an interior node of box [lower, upper] over its two finished children.
+    parent_area = box_area64(lower, upper)
+    c = wp.float64(2.0) * t_traversal
+    c += child_term(node_cost[left], box_area64(node_lowers[left], node_uppers[left]), parent_area)
+    c += child_term(node_cost[right], box_area64(node_lowers[right], node_uppers[right]), parent_area)
+    return c
+
+
 @wp.kernel
 def reset_visits_kernel(node_visits: wp.array(dtype=wp.int32)):
     node_visits[wp.tid()] = 0
@@ -72,11 +91,8 @@ def sah_cost_kernel(
             return
         left = node_left[parent]
         right = node_right[parent]
-        parent_area = box_area64(node_lowers[parent], node_uppers[parent])
-        c = wp.float64(2.0) * t_traversal
-        c += child_term(node_cost[left], box_area64(node_lowers[left], node_uppers[left]), parent_area)
-        c += child_term(node_cost[right], box_area64(node_lowers[right], node_uppers[right]), parent_area)
-        node_cost[parent] = c
+        node_cost[parent] = interior_cost(node_lowers, node_uppers, node_cost, left, right, node_lowers[parent],
+                                          node_uppers[parent], t_traversal)
         parent = node_parent[parent]
 
 
@@ -125,11 +141,7 @@ def bounds_and_cost_kernel(
         upper = wp.max(node_uppers[left], node_uppers[right])
         node_lowers[parent] = lower
         node_uppers[parent] = upper
-        parent_area = box_area64(lower, upper)
-        c = wp.float64(2.0) * t_traversal
-        c += child_term(node_cost[left], box_area64(node_lowers[left], node_uppers[left]), parent_area)
-        c += child_term(node_cost[right], box_area64(node_lowers[right], node_uppers[right]), parent_area)
-        node_cost[parent] = c
+        node_cost[parent] = interior_cost(node_lowers, node_uppers, node_cost, left, right, lower, upper, t_traversal)
         parent = node_parent[parent]
 
 
@@ -206,9 +218,6 @@ def bounds_and_cost_sweep_kernel(
             upper = wp.max(node_uppers[left], node_uppers[right])
             node_lowers[node] = lower
             node_uppers[node] = upper
-            parent_area = box_area64(lower, upper)
-            c = wp.float64(2.0) * t_traversal
-            c += child_term(node_cost[left], box_area64(node_lowers[left], node_uppers[left]), parent_area)
-            c += child_term(node_cost[right], box_area64(node_lowers[right], node_uppers[right]), parent_area)
-            node_cost[node] = c
+            node_cost[node] = interior_cost(node_lowers, node_uppers, node_cost, left, right, lower, upper,
+                                            t_traversal)
         node -= 1

@@ -22,6 +22,8 @@ primitives, touch only the few segments left. Each head also records where its s
 
 import warp as wp
 
+from .bounds import leaf_box
+
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
@@ -493,15 +495,7 @@ def emit_depth_first_kernel(
         if b - a <= max_leaf_size:
             node_left[node] = -1
             node_right[node] = -1
-            p = prim_order[a]
-            lower = prim_lowers[p]
-            upper = prim_uppers[p]
-            for k in range(a + 1, b):
-                p = prim_order[k]
-                lower = wp.min(lower, prim_lowers[p])
-                upper = wp.max(upper, prim_uppers[p])
-            node_lowers[node] = lower
-            node_uppers[node] = upper
+            leaf_box(node, node_begin, node_end, prim_order, prim_lowers, prim_uppers, node_lowers, node_uppers)
             continue
         split = radix_split(codes, a, b)
         left = wp.atomic_add(node_count, 0, 2)
