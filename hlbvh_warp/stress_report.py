@@ -9,9 +9,14 @@ node count, the rays that disagree, and how many of those are not near-ties.
 
 A disagreement is a *near-tie* (documented tolerance, `NEAR_TIE_TOL`) when every triangle on
 which the two answers differ is decided within rounding: the ray passes within
-``NEAR_TIE_TOL * scale`` of the triangle's boundary, grazes its plane, starts within that
-distance of its plane, or the triangle has (almost) no area; ``scale`` is the largest
-coordinate magnitude of the ray origin and the triangle. The float32 watertight test and a
+``NEAR_TIE_TOL * scale`` of the triangle's boundary, passes within that distance of the line
+through one of its edges, grazes its plane, starts within that distance of its plane, or the
+triangle has (almost) no area; ``scale`` is the largest coordinate magnitude of the ray origin
+and the triangle. The edge-line test matters for rays that graze a triangle near an edge: the
+watertight test decides each edge by the sign of a ray-space edge function, which is the
+distance between the ray's line and the edge's line (Woop et al. 2013, sec. 3), and float32
+rounding decides that sign only up to about eps * scale even where the hit point lies well
+inside the triangle in its own plane. The float32 watertight test and a
 float64 test may legitimately decide such rays differently; any other disagreement is a bug.
 """
 
@@ -216,6 +221,21 @@ def is_marginal(vertices, faces, prim: int, origin, direction, tol: float = NEAR
     height = float(np.dot(n, a - o))
     if abs(height) <= tol * scale * n_len:
         return True  # the origin lies on the triangle's plane: a hit at t ~ 0 either way
+    # Signed distance between the ray's line and each edge's line: the quantity whose sign the
+    # watertight test's edge functions compute (same sign on all three: the line crosses the
+    # triangle). Where one is within rounding of zero and the others agree in sign, flipping it
+    # flips the answer: a tie, wherever the hit point falls in the triangle's plane.
+    d_unit = d / np.linalg.norm(d)
+    side, near = [], []
+    for q0, q1 in ((a, b), (b, c), (c, a)):
+        m = np.cross(q1 - q0, d_unit)
+        m_len = np.linalg.norm(m)
+        dist = float(np.dot(q0 - o, m)) / m_len if m_len > 0.0 else 0.0
+        near.append(abs(dist) <= tol * scale)
+        side.append(np.sign(dist))
+    decided = {sd for sd, nr in zip(side, near) if not nr}
+    if any(near) and len(decided) <= 1:
+        return True
     t = height / nd
     p = o + t * d
     dist = min(
