@@ -104,9 +104,25 @@ class TopDownBuilder:
         node_end: wp.array,
         node_count: wp.array,
         item_order: wp.array,
+        emission: str = "treelets",
     ) -> int:
-        """Split level by level until every node is a leaf; returns the number of levels."""
+        """Split until every node is a leaf; returns the number of launches that split.
+
+        ``emission`` is the resolved `BuildConfig.emission`: ``"treelets"`` splits level by level,
+        every open node of a level at once (for CUDA); ``"depth_first"`` walks the whole tree in
+        one thread (for the CPU device). Both make the same splits.
+        """
         k = self.num_items
+        if emission == "depth_first":
+            self._launch(
+                sah.build_depth_first_kernel,
+                1,
+                [k, self.order, self.order_next, self.item_side, item_lowers, item_uppers, item_weights, mode,
+                 num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal), wp.float64(t_intersect),
+                 self.suffix_area, self.suffix_weight, self.level_nodes, node_left, node_right, node_parent,
+                 node_begin, node_end, node_count, item_order],
+            )
+            return 1
         self._launch(
             sah.init_top_down_kernel,
             node_left.shape[0],
@@ -182,7 +198,7 @@ def build_top_down(
     # Sort the primitive centroids once per axis.
     timer.stage("sort_axes")
     builder.sort_axes(prim_lowers, prim_uppers)
-    # Split level by level: sweep (or bin, or halve) every open node, partition the orders.
+    # Split top-down: sweep (or bin, or halve) every open node, partition the orders.
     timer.stage("top_down")
     builder.build_levels(
         prim_lowers,
@@ -201,6 +217,7 @@ def build_top_down(
         node_end=out.node_end,
         node_count=out.node_count,
         item_order=out.prim_order,
+        emission=config.resolved_emission(device),
     )
     # Bounding boxes of all nodes, bottom-up.
     timer.stage("bbox")
@@ -350,6 +367,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
             node_end=top.arena.node_end,
             node_count=top.arena.node_count,
             item_order=top.arena.prim_order,
+            emission=self.emission,
         )
 
         # Join: top nodes take slots [0, 2C - 1), clusters move to where the top tree put them.

@@ -83,12 +83,10 @@ def bin_of(c: float, cmin: float, scale: float, num_bins: int) -> int:
     return wp.clamp(int((c - cmin) * scale), 0, num_bins - 1)
 
 
-@wp.kernel
-def choose_splits_kernel(
-    level_count: wp.array(dtype=wp.int32),
-    level_nodes: wp.array(dtype=wp.int32),
-    node_begin: wp.array(dtype=wp.int32),
-    node_end: wp.array(dtype=wp.int32),
+@wp.func
+def choose_split(
+    b: int,
+    e: int,
     order: wp.array(dtype=wp.int32),
     num_items: int,
     item_lowers: wp.array(dtype=wp.vec3),
@@ -102,20 +100,14 @@ def choose_splits_kernel(
     t_intersect: wp.float64,
     suffix_area: wp.array(dtype=wp.float64),
     suffix_weight: wp.array(dtype=wp.float64),
-    split_axis: wp.array(dtype=wp.int32),
-    split_pos: wp.array(dtype=wp.int32),
-    split_flag: wp.array(dtype=wp.int32),
 ):
-    s = wp.tid()
-    split_flag[s] = 0
-    if s >= level_count[0]:
-        return
-    node = level_nodes[s]
-    b = node_begin[node]
-    e = node_end[node]
+    """The split of the range [b, e) under `mode`: ``(axis, position, 1)``, or ``(0, 0, 0)`` for a leaf.
+
+    Uses suffix_area / suffix_weight on [b, e) only, so disjoint ranges can be split at once.
+    """
     size = e - b
     if size <= max_leaf_size:
-        return
+        return wp.vec3i(0, 0, 0)
 
     if mode == MODE_MEDIAN:
         # Object median on the axis of largest centroid extent: the extent is read off the ends
@@ -128,10 +120,7 @@ def choose_splits_kernel(
             if hi_c - lo_c > best_extent:
                 best_extent = hi_c - lo_c
                 best_axis = a
-        split_axis[s] = best_axis
-        split_pos[s] = b + size // 2
-        split_flag[s] = 1
-        return
+        return wp.vec3i(best_axis, b + size // 2, 1)
 
     best_cost = NO_COST
     best_axis = int(-1)
@@ -198,10 +187,7 @@ def choose_splits_kernel(
 
     if best_axis < 0:
         # Binned: every centroid coincides on every axis, no plane separates them; halve by index.
-        split_axis[s] = 0
-        split_pos[s] = b + size // 2
-        split_flag[s] = 1
-        return
+        return wp.vec3i(0, b + size // 2, 1)
 
     if size <= terminate_leaf_size:
         # Optional SAH termination: keep the node a leaf when splitting costs more than
@@ -210,11 +196,45 @@ def choose_splits_kernel(
         if node_area > wp.float64(0.0):
             split_cost = wp.float64(2.0) * t_traversal + t_intersect * best_cost / node_area
         if split_cost >= t_intersect * total_weight:
-            return
+            return wp.vec3i(0, 0, 0)
 
-    split_axis[s] = best_axis
-    split_pos[s] = best_pos
-    split_flag[s] = 1
+    return wp.vec3i(best_axis, best_pos, 1)
+
+
+@wp.kernel
+def choose_splits_kernel(
+    level_count: wp.array(dtype=wp.int32),
+    level_nodes: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    num_items: int,
+    item_lowers: wp.array(dtype=wp.vec3),
+    item_uppers: wp.array(dtype=wp.vec3),
+    item_weights: wp.array(dtype=wp.float64),
+    mode: int,
+    num_bins: int,
+    max_leaf_size: int,
+    terminate_leaf_size: int,
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    suffix_area: wp.array(dtype=wp.float64),
+    suffix_weight: wp.array(dtype=wp.float64),
+    split_axis: wp.array(dtype=wp.int32),
+    split_pos: wp.array(dtype=wp.int32),
+    split_flag: wp.array(dtype=wp.int32),
+):
+    s = wp.tid()
+    split_flag[s] = 0
+    if s >= level_count[0]:
+        return
+    node = level_nodes[s]
+    split = choose_split(node_begin[node], node_end[node], order, num_items, item_lowers, item_uppers, item_weights,
+                         mode, num_bins, max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area,
+                         suffix_weight)
+    split_axis[s] = split[0]
+    split_pos[s] = split[1]
+    split_flag[s] = split[2]
 
 
 @wp.kernel
@@ -304,3 +324,105 @@ def advance_level_kernel(
 @wp.kernel
 def fill_float64_kernel(values: wp.array(dtype=wp.float64), value: wp.float64):
     values[wp.tid()] = value
+
+
+@wp.kernel
+def build_depth_first_kernel(
+    num_items: int,
+    order: wp.array(dtype=wp.int32),
+    spill: wp.array(dtype=wp.int32),
+    item_side: wp.array(dtype=wp.int32),
+    item_lowers: wp.array(dtype=wp.vec3),
+    item_uppers: wp.array(dtype=wp.vec3),
+    item_weights: wp.array(dtype=wp.float64),
+    mode: int,
+    num_bins: int,
+    max_leaf_size: int,
+    terminate_leaf_size: int,
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    suffix_area: wp.array(dtype=wp.float64),
+    suffix_weight: wp.array(dtype=wp.float64),
+    stack: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    node_count: wp.array(dtype=wp.int32),
+    item_order: wp.array(dtype=wp.int32),
+):
+    """The whole top-down build in one thread, depth first (``BuildConfig.emission = "depth_first"``).
+
+    The same splits as the level schedule (`choose_split` on the same sorted orders), so the same
+    tree up to node numbering; for Warp's CPU device, where a level's threads run one after
+    another anyway and the per-level launches, scans and count reads are pure overhead. Children
+    are allocated in pairs after their parent; the stack (one slot per pending right child, at
+    most the tree's depth + 1 <= num_items) lives in a scratch array, so no tree can overflow it.
+    The orders are partitioned in place: left items are compacted forwards, right items spill
+    to `spill` on [b, e) and are copied back, which keeps both sides stable.
+    """
+    node_begin[0] = 0
+    node_end[0] = num_items
+    node_left[0] = -1
+    node_right[0] = -1
+    node_parent[0] = -1
+    count = int(1)
+    stack[0] = 0
+    top = int(1)
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        b = node_begin[node]
+        e = node_end[node]
+        split = choose_split(b, e, order, num_items, item_lowers, item_uppers, item_weights, mode, num_bins,
+                             max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area, suffix_weight)
+        if split[2] == 0:
+            # A finished leaf: its items take their final place (all three orders agree on the set).
+            for i in range(b, e):
+                item_order[i] = order[i]
+            continue
+        axis = split[0]
+        pos = split[1]
+        left = count
+        right = count + 1
+        count += 2
+        node_left[node] = left
+        node_right[node] = right
+        for child in range(left, right + 1):
+            node_left[child] = -1
+            node_right[child] = -1
+            node_parent[child] = node
+        node_begin[left] = b
+        node_end[left] = pos
+        node_begin[right] = pos
+        node_end[right] = e
+
+        # The split axis is already partitioned; the other two follow the side of every item.
+        base = axis * num_items
+        for i in range(b, e):
+            if i < pos:
+                item_side[order[base + i]] = 1
+            else:
+                item_side[order[base + i]] = 0
+        for a in range(3):
+            if a != axis:
+                base = a * num_items
+                lo = b
+                spilled = int(0)
+                for i in range(b, e):
+                    item = order[base + i]
+                    if item_side[item] != 0:
+                        order[base + lo] = item
+                        lo += 1
+                    else:
+                        spill[b + spilled] = item
+                        spilled += 1
+                for j in range(spilled):
+                    order[base + pos + j] = spill[b + j]
+
+        # Left on top: the left subtree is finished before the right one starts.
+        stack[top] = right
+        stack[top + 1] = left
+        top += 2
+    node_count[0] = count

@@ -63,6 +63,25 @@ def test_hlbvh_sah_emissions_agree(device, rng):
     assert costs[0] == pytest.approx(costs[1], rel=1e-9)
 
 
+@pytest.mark.parametrize("method", ["sweep_sah", "binned_sah", "median"])
+@pytest.mark.parametrize("leaf", [1, 3])
+def test_top_down_schedules_agree(device, rng, method, leaf):
+    # Level by level and depth first make the same splits: the same nodes (as primitive sets),
+    # the same primitive order, only the numbering differs.
+    v, f = random_soup(rng, 700)
+    trees = []
+    for emission in ("treelets", "depth_first"):
+        cfg = hw.BuildConfig(emission=emission, max_leaf_size=leaf)
+        bvh = hw.build(v, f, method=method, device=device, config=cfg)
+        tree = bvh.to_numpy()
+        check_tree_invariants(tree, 700, leaf, exact_node_count=2 * 700 - 1 if leaf == 1 else None)
+        trees.append(tree)
+    assert np.array_equal(trees[0]["prim_order"], trees[1]["prim_order"])
+    ranges = [sorted(zip(t["node_begin"].tolist(), t["node_end"].tolist())) for t in trees]
+    assert ranges[0] == ranges[1]
+    assert trees[0]["node_left"].shape == trees[1]["node_left"].shape
+
+
 @pytest.mark.parametrize("method", NEW_METHODS)
 def test_duplicate_boxes(device, method):
     # Equal centroids everywhere: no plane separates them, the builders must still finish.
@@ -128,13 +147,14 @@ def greedy_sweep_reference(lo, hi):
     return sorted(nodes, key=sorted)
 
 
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
 @pytest.mark.parametrize("seed", range(6))
-def test_sweep_sah_equals_exhaustive_greedy(device, seed):
+def test_sweep_sah_equals_exhaustive_greedy(device, seed, emission):
     rng = np.random.default_rng(seed)
     n = int(rng.integers(2, 13))
     lo = (rng.random((n, 3)) * 10).astype(np.float32)
     hi = lo + (rng.random((n, 3)) * rng.choice([0.5, 4.0])).astype(np.float32)
-    bvh = hw.build_from_bounds(lo, hi, method="sweep_sah", device=device)
+    bvh = hw.build_from_bounds(lo, hi, method="sweep_sah", device=device, config=hw.BuildConfig(emission=emission))
     tree = bvh.to_numpy()
     order, begin, end = tree["prim_order"], tree["node_begin"], tree["node_end"]
     got = sorted((frozenset(order[b:e].tolist()) for b, e in zip(begin, end)), key=sorted)
