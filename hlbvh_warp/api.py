@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import inputs
+from . import inputs, memory
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer
@@ -98,13 +98,15 @@ def build(mesh, faces=None, *, method: str = "hlbvh", device=None, config: Build
     """
     config, device = _resolve(method, config, device)
     verts_np, faces_np = inputs.mesh_arrays(mesh, faces)
-    vertices = wp.array(verts_np, dtype=wp.vec3, device=device)
-    face_arr = wp.array(faces_np, dtype=wp.int32, device=device)
+    vertices = memory.empty(verts_np.shape[0], dtype=wp.vec3, device=device)
+    vertices.assign(verts_np)
+    face_arr = memory.empty(faces_np.shape, dtype=wp.int32, device=device)
+    face_arr.assign(faces_np)
     timer = StageTimer(device, timings)
     timer.stage("prim_bounds")
     n = faces_np.shape[0]
-    lowers = wp.empty(n, dtype=wp.vec3, device=device)
-    uppers = wp.empty(n, dtype=wp.vec3, device=device)
+    lowers = memory.empty(n, dtype=wp.vec3, device=device)
+    uppers = memory.empty(n, dtype=wp.vec3, device=device)
     from .kernels import morton
 
     wp.launch(morton.triangle_bounds_kernel, dim=n, inputs=[vertices, face_arr, lowers, uppers], device=device)

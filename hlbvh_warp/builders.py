@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from . import api
+from . import api, memory
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
@@ -53,17 +53,17 @@ class TopDownBuilder:
         self.device = device = wp.get_device(device)
 
         def ints(count):
-            return wp.empty(count, dtype=wp.int32, device=device)
+            return memory.empty(count, dtype=wp.int32, device=device)
 
         # The radix sort needs keys and values of twice the item count.
-        self.sort_keys = wp.empty(2 * k, dtype=float, device=device)
+        self.sort_keys = memory.empty(2 * k, dtype=float, device=device)
         self.sort_ids = ints(2 * k)
         # Per-axis orders, ping-ponged every level: order[axis * k + position].
         self.order = ints(3 * k)
         self.order_next = ints(3 * k)
         self.item_side = ints(k)
-        self.suffix_area = wp.empty(k, dtype=wp.float64, device=device)
-        self.suffix_weight = wp.empty(k, dtype=wp.float64, device=device)
+        self.suffix_area = memory.empty(k, dtype=wp.float64, device=device)
+        self.suffix_weight = memory.empty(k, dtype=wp.float64, device=device)
         # A level holds disjoint non-empty ranges, so at most k nodes.
         self.level_nodes = ints(k)
         self.next_level_nodes = ints(k)
@@ -188,10 +188,10 @@ def build_top_down(
     arena = 2 * n - 1
 
     def ints(count):
-        return wp.empty(count, dtype=wp.int32, device=device)
+        return memory.empty(count, dtype=wp.int32, device=device)
 
     out = _Arena(device, n, arena)
-    weights = wp.empty(n, dtype=wp.float64, device=device)
+    weights = memory.empty(n, dtype=wp.float64, device=device)
     wp.launch(sah.fill_float64_kernel, dim=n, inputs=[weights, wp.float64(1.0)], device=device)
     builder = TopDownBuilder(n, device)
 
@@ -234,11 +234,11 @@ class _Arena:
     """The output arrays of a build: prim_order and the node arena of 2N - 1 slots."""
 
     def __init__(self, device, num_prims: int, arena: int):
-        self.prim_order = wp.empty(num_prims, dtype=wp.int32, device=device)
-        self.node_lowers = wp.empty(arena, dtype=wp.vec3, device=device)
-        self.node_uppers = wp.empty(arena, dtype=wp.vec3, device=device)
+        self.prim_order = memory.empty(num_prims, dtype=wp.int32, device=device)
+        self.node_lowers = memory.empty(arena, dtype=wp.vec3, device=device)
+        self.node_uppers = memory.empty(arena, dtype=wp.vec3, device=device)
         for name in ("node_left", "node_right", "node_parent", "node_begin", "node_end"):
-            setattr(self, name, wp.empty(arena, dtype=wp.int32, device=device))
+            setattr(self, name, memory.empty(arena, dtype=wp.int32, device=device))
         self.node_count = wp.zeros(1, dtype=wp.int32, device=device)
 
     def to_bvh(self, method, config, prim_lowers, prim_uppers, timings) -> Bvh:
@@ -272,8 +272,8 @@ class HlbvhSahPipeline(HlbvhPipeline):
 
     def __init__(self, num_prims: int, config: BuildConfig, device):
         super().__init__(num_prims, config, device)
-        self.node_cost = wp.empty(2 * num_prims - 1, dtype=wp.float64, device=self.device)
-        self.prim_order = wp.empty(num_prims, dtype=wp.int32, device=self.device)
+        self.node_cost = memory.empty(2 * num_prims - 1, dtype=wp.float64, device=self.device)
+        self.prim_order = memory.empty(num_prims, dtype=wp.int32, device=self.device)
         self.top = None
 
     def build_sah(self, timer: StageTimer) -> dict:
@@ -418,11 +418,11 @@ class _TopTree:
         c = num_clusters
 
         def ints(count):
-            return wp.empty(count, dtype=wp.int32, device=device)
+            return memory.empty(count, dtype=wp.int32, device=device)
 
-        self.cluster_lowers = wp.empty(c, dtype=wp.vec3, device=device)
-        self.cluster_uppers = wp.empty(c, dtype=wp.vec3, device=device)
-        self.cluster_cost = wp.empty(c, dtype=wp.float64, device=device)
+        self.cluster_lowers = memory.empty(c, dtype=wp.vec3, device=device)
+        self.cluster_uppers = memory.empty(c, dtype=wp.vec3, device=device)
+        self.cluster_cost = memory.empty(c, dtype=wp.float64, device=device)
         self.cluster_left = ints(c)
         self.cluster_right = ints(c)
         self.cluster_size = ints(c)

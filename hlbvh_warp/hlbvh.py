@@ -12,6 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
+from . import memory
 from .bvh import Bvh
 from .config import BuildConfig
 from .kernels import block_sort, bounds, compress, morton, treelets
@@ -73,7 +74,7 @@ class HlbvhPipeline:
         stride = (1 << config.planes_per_pass) - 1
 
         def ints(count):
-            return wp.empty(count, dtype=wp.int32, device=device)
+            return memory.empty(count, dtype=wp.int32, device=device)
 
         self.scene_bounds = wp.empty(2, dtype=wp.vec3, device=device)
         self.morton_codes = ints(n)
@@ -115,10 +116,10 @@ class HlbvhPipeline:
         self.split_offset = ints(n)
         self.max_segment = ints(1)
         # The tree itself.
-        self.prim_lowers = wp.empty(n, dtype=wp.vec3, device=device)
-        self.prim_uppers = wp.empty(n, dtype=wp.vec3, device=device)
-        self.node_lowers = wp.empty(num_node_slots, dtype=wp.vec3, device=device)
-        self.node_uppers = wp.empty(num_node_slots, dtype=wp.vec3, device=device)
+        self.prim_lowers = memory.empty(n, dtype=wp.vec3, device=device)
+        self.prim_uppers = memory.empty(n, dtype=wp.vec3, device=device)
+        self.node_lowers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
+        self.node_uppers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_left = ints(num_node_slots)
         self.node_right = ints(num_node_slots)
         self.node_parent = ints(num_node_slots)
