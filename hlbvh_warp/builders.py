@@ -27,6 +27,13 @@ from .kernels import bounds as bounds_kernels
 from .kernels import metrics as metrics_kernels
 from .kernels import sah, treelets, upper_sah
 
+#: The SAH-optimized HLBVH's cluster tree prices nodes of more than TOP_TREE_BINNED_ABOVE
+#: clusters at TOP_TREE_BINS bin boundaries (Wald 2007) and sweeps every position below that.
+#: Measured on the armadillo's 11,771 clusters: the cluster tree took 10.6 ms instead of 12.1,
+#: and the SAH cost moved from 1.0734 to 1.0743 of sweep_sah (bunny: 1.0489 to 1.0499).
+TOP_TREE_BINNED_ABOVE = 256
+TOP_TREE_BINS = 64
+
 #: Split rule of each top-down method (kernels/sah.py).
 TOP_DOWN_MODES = {"sweep_sah": sah.MODE_SWEEP, "binned_sah": sah.MODE_BINNED, "median": sah.MODE_MEDIAN}
 
@@ -64,6 +71,11 @@ class TopDownBuilder:
         self.item_side = ints(k)
         self.suffix_area = memory.empty(k, dtype=wp.float64, device=device)
         self.suffix_weight = memory.empty(k, dtype=wp.float64, device=device)
+        # Bins of the one-pass binned pricing, in the slots of each node's own range.
+        self.bin_lowers = memory.empty(k, dtype=wp.vec3, device=device)
+        self.bin_uppers = memory.empty(k, dtype=wp.vec3, device=device)
+        self.bin_weight = memory.empty(k, dtype=wp.float64, device=device)
+        self.bin_count = ints(k)
         # A level holds disjoint non-empty ranges, so at most k nodes.
         self.level_nodes = ints(k)
         self.next_level_nodes = ints(k)
@@ -105,12 +117,15 @@ class TopDownBuilder:
         node_count: wp.array,
         item_order: wp.array,
         emission: str = "treelets",
+        binned_above: int = 0,
     ) -> int:
         """Split until every node is a leaf; returns the number of launches that split.
 
         ``emission`` is the resolved `BuildConfig.emission`: ``"treelets"`` splits level by level,
         every open node of a level at once (for CUDA); ``"depth_first"`` walks the whole tree in
-        one thread (for the CPU device). Both make the same splits.
+        one thread (for the CPU device). Both make the same splits. With ``mode=sah.MODE_SWEEP``,
+        nodes of more than ``binned_above`` items (0: none) are priced at ``num_bins`` bin
+        boundaries instead of at every position.
         """
         k = self.num_items
         if emission == "depth_first":
@@ -119,7 +134,8 @@ class TopDownBuilder:
                 1,
                 [k, self.order, self.order_next, self.item_side, item_lowers, item_uppers, item_weights, mode,
                  num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal), wp.float64(t_intersect),
-                 self.suffix_area, self.suffix_weight, self.level_nodes, node_left, node_right, node_parent,
+                 self.suffix_area, self.suffix_weight, binned_above, self.bin_lowers, self.bin_uppers,
+                 self.bin_weight, self.bin_count, self.level_nodes, node_left, node_right, node_parent,
                  node_begin, node_end, node_count, item_order],
             )
             return 1
@@ -140,6 +156,7 @@ class TopDownBuilder:
                 [self.level_count, self.level_nodes, node_begin, node_end, self.order, k, item_lowers,
                  item_uppers, item_weights, mode, num_bins, max_leaf_size, terminate_leaf_size,
                  wp.float64(t_traversal), wp.float64(t_intersect), self.suffix_area, self.suffix_weight,
+                 binned_above, self.bin_lowers, self.bin_uppers, self.bin_weight, self.bin_count,
                  self.split_axis, self.split_pos, self.split_flag],
             )
             # Number the children of the splitting nodes without holes.
@@ -355,7 +372,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
             top.cluster_uppers,
             top.cluster_cost,
             mode=sah.MODE_SWEEP,
-            num_bins=cfg.sah_bins,
+            num_bins=TOP_TREE_BINS,
             max_leaf_size=1,
             terminate_leaf_size=0,
             t_traversal=cfg.sah_traversal_cost,
@@ -368,6 +385,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
             node_count=top.arena.node_count,
             item_order=top.arena.prim_order,
             emission=self.emission,
+            binned_above=TOP_TREE_BINNED_ABOVE,
         )
 
         # Join: top nodes take slots [0, 2C - 1), clusters move to where the top tree put them.

@@ -84,6 +84,121 @@ def bin_of(c: float, cmin: float, scale: float, num_bins: int) -> int:
 
 
 @wp.func
+def binned_split_presorted(
+    b: int,
+    e: int,
+    order: wp.array(dtype=wp.int32),
+    num_items: int,
+    item_lowers: wp.array(dtype=wp.vec3),
+    item_uppers: wp.array(dtype=wp.vec3),
+    item_weights: wp.array(dtype=wp.float64),
+    num_bins: int,
+    bin_lowers: wp.array(dtype=wp.vec3),
+    bin_uppers: wp.array(dtype=wp.vec3),
+    bin_weight: wp.array(dtype=wp.float64),
+    bin_count: wp.array(dtype=wp.int32),
+    suffix_area: wp.array(dtype=wp.float64),
+    suffix_weight: wp.array(dtype=wp.float64),
+):
+    """Binned SAH (Wald 2007) on presorted items in one light pass per axis: ``(axis, pos, found)``.
+
+    The same candidates and costs as pricing every bin boundary of the full sweep (MODE_BINNED
+    in `choose_split`), without its per-item area and stores: items sorted by centroid fall into
+    non-decreasing bins, so each bin is one run of the order, boxed as the pass goes; the sweep
+    then runs over the bins. Bins live in scratch slots [b, b + num_bins) of this node's own
+    range, so the range needs at least `num_bins` items.
+    """
+    size = e - b
+    best_cost = NO_COST
+    best_axis = int(-1)
+    best_pos = int(-1)
+    for a in range(3):
+        base = a * num_items
+        cmin = item_centroid(item_lowers, item_uppers, order[base + b], a)
+        cmax = item_centroid(item_lowers, item_uppers, order[base + e - 1], a)
+        if not (cmax > cmin):
+            continue
+        scale = float(num_bins) / (cmax - cmin)
+        for j in range(num_bins):
+            bin_count[b + j] = 0
+        item = order[base + b]
+        lower = item_lowers[item]
+        upper = item_uppers[item]
+        w = item_weights[item]
+        count = int(1)
+        current = bin_of(0.5 * (lower[a] + upper[a]), cmin, scale, num_bins)
+        for i in range(b + 1, e):
+            item = order[base + i]
+            item_lower = item_lowers[item]
+            item_upper = item_uppers[item]
+            j = bin_of(0.5 * (item_lower[a] + item_upper[a]), cmin, scale, num_bins)
+            if j != current:
+                bin_lowers[b + current] = lower
+                bin_uppers[b + current] = upper
+                bin_weight[b + current] = w
+                bin_count[b + current] = count
+                current = j
+                lower = item_lower
+                upper = item_upper
+                w = item_weights[item]
+                count = 1
+            else:
+                lower = wp.min(lower, item_lower)
+                upper = wp.max(upper, item_upper)
+                w += item_weights[item]
+                count += 1
+        bin_lowers[b + current] = lower
+        bin_uppers[b + current] = upper
+        bin_weight[b + current] = w
+        bin_count[b + current] = count
+
+        # Right to left over the bins: the area and weight of everything from bin j on.
+        started = int(0)
+        for k in range(num_bins):
+            j = num_bins - 1 - k
+            if bin_count[b + j] > 0:
+                if started == 0:
+                    lower = bin_lowers[b + j]
+                    upper = bin_uppers[b + j]
+                    w = bin_weight[b + j]
+                    started = 1
+                else:
+                    lower = wp.min(lower, bin_lowers[b + j])
+                    upper = wp.max(upper, bin_uppers[b + j])
+                    w += bin_weight[b + j]
+                suffix_area[b + j] = box_area64(lower, upper)
+                suffix_weight[b + j] = w
+        # Left to right: a candidate before every non-empty bin that has items to its left.
+        started = int(0)
+        count = int(0)
+        for j in range(num_bins):
+            n_j = bin_count[b + j]
+            if n_j > 0:
+                if started == 1:
+                    pos = b + count
+                    cost = box_area64(lower, upper) * w + suffix_area[b + j] * suffix_weight[b + j]
+                    better = cost < best_cost
+                    if cost == best_cost and best_pos >= 0:
+                        better = wp.abs(2 * pos - b - e) < wp.abs(2 * best_pos - b - e)
+                    if better:
+                        best_cost = cost
+                        best_axis = a
+                        best_pos = pos
+                    lower = wp.min(lower, bin_lowers[b + j])
+                    upper = wp.max(upper, bin_uppers[b + j])
+                    w += bin_weight[b + j]
+                else:
+                    lower = bin_lowers[b + j]
+                    upper = bin_uppers[b + j]
+                    w = bin_weight[b + j]
+                    started = 1
+                count += n_j
+    if best_axis < 0:
+        return wp.vec3i(0, 0, 0)
+    return wp.vec3i(best_axis, best_pos, 1)
+
+
+@wp.func
 def choose_split(
     b: int,
     e: int,
@@ -100,14 +215,30 @@ def choose_split(
     t_intersect: wp.float64,
     suffix_area: wp.array(dtype=wp.float64),
     suffix_weight: wp.array(dtype=wp.float64),
+    binned_above: int,
+    bin_lowers: wp.array(dtype=wp.vec3),
+    bin_uppers: wp.array(dtype=wp.vec3),
+    bin_weight: wp.array(dtype=wp.float64),
+    bin_count: wp.array(dtype=wp.int32),
 ):
     """The split of the range [b, e) under `mode`: ``(axis, position, 1)``, or ``(0, 0, 0)`` for a leaf.
 
-    Uses suffix_area / suffix_weight on [b, e) only, so disjoint ranges can be split at once.
+    Uses the scratch arrays on [b, e) only, so disjoint ranges can be split at once. Ranges of
+    more than `binned_above` items (0: never) are priced at `num_bins` bin boundaries instead of
+    swept in full, as binned SAH always is; the SAH-optimized HLBVH uses that for the few large
+    nodes at the top of its cluster tree.
     """
     size = e - b
     if size <= max_leaf_size:
         return wp.vec3i(0, 0, 0)
+    fast_binned = mode == MODE_BINNED or (mode == MODE_SWEEP and binned_above > 0 and size > binned_above)
+    if fast_binned and size >= num_bins and size > terminate_leaf_size:
+        split = binned_split_presorted(b, e, order, num_items, item_lowers, item_uppers, item_weights, num_bins,
+                                       bin_lowers, bin_uppers, bin_weight, bin_count, suffix_area, suffix_weight)
+        if split[2] == 1:
+            return split
+        # No plane separates the centroids on any axis: halve by index, as below.
+        return wp.vec3i(0, b + size // 2, 1)
 
     if mode == MODE_MEDIAN:
         # Object median on the axis of largest centroid extent: the extent is read off the ends
@@ -220,6 +351,11 @@ def choose_splits_kernel(
     t_intersect: wp.float64,
     suffix_area: wp.array(dtype=wp.float64),
     suffix_weight: wp.array(dtype=wp.float64),
+    binned_above: int,
+    bin_lowers: wp.array(dtype=wp.vec3),
+    bin_uppers: wp.array(dtype=wp.vec3),
+    bin_weight: wp.array(dtype=wp.float64),
+    bin_count: wp.array(dtype=wp.int32),
     split_axis: wp.array(dtype=wp.int32),
     split_pos: wp.array(dtype=wp.int32),
     split_flag: wp.array(dtype=wp.int32),
@@ -231,7 +367,7 @@ def choose_splits_kernel(
     node = level_nodes[s]
     split = choose_split(node_begin[node], node_end[node], order, num_items, item_lowers, item_uppers, item_weights,
                          mode, num_bins, max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area,
-                         suffix_weight)
+                         suffix_weight, binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
     split_axis[s] = split[0]
     split_pos[s] = split[1]
     split_flag[s] = split[2]
@@ -343,6 +479,11 @@ def build_depth_first_kernel(
     t_intersect: wp.float64,
     suffix_area: wp.array(dtype=wp.float64),
     suffix_weight: wp.array(dtype=wp.float64),
+    binned_above: int,
+    bin_lowers: wp.array(dtype=wp.vec3),
+    bin_uppers: wp.array(dtype=wp.vec3),
+    bin_weight: wp.array(dtype=wp.float64),
+    bin_count: wp.array(dtype=wp.int32),
     stack: wp.array(dtype=wp.int32),
     node_left: wp.array(dtype=wp.int32),
     node_right: wp.array(dtype=wp.int32),
@@ -376,7 +517,8 @@ def build_depth_first_kernel(
         b = node_begin[node]
         e = node_end[node]
         split = choose_split(b, e, order, num_items, item_lowers, item_uppers, item_weights, mode, num_bins,
-                             max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area, suffix_weight)
+                             max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area, suffix_weight,
+                             binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
         if split[2] == 0:
             # A finished leaf: its items take their final place (all three orders agree on the set).
             for i in range(b, e):

@@ -82,6 +82,20 @@ def test_top_down_schedules_agree(device, rng, method, leaf):
     assert trees[0]["node_left"].shape == trees[1]["node_left"].shape
 
 
+def test_hlbvh_sah_binned_top_costs_little(device, rng, monkeypatch):
+    # The cluster tree bins its largest nodes; pricing every position instead must not be
+    # noticeably better (and the binned tree must still be a valid tree).
+    from hlbvh_warp import builders
+
+    v, f = random_soup(rng, 30_000)
+    cfg = hw.BuildConfig(coarse_bits=5)
+    binned = hw.build(v, f, method="hlbvh_sah", device=device, config=cfg)
+    check_tree_invariants(binned.to_numpy(), 30_000, 1, exact_node_count=2 * 30_000 - 1)
+    monkeypatch.setattr(builders, "TOP_TREE_BINNED_ABOVE", 0)
+    swept = hw.build(v, f, method="hlbvh_sah", device=device, config=cfg)
+    assert sah_cost(binned) <= sah_cost(swept) * 1.01
+
+
 @pytest.mark.parametrize("method", NEW_METHODS)
 def test_duplicate_boxes(device, method):
     # Equal centroids everywhere: no plane separates them, the builders must still finish.
