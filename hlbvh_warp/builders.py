@@ -317,7 +317,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
         if self.emission == "depth_first":
             # The top tree's 2C - 1 slots are taken; treelet nodes are numbered after them.
             self.node_count.fill_(2 * num_clusters - 1)
-            self.emit_depth_first(self.voxel_starts, self.voxel_count, num_clusters - 1, num_clusters)
+            # Boxes and SAH costs of the cluster subtrees come out of the same walk.
+            self.emit_depth_first(self.voxel_starts, self.voxel_count, num_clusters - 1, num_clusters,
+                                  node_cost=self.node_cost)
         else:
             self._launch(
                 treelets.init_nodes_kernel,
@@ -335,18 +337,15 @@ class HlbvhSahPipeline(HlbvhPipeline):
             self.emit_hierarchy(voxel_bits, 0)
             self.split_exhausted_segments()
 
-        # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up.
-        timer.stage("cluster_costs")
+        # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up (the depth-first
+        # emission wrote them as it went).
         first_cluster_root = num_clusters - 1
         t_traversal, t_intersect = wp.float64(cfg.sah_traversal_cost), wp.float64(cfg.sah_intersection_cost)
         if self.emission == "depth_first":
-            self._launch(
-                metrics_kernels.bounds_and_cost_sweep_kernel,
-                1,
-                [first_cluster_root, self.node_count, self.node_left, self.node_right, self.node_begin,
-                 self.node_end, t_traversal, t_intersect, self.node_lowers, self.node_uppers, self.node_cost],
-            )
+            timer.skipped("cluster_costs")
+            timer.stage("cluster_items")
         else:
+            timer.stage("cluster_costs")
             self._launch(metrics_kernels.reset_visits_kernel, 2 * n - 1, [self.node_visits])
             self._launch(
                 metrics_kernels.bounds_and_cost_kernel,

@@ -130,6 +130,8 @@ class HlbvhPipeline:
         # The depth-first emission's one seed: the root segment [0, N).
         self.root_seed_start = wp.zeros(1, dtype=wp.int32, device=device)
         self.root_seed_count = wp.full(1, 1, dtype=wp.int32, device=device)
+        # Stands in for the node costs of an emission that does not compute them.
+        self.empty_cost = wp.empty(1, dtype=wp.float64, device=device)
         self.sync_free = False
 
     # ------------------------------------------------------------------ stages
@@ -376,22 +378,24 @@ class HlbvhPipeline:
             self._emit(num_segments, 0, 1, stride, 1)
 
     def emit_depth_first(self, seed_starts: wp.array | None = None, seed_count: wp.array | None = None,
-                         first_seed_node: int = 0, num_seeds: int = 1):
+                         first_seed_node: int = 0, num_seeds: int = 1, node_cost: wp.array | None = None):
         """The depth-first schedule of the emission (``BuildConfig.emission``): one thread per
-        seed segment (default: the root, [0, N)) emits its whole subtree and its leaf boxes.
-        With seeds given, the caller has set `node_count` past the seeds' nodes and links their
-        parents afterwards."""
+        seed segment (default: the root, [0, N)) emits its whole subtree with every box, and with
+        `node_cost` given, every node's SAH cost. With seeds given, the caller has set
+        `node_count` past the seeds' nodes and links their parents afterwards."""
         n = self.num_prims
         if seed_starts is None:
             seed_starts, seed_count = self.root_seed_start, self.root_seed_count
             self.node_count.fill_(1)
+        cfg = self.config
         self._launch(
             treelets.emit_depth_first_kernel,
             num_seeds,
-            [n, seed_starts, seed_count, first_seed_node, self.config.max_leaf_size, self.sorted_codes,
+            [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
              self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.node_count, self.node_left,
              self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
-             self.node_uppers],
+             self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
+             wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost],
         )
 
     def compute_node_bounds(self):
@@ -480,12 +484,11 @@ class HlbvhPipeline:
             self.emit_hierarchy(bits, 0)
             self.split_exhausted_segments()
 
-        # Bounding boxes of all nodes, bottom-up (leaf boxes already written by depth-first).
-        timer.stage("bbox")
+        # Bounding boxes of all nodes, bottom-up (the depth-first emission wrote them as it went).
         if self.emission == "depth_first":
-            self._launch(bounds.interior_bounds_sweep_kernel, 1,
-                         [self.node_count, self.node_left, self.node_right, self.node_lowers, self.node_uppers])
+            timer.skipped("bbox")
         else:
+            timer.stage("bbox")
             self.compute_node_bounds()
         return timer.finish()
 

@@ -188,36 +188,3 @@ def leaf_histogram_kernel(
     if node_left[node] >= 0:
         return
     wp.atomic_add(histogram, node_end[node] - node_begin[node], 1)
-
-
-@wp.kernel
-def bounds_and_cost_sweep_kernel(
-    first_node: int,
-    node_count: wp.array(dtype=wp.int32),
-    node_left: wp.array(dtype=wp.int32),
-    node_right: wp.array(dtype=wp.int32),
-    node_begin: wp.array(dtype=wp.int32),
-    node_end: wp.array(dtype=wp.int32),
-    t_traversal: wp.float64,
-    t_intersect: wp.float64,
-    node_lowers: wp.array(dtype=wp.vec3),
-    node_uppers: wp.array(dtype=wp.vec3),
-    node_cost: wp.array(dtype=wp.float64),
-):
-    # One thread, the CPU device's counterpart of bounds_and_cost_kernel for subtrees emitted
-    # depth first (leaf boxes already written, children numbered after parents): a reverse sweep
-    # over [first_node, node_count) sees both children of a node finished.
-    node = node_count[0] - 1
-    while node >= first_node:
-        left = node_left[node]
-        if left < 0:
-            node_cost[node] = t_intersect * wp.float64(node_end[node] - node_begin[node])
-        else:
-            right = node_right[node]
-            lower = wp.min(node_lowers[left], node_lowers[right])
-            upper = wp.max(node_uppers[left], node_uppers[right])
-            node_lowers[node] = lower
-            node_uppers[node] = upper
-            node_cost[node] = interior_cost(node_lowers, node_uppers, node_cost, left, right, lower, upper,
-                                            t_traversal)
-        node -= 1

@@ -23,6 +23,7 @@ primitives, touch only the few segments left. Each head also records where its s
 import warp as wp
 
 from .bounds import leaf_box
+from .metrics import interior_cost
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -458,14 +459,23 @@ def emit_depth_first_kernel(
     node_end: wp.array(dtype=wp.int32),
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
+    with_cost: int,
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    node_cost: wp.array(dtype=wp.float64),
 ):
     """Emit the subtree of seed segment s: [seed_starts[s], seed_starts[s + 1] or N), rooted at
     node first_seed_node + s, parentless until the caller links it.
 
     Topology equals the treelet passes' (a top-down radix split at the highest differing bit,
     index medians for equal codes, leaves at `max_leaf_size`), only the node numbering differs:
-    children are allocated in pairs when their parent is popped, so they follow it. Leaf boxes
-    are written as leaves are popped; interior boxes are left to the bottom-up sweep.
+    children are allocated in pairs when their parent is popped, so they follow it.
+
+    Boxes are written in the same walk, bottom-up: the left subtree is finished before the right
+    one starts, so when a leaf that is a right child is done, its parent's two children are
+    finished, and so on up while the finished node is a right child. That replaces a separate
+    bottom-up pass over the 2N - 1 nodes. With `with_cost`, the SAH cost of every node (eq. 1
+    of Pantaleoni & Luebke 2010, the cluster weights of section 3.3) is accumulated the same way.
     """
     s = wp.tid()
     num_seeds = seed_count[0]
@@ -496,6 +506,22 @@ def emit_depth_first_kernel(
             node_left[node] = -1
             node_right[node] = -1
             leaf_box(node, node_begin, node_end, prim_order, prim_lowers, prim_uppers, node_lowers, node_uppers)
+            if with_cost != 0:
+                node_cost[node] = t_intersect * wp.float64(b - a)
+            child = node
+            while child != root:
+                parent = node_parent[child]
+                if node_right[parent] != child:
+                    break
+                left_child = node_left[parent]
+                lower = wp.min(node_lowers[left_child], node_lowers[child])
+                upper = wp.max(node_uppers[left_child], node_uppers[child])
+                node_lowers[parent] = lower
+                node_uppers[parent] = upper
+                if with_cost != 0:
+                    node_cost[parent] = interior_cost(node_lowers, node_uppers, node_cost, left_child, child, lower,
+                                                      upper, t_traversal)
+                child = parent
             continue
         split = radix_split(codes, a, b)
         left = wp.atomic_add(node_count, 0, 2)

@@ -204,12 +204,17 @@ def test_resorted_input_gives_equivalent_tree_and_skips_sort(device):
     np.testing.assert_array_equal(order[again.to_numpy()["prim_order"]], order)
 
 
-def test_timings_report_stages(device, rng):
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
+def test_timings_report_stages(device, rng, emission):
     lo, hi = soup_bounds(rng, 500)
-    bvh = hb.build_from_bounds(lo, hi, device=device, timings=True)
-    for stage in ("morton", "run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort", "hierarchy",
-                  "bbox"):
+    bvh = hb.build_from_bounds(lo, hi, device=device, timings=True, config=hb.BuildConfig(emission=emission))
+    for stage in ("morton", "run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort", "hierarchy"):
         assert bvh.timings[stage] >= 0.0
+    if emission == "treelets":
+        assert bvh.timings["bbox"] >= 0.0
+    else:
+        # The depth-first emission writes every box as it goes: no separate pass.
+        assert "bbox" in bvh.timings["skipped"] and "bbox" not in bvh.timings
     assert hb.build_from_bounds(lo, hi, device=device).timings == {}
 
 
