@@ -25,9 +25,7 @@ def register_builder(name: str):
 def _pipeline_builder(method: str):
     def run(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
         n = prim_lowers.shape[0]
-        pipe = HlbvhPipeline(n, config, device)
-        wp.copy(pipe.prim_lowers, prim_lowers)
-        wp.copy(pipe.prim_uppers, prim_uppers)
+        pipe = HlbvhPipeline(n, config, device, prim_lowers, prim_uppers)
         pipeline_timings = pipe.build(method, timer)
         return bvh_from_pipeline(pipe, method, pipeline_timings)
 

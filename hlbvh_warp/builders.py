@@ -287,8 +287,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
     for how the two halves share one arena.
     """
 
-    def __init__(self, num_prims: int, config: BuildConfig, device):
-        super().__init__(num_prims, config, device)
+    def __init__(self, num_prims: int, config: BuildConfig, device, prim_lowers: wp.array | None = None,
+                 prim_uppers: wp.array | None = None):
+        super().__init__(num_prims, config, device, prim_lowers, prim_uppers)
         self.node_cost = memory.empty(2 * num_prims - 1, dtype=wp.float64, device=self.device)
         self.prim_order = memory.empty(num_prims, dtype=wp.int32, device=self.device)
         self.top = None
@@ -462,9 +463,7 @@ def _top_down(method: str):
 
 def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
     n = prim_lowers.shape[0]
-    pipe = HlbvhSahPipeline(n, config, device)
-    wp.copy(pipe.prim_lowers, prim_lowers)
-    wp.copy(pipe.prim_uppers, prim_uppers)
+    pipe = HlbvhSahPipeline(n, config, device, prim_lowers, prim_uppers)
     timings = pipe.build_sah(timer)
     bvh = Bvh(
         method="hlbvh_sah",

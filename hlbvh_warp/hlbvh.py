@@ -62,7 +62,8 @@ class StageTimer:
 class HlbvhPipeline:
     """Scratch buffers for one primitive count, allocated once and reused by every build."""
 
-    def __init__(self, num_prims: int, config: BuildConfig, device):
+    def __init__(self, num_prims: int, config: BuildConfig, device, prim_lowers: wp.array | None = None,
+                 prim_uppers: wp.array | None = None):
         if num_prims < 1:
             raise ValueError("HLBVH needs at least one primitive")
         self.num_prims = n = num_prims
@@ -116,8 +117,13 @@ class HlbvhPipeline:
         self.split_offset = ints(n)
         self.max_segment = ints(1)
         # The tree itself.
-        self.prim_lowers = memory.empty(n, dtype=wp.vec3, device=device)
-        self.prim_uppers = memory.empty(n, dtype=wp.vec3, device=device)
+        # A one-shot build reads the caller's boxes in place (the pipeline never writes them
+        # unless asked to compute triangle bounds); a `Builder` owns its own.
+        if prim_lowers is not None:
+            self.prim_lowers, self.prim_uppers = prim_lowers, prim_uppers
+        else:
+            self.prim_lowers = memory.empty(n, dtype=wp.vec3, device=device)
+            self.prim_uppers = memory.empty(n, dtype=wp.vec3, device=device)
         self.node_lowers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_uppers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_left = ints(num_node_slots)
