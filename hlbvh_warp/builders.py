@@ -69,8 +69,7 @@ class TopDownBuilder:
         self.order = ints(3 * k)
         self.order_next = ints(3 * k)
         self.item_side = ints(k)
-        self.suffix_area = memory.empty(k, dtype=wp.float64, device=device)
-        self.suffix_weight = memory.empty(k, dtype=wp.float64, device=device)
+        self.suffix_cost = memory.empty(k, dtype=wp.float64, device=device)
         # Bins of the one-pass binned pricing, in the slots of each node's own range.
         self.bin_lowers = memory.empty(k, dtype=wp.vec3, device=device)
         self.bin_uppers = memory.empty(k, dtype=wp.vec3, device=device)
@@ -134,7 +133,7 @@ class TopDownBuilder:
                 1,
                 [k, self.order, self.order_next, self.item_side, item_lowers, item_uppers, item_weights, mode,
                  num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal), wp.float64(t_intersect),
-                 self.suffix_area, self.suffix_weight, binned_above, self.bin_lowers, self.bin_uppers,
+                 self.suffix_cost, binned_above, self.bin_lowers, self.bin_uppers,
                  self.bin_weight, self.bin_count, self.level_nodes, node_left, node_right, node_parent,
                  node_begin, node_end, node_count, item_order],
             )
@@ -155,7 +154,7 @@ class TopDownBuilder:
                 count,
                 [self.level_count, self.level_nodes, node_begin, node_end, self.order, k, item_lowers,
                  item_uppers, item_weights, mode, num_bins, max_leaf_size, terminate_leaf_size,
-                 wp.float64(t_traversal), wp.float64(t_intersect), self.suffix_area, self.suffix_weight,
+                 wp.float64(t_traversal), wp.float64(t_intersect), self.suffix_cost,
                  binned_above, self.bin_lowers, self.bin_uppers, self.bin_weight, self.bin_count,
                  self.split_axis, self.split_pos, self.split_flag],
             )

@@ -3,7 +3,7 @@
 The greedy SAH sweep of MacDonald & Booth 1990 as organized by Wald, Boulos & Shirley 2007
 ("Ray tracing deformable scenes using dynamic bounding volume hierarchies", section 4.1): the
 items are sorted once by centroid on each of the three axes, every node evaluates all N - 1
-split positions of each axis (a right-to-left pass stores the suffix areas, a left-to-right pass
+split positions of each axis (a right-to-left pass stores area(R) * W(R) of every suffix, a left-to-right pass
 grows the prefix box and prices each split as area(L) * W(L) + area(R) * W(R)), and the three
 per-axis orders are stably partitioned at the chosen split so the children stay sorted without
 sorting again. The quality reference of Pantaleoni & Luebke 2010, Table 3.
@@ -97,8 +97,7 @@ def binned_split_presorted(
     bin_uppers: wp.array(dtype=wp.vec3),
     bin_weight: wp.array(dtype=wp.float64),
     bin_count: wp.array(dtype=wp.int32),
-    suffix_area: wp.array(dtype=wp.float64),
-    suffix_weight: wp.array(dtype=wp.float64),
+    suffix_cost: wp.array(dtype=wp.float64),
 ):
     """Binned SAH (Wald 2007) on presorted items in one light pass per axis: ``(axis, pos, found)``.
 
@@ -152,7 +151,7 @@ def binned_split_presorted(
         bin_weight[b + current] = w
         bin_count[b + current] = count
 
-        # Right to left over the bins: the area and weight of everything from bin j on.
+        # Right to left over the bins: area * weight of everything from bin j on.
         started = int(0)
         for k in range(num_bins):
             j = num_bins - 1 - k
@@ -166,8 +165,7 @@ def binned_split_presorted(
                     lower = wp.min(lower, bin_lowers[b + j])
                     upper = wp.max(upper, bin_uppers[b + j])
                     w += bin_weight[b + j]
-                suffix_area[b + j] = box_area64(lower, upper)
-                suffix_weight[b + j] = w
+                suffix_cost[b + j] = box_area64(lower, upper) * w
         # Left to right: a candidate before every non-empty bin that has items to its left.
         started = int(0)
         count = int(0)
@@ -176,7 +174,7 @@ def binned_split_presorted(
             if n_j > 0:
                 if started == 1:
                     pos = b + count
-                    cost = box_area64(lower, upper) * w + suffix_area[b + j] * suffix_weight[b + j]
+                    cost = box_area64(lower, upper) * w + suffix_cost[b + j]
                     better = cost < best_cost
                     if cost == best_cost and best_pos >= 0:
                         better = wp.abs(2 * pos - b - e) < wp.abs(2 * best_pos - b - e)
@@ -213,8 +211,7 @@ def choose_split(
     terminate_leaf_size: int,
     t_traversal: wp.float64,
     t_intersect: wp.float64,
-    suffix_area: wp.array(dtype=wp.float64),
-    suffix_weight: wp.array(dtype=wp.float64),
+    suffix_cost: wp.array(dtype=wp.float64),
     binned_above: int,
     bin_lowers: wp.array(dtype=wp.vec3),
     bin_uppers: wp.array(dtype=wp.vec3),
@@ -234,7 +231,7 @@ def choose_split(
     fast_binned = mode == MODE_BINNED or (mode == MODE_SWEEP and binned_above > 0 and size > binned_above)
     if fast_binned and size >= num_bins and size > terminate_leaf_size:
         split = binned_split_presorted(b, e, order, num_items, item_lowers, item_uppers, item_weights, num_bins,
-                                       bin_lowers, bin_uppers, bin_weight, bin_count, suffix_area, suffix_weight)
+                                       bin_lowers, bin_uppers, bin_weight, bin_count, suffix_cost)
         if split[2] == 1:
             return split
         # No plane separates the centroids on any axis: halve by index, as below.
@@ -270,21 +267,19 @@ def choose_split(
                 continue
             scale = float(num_bins) / (cmax - cmin)
 
-        # Right to left: area and weight of every suffix [i, e).
+        # Right to left: area * weight of every suffix [i, e), one stored product per position.
         item = order[base + e - 1]
         lower = item_lowers[item]
         upper = item_uppers[item]
         w = item_weights[item]
-        suffix_area[e - 1] = box_area64(lower, upper)
-        suffix_weight[e - 1] = w
+        suffix_cost[e - 1] = box_area64(lower, upper) * w
         for k in range(size - 2):
             i = e - 2 - k
             item = order[base + i]
             lower = wp.min(lower, item_lowers[item])
             upper = wp.max(upper, item_uppers[item])
             w += item_weights[item]
-            suffix_area[i] = box_area64(lower, upper)
-            suffix_weight[i] = w
+            suffix_cost[i] = box_area64(lower, upper) * w
 
         # Left to right: the prefix [b, i) against the stored suffix [i, e).
         item = order[base + b]
@@ -299,7 +294,7 @@ def choose_split(
                 candidate = prev_bin != next_bin
                 prev_bin = next_bin
             if candidate:
-                cost = box_area64(lower, upper) * w + suffix_area[i] * suffix_weight[i]
+                cost = box_area64(lower, upper) * w + suffix_cost[i]
                 # Exact ties go to the position nearest the middle (then the lower axis): equal or
                 # zero-area boxes tie everywhere, and leftmost ties would chain them N deep.
                 better = cost < best_cost
@@ -349,8 +344,7 @@ def choose_splits_kernel(
     terminate_leaf_size: int,
     t_traversal: wp.float64,
     t_intersect: wp.float64,
-    suffix_area: wp.array(dtype=wp.float64),
-    suffix_weight: wp.array(dtype=wp.float64),
+    suffix_cost: wp.array(dtype=wp.float64),
     binned_above: int,
     bin_lowers: wp.array(dtype=wp.vec3),
     bin_uppers: wp.array(dtype=wp.vec3),
@@ -366,8 +360,8 @@ def choose_splits_kernel(
         return
     node = level_nodes[s]
     split = choose_split(node_begin[node], node_end[node], order, num_items, item_lowers, item_uppers, item_weights,
-                         mode, num_bins, max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area,
-                         suffix_weight, binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
+                         mode, num_bins, max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_cost,
+                         binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
     split_axis[s] = split[0]
     split_pos[s] = split[1]
     split_flag[s] = split[2]
@@ -477,8 +471,7 @@ def build_depth_first_kernel(
     terminate_leaf_size: int,
     t_traversal: wp.float64,
     t_intersect: wp.float64,
-    suffix_area: wp.array(dtype=wp.float64),
-    suffix_weight: wp.array(dtype=wp.float64),
+    suffix_cost: wp.array(dtype=wp.float64),
     binned_above: int,
     bin_lowers: wp.array(dtype=wp.vec3),
     bin_uppers: wp.array(dtype=wp.vec3),
@@ -517,7 +510,7 @@ def build_depth_first_kernel(
         b = node_begin[node]
         e = node_end[node]
         split = choose_split(b, e, order, num_items, item_lowers, item_uppers, item_weights, mode, num_bins,
-                             max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_area, suffix_weight,
+                             max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_cost,
                              binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
         if split[2] == 0:
             # A finished leaf: its items take their final place (all three orders agree on the set).
