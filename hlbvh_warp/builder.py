@@ -195,13 +195,24 @@ class Builder:
             raise RuntimeError("call build(vertices, faces) once before rebuild/refit/update")
 
     def _rebuild(self, timer: StageTimer):
-        """The launches of one full build from `self.vertices`; no host reads unless timed."""
+        """The launches of one full build from `self.vertices`; no host reads unless timed.
+
+        Resorted (Pantaleoni & Luebke 2010, 2.2): the boxes are computed in the user's face order
+        (sequential, and they are the BVH's `prim_lowers`/`prim_uppers`), then gathered in the
+        previous tree's order as the build's input; afterwards only the primitive ids are mapped
+        back. Gathering triangles in tree order and scattering their boxes back to the user's
+        order instead cost two random accesses per primitive (about 5 ms of a 16 ms frame on a
+        100k-triangle explosion on the CPU), this costs one (about 0.6 ms).
+        """
         n, device, pipe = self.num_prims, self.device, self.pipeline
         timer.stage("prim_bounds")
         if self.resort:
+            wp.launch(morton.triangle_bounds_kernel, dim=n,
+                      inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=device)
             # Resorting: the previous tree's order becomes this build's input order.
-            wp.launch(dynamic.resort_bounds_kernel, dim=n,
-                      inputs=[self.prim_order, self.vertices, self.faces, self.input_order, pipe.prim_lowers,
+            timer.stage("resort_gather")
+            wp.launch(dynamic.resort_gather_kernel, dim=n,
+                      inputs=[self.prim_order, self.prim_lowers, self.prim_uppers, self.input_order, pipe.prim_lowers,
                               pipe.prim_uppers], device=device)
         else:
             pipe.compute_triangle_bounds(self.vertices, self.faces)
@@ -209,11 +220,10 @@ class Builder:
         pipe.build(self.method, timer, sync_free=self.sync_free)
         pipeline_timings.pop("total", None)
         if self.resort:
-            # Map build-input ids back to the user's face indices, boxes to the user's order.
+            # Map build-input ids back to the user's face indices.
             timer.stage("resort_map")
             wp.launch(dynamic.resort_map_kernel, dim=n,
-                      inputs=[self.input_order, pipe.sorted_prim_ids, pipe.prim_lowers, pipe.prim_uppers,
-                              self.prim_order, self.prim_lowers, self.prim_uppers], device=device)
+                      inputs=[self.input_order, pipe.sorted_prim_ids, self.prim_order], device=device)
 
     def _refit(self, timer: StageTimer):
         timer.stage("prim_bounds")

@@ -181,8 +181,12 @@ class HlbvhPipeline:
 
     def runs_in_order(self, num_runs: int) -> bool:
         """True when the run codes already ascend (resorted input): the top-level sort has no work."""
-        self.out_of_order.zero_()
-        self._launch(compress.count_descents_kernel, num_runs, [self.run_count, self.run_codes, self.out_of_order])
+        if self.device.is_cpu:
+            # Threads run in sequence there: one scan that stops at the first descent.
+            self._launch(compress.find_descent_kernel, 1, [self.run_count, self.run_codes, self.out_of_order])
+        else:
+            self.out_of_order.zero_()
+            self._launch(compress.count_descents_kernel, num_runs, [self.run_count, self.run_codes, self.out_of_order])
         return int(self.out_of_order.numpy()[0]) == 0
 
     def top_level_sort(self, num_runs: int, sort: bool = True):

@@ -32,6 +32,23 @@ def count_descents_kernel(
 
 
 @wp.kernel
+def find_descent_kernel(
+    run_count: wp.array(dtype=wp.int32),
+    run_codes: wp.array(dtype=wp.int32),
+    descents: wp.array(dtype=wp.int32),
+):
+    # The CPU device's form of count_descents_kernel: one thread scans the runs and stops at the
+    # first descent. Only "any descent?" is asked, and a moving scene's runs are out of order
+    # within the first few (the check then costs nothing); in-order runs cost one read each.
+    m = run_count[0]
+    for r in range(1, m):
+        if run_codes[r - 1] > run_codes[r]:
+            descents[0] = 1
+            return
+    descents[0] = 0
+
+
+@wp.kernel
 def pad_run_codes_kernel(run_count: wp.array(dtype=wp.int32), pad_code: int, run_codes: wp.array(dtype=wp.int32)):
     r = wp.tid()
     if r >= run_count[0]:

@@ -1,0 +1,199 @@
+"""Resorted rebuilds (Pantaleoni & Luebke 2010, 2.2): what a `Bvh` exposes after one.
+
+A resorted rebuild feeds the pipeline the primitives in the previous tree's order and maps the
+tree back to the user's face indices. The per-face boxes (`Bvh.prim_lowers/prim_uppers`, read by
+box queries, `to_numpy` and refits) are computed in the user's order and gathered for the build:
+these tests check that they are current after every rebuild, equal to a build from scratch and to
+a float64 NumPy reference, and that what the skips of the top-level sort rely on is detected.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from hlbvh_warp import query
+from hlbvh_warp.builder import Builder
+from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
+from hlbvh_warp.kernels import compress
+from hlbvh_warp.scenes import default_scene
+
+from oracles import check_tree_invariants
+
+TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
+
+
+@pytest.fixture(scope="module")
+def small_scene():
+    return default_scene(3000)
+
+
+def numpy_boxes(vertices: np.ndarray, faces: np.ndarray):
+    """Per-face boxes in float64 (min and max are exact, so float32 results must equal them)."""
+    corners = vertices.astype(np.float64)[faces]
+    return corners.min(axis=1), corners.max(axis=1)
+
+
+def numpy_node_boxes(tree: dict, lowers: np.ndarray, uppers: np.ndarray):
+    """Every node's box as the union of the boxes of the primitives in its range, in float64."""
+    order = tree["prim_order"]
+    lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
+    hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
+    return lo, hi
+
+
+def brute_overlaps(lo, hi, q_lo, q_hi):
+    return ((lo[None] <= q_hi[:, None]) & (hi[None] >= q_lo[:, None])).all(-1)
+
+
+def make_scene(kind, v, f, device):
+    if kind == "explode":
+        return ExplodingMesh(v, f, device=device, seed=2), (lambda k: k / 24.0)
+    return BendingMesh(v, f, device=device), (lambda k: k / 6.0)
+
+
+@wp.kernel
+def _aabb_count_kernel(bvh: query.BvhView, lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
+                       counts: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    counts[tid] = query.bvh_aabb_count(bvh, lowers[tid], uppers[tid])
+
+
+@pytest.mark.parametrize("kind", ["explode", "bend"])
+def test_resorted_prim_boxes_are_current_after_every_rebuild(device, small_scene, kind):
+    """Per-face boxes, node boxes and the tree equal a scratch build's and the float64 reference."""
+    v, f = small_scene
+    mesh, param = make_scene(kind, v, f, device)
+    faces = np.asarray(mesh.faces)
+    scratch = Builder(len(f), device=device, resort=False)
+    resorted = Builder(len(f), device=device, resort=True)
+    scratch.build(mesh.vertices, faces)
+    resorted.build(mesh.vertices, faces)
+    for frame in range(1, 5):
+        vertices = mesh.update(param(frame))
+        a = scratch.rebuild(vertices).to_numpy()
+        b = resorted.rebuild(vertices).to_numpy()
+        ref_lo, ref_hi = numpy_boxes(vertices.numpy(), faces)
+        # Indexed by the user's face id, and exact: the boxes are min/max of the same floats.
+        np.testing.assert_array_equal(b["prim_lowers"], ref_lo.astype(np.float32))
+        np.testing.assert_array_equal(b["prim_uppers"], ref_hi.astype(np.float32))
+        np.testing.assert_array_equal(b["prim_lowers"], a["prim_lowers"])
+        np.testing.assert_array_equal(b["prim_uppers"], a["prim_uppers"])
+        for name in TOPOLOGY:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+        # prim_order names user faces: a permutation whose node boxes are the float64 unions.
+        assert np.array_equal(np.sort(b["prim_order"]), np.arange(len(f)))
+        node_lo, node_hi = numpy_node_boxes(b, ref_lo, ref_hi)
+        np.testing.assert_array_equal(b["node_lowers"], node_lo.astype(np.float32))
+        np.testing.assert_array_equal(b["node_uppers"], node_hi.astype(np.float32))
+        check_tree_invariants(b, len(f))
+
+
+def test_resorted_aabb_queries_match_scratch_and_numpy(device, small_scene, rng):
+    """Box queries (batched and from a view taken before the rebuilds) read the current boxes."""
+    v, f = small_scene
+    mesh, param = make_scene("explode", v, f, device)
+    faces = np.asarray(mesh.faces)
+    scratch = Builder(len(f), device=device, resort=False)
+    resorted = Builder(len(f), device=device, resort=True)
+    scratch.build(mesh.vertices, faces)
+    resorted.build(mesh.vertices, faces)
+    # A user kernel's view, taken once: views handed out stay valid across rebuilds.
+    view = query.view(resorted.bvh)
+    for frame in range(1, 4):
+        vertices = mesh.update(param(frame))
+        scratch.rebuild(vertices)
+        resorted.rebuild(vertices)
+        verts = vertices.numpy()
+        ref_lo, ref_hi = numpy_boxes(verts, faces)
+        q_lo = (verts[rng.integers(0, len(verts), 200)] - 0.03).astype(np.float32)
+        q_hi = q_lo + np.float32(0.06)
+        counts, pairs = query.query_aabb(resorted.bvh, q_lo, q_hi, return_pairs=True)
+        ref = brute_overlaps(ref_lo.astype(np.float32), ref_hi.astype(np.float32), q_lo, q_hi)
+        assert counts.sum() > 0
+        np.testing.assert_array_equal(counts, ref.sum(1))
+        np.testing.assert_array_equal(pairs, np.argwhere(ref))
+        s_counts, s_pairs = query.query_aabb(scratch.bvh, q_lo, q_hi, return_pairs=True)
+        np.testing.assert_array_equal(counts, s_counts)
+        np.testing.assert_array_equal(pairs, s_pairs)
+        user = wp.zeros(len(q_lo), dtype=wp.int32, device=device)
+        wp.launch(_aabb_count_kernel, dim=len(q_lo), device=device,
+                  inputs=[view, wp.array(q_lo, dtype=wp.vec3, device=device),
+                          wp.array(q_hi, dtype=wp.vec3, device=device), user])
+        np.testing.assert_array_equal(user.numpy(), counts)
+
+
+def test_refit_after_resorted_rebuilds(device, small_scene):
+    """A refit keeps the resorted tree's topology and matches the float64 unions of the new boxes."""
+    v, f = small_scene
+    mesh, param = make_scene("bend", v, f, device)
+    faces = np.asarray(mesh.faces)
+    builder = Builder(len(f), device=device, resort=True)
+    builder.build(mesh.vertices, faces)
+    for frame in range(1, 3):
+        builder.rebuild(mesh.update(param(frame)))
+    before = {k: a.copy() for k, a in builder.bvh.to_numpy().items()}
+    vertices = mesh.update(param(3))
+    tree = builder.refit(vertices).to_numpy()
+    for name in TOPOLOGY + ("prim_order",):
+        np.testing.assert_array_equal(tree[name], before[name], err_msg=name)
+    ref_lo, ref_hi = numpy_boxes(vertices.numpy(), faces)
+    np.testing.assert_array_equal(tree["prim_lowers"], ref_lo.astype(np.float32))
+    node_lo, node_hi = numpy_node_boxes(tree, ref_lo, ref_hi)
+    np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
+    np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
+    # The next resorted rebuild starts from the refit tree's order and still equals scratch.
+    tree = builder.rebuild(mesh.update(param(4))).to_numpy()
+    scratch = Builder(len(f), device=device, resort=False)
+    ref = scratch.build(mesh.vertices, faces).to_numpy()
+    for name in TOPOLOGY:
+        np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
+
+
+def test_resorted_input_is_the_previous_tree_order(small_scene):
+    """The build's input order is the previous tree's, and with nothing moved the sorts are skipped."""
+    v, f = small_scene
+    mesh, param = make_scene("bend", v, f, "cpu")
+    builder = Builder(len(f), device="cpu", resort=True, timings=True)
+    builder.build(mesh.vertices, mesh.faces)
+    previous = builder.bvh.prim_order.numpy().copy()
+    builder.rebuild(mesh.update(param(1)))
+    np.testing.assert_array_equal(builder.input_order.numpy(), previous)
+    # The same vertices again: the input is the sorted order, so the runs ascend and every block
+    # is in order (Pantaleoni & Luebke 2010, 2.2: the resorted input is already sorted).
+    builder.rebuild()
+    skipped = builder.last_report["stages_skipped"]
+    assert "top_level_sort" in skipped and "voxel_sort" in skipped, skipped
+    assert "resort_gather" in builder.last_report["stages_ms"]
+    # A build from scratch over the mesh's own face order has to sort.
+    scratch = Builder(len(f), device="cpu", resort=False, timings=True)
+    scratch.build(mesh.vertices, mesh.faces)
+    assert "top_level_sort" not in scratch.last_report["stages_skipped"]
+
+
+@pytest.mark.parametrize("case", ["sorted", "one_descent_last", "random", "stale_tail", "single"])
+def test_descent_checks_agree_with_numpy(device, rng, case):
+    """Both forms of the top-level sort's check (one scan on the CPU, a parallel count elsewhere)."""
+    n = 5000
+    codes = np.sort(rng.integers(0, 1 << 18, n)).astype(np.int32)
+    count = n
+    if case == "one_descent_last":
+        codes[-1] = codes[-2] - 1
+    elif case == "random":
+        rng.shuffle(codes)
+    elif case == "stale_tail":
+        # Entries past the device-side run count are stale and must be ignored.
+        count = n // 2
+        codes[count:] = 0
+    elif case == "single":
+        count = 1
+    expected = bool((codes[1:count] < codes[: count - 1]).any())
+    run_codes = wp.array(codes, dtype=wp.int32, device=device)
+    run_count = wp.array([count], dtype=wp.int32, device=device)
+    found = wp.full(1, 7, dtype=wp.int32, device=device)
+    wp.launch(compress.find_descent_kernel, dim=1, inputs=[run_count, run_codes, found], device=device)
+    counted = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(compress.count_descents_kernel, dim=n, inputs=[run_count, run_codes, counted], device=device)
+    assert bool(found.numpy()[0]) == expected
+    assert int(counted.numpy()[0]) == int((codes[1:count] < codes[: count - 1]).sum())
