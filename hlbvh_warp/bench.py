@@ -19,6 +19,7 @@ Pareto frontier marked.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import pathlib
 import statistics
@@ -97,11 +98,20 @@ def _time(fn, device, repeats: int, warmup: int) -> list[float]:
         fn()
     wp.synchronize_device(device)
     times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        wp.synchronize_device(device)
-        times.append((time.perf_counter() - start) * 1e3)
+    # As timeit does: the garbage collector stays off while timing (a full collection costs tens
+    # of ms and would land in one random run); every builder and peer is timed the same way.
+    collect_after = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        for _ in range(repeats):
+            start = time.perf_counter()
+            fn()
+            wp.synchronize_device(device)
+            times.append((time.perf_counter() - start) * 1e3)
+    finally:
+        if collect_after:
+            gc.enable()
     return times
 
 
