@@ -20,6 +20,7 @@ from __future__ import annotations
 import warp as wp
 
 from . import api, memory
+from . import threads as threads_module
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
@@ -33,6 +34,10 @@ from .kernels import sah, treelets, upper_sah
 #: and the SAH cost moved from 1.0734 to 1.0743 of sweep_sah (bunny: 1.0489 to 1.0499).
 TOP_TREE_BINNED_ABOVE = 256
 TOP_TREE_BINS = 64
+
+#: Below this many items a depth-first top-down build stays in one thread: handing subtrees to
+#: other threads costs about as much as building them.
+PARALLEL_MIN_ITEMS = 4096
 
 #: Split rule of each top-down method (kernels/sah.py).
 TOP_DOWN_MODES = {"sweep_sah": sah.MODE_SWEEP, "binned_sah": sah.MODE_BINNED, "median": sah.MODE_MEDIAN}
@@ -88,6 +93,27 @@ class TopDownBuilder:
     def _launch(self, kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
+    @staticmethod
+    def _split_frontier(subtree, threads: int, node_left, node_begin, node_end):
+        """Split the largest open subtree, one node at a time, until `threads` of them are open
+        (or none can split); returns ``[(root, items)]`` largest first and the next free node id."""
+        frontier = [(0, int(node_end.numpy()[0]))]
+        next_free = 1
+        while len(frontier) < threads:
+            frontier.sort(key=lambda item: -item[1])
+            root, size = frontier[0]
+            if size < 2:
+                break
+            subtree(root, next_free, split_root_only=1)
+            frontier.pop(0)
+            if int(node_left.numpy()[root]) >= 0:
+                begin, end = node_begin.numpy(), node_end.numpy()
+                for child in (next_free, next_free + 1):
+                    frontier.append((child, int(end[child] - begin[child])))
+                next_free += 2
+        frontier.sort(key=lambda item: -item[1])
+        return frontier, next_free
+
     def sort_axes(self, item_lowers: wp.array, item_uppers: wp.array):
         """Presort the items by centroid on each axis (stable: ties keep index order)."""
         k = self.num_items
@@ -117,6 +143,7 @@ class TopDownBuilder:
         item_order: wp.array,
         emission: str = "treelets",
         binned_above: int = 0,
+        threads: int = 1,
     ) -> int:
         """Split until every node is a leaf; returns the number of launches that split.
 
@@ -124,19 +151,34 @@ class TopDownBuilder:
         every open node of a level at once (for CUDA); ``"depth_first"`` walks the whole tree in
         one thread (for the CPU device). Both make the same splits. With ``mode=sah.MODE_SWEEP``,
         nodes of more than ``binned_above`` items (0: none) are priced at ``num_bins`` bin
-        boundaries instead of at every position.
+        boundaries instead of at every position. ``threads`` > 1 builds disjoint subtrees side
+        by side on the CPU (depth first, one item per leaf; see `hlbvh_warp.threads`).
         """
         k = self.num_items
         if emission == "depth_first":
-            self._launch(
-                sah.build_depth_first_kernel,
-                1,
-                [k, self.order, self.order_next, self.item_side, item_lowers, item_uppers, item_weights, mode,
-                 num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal), wp.float64(t_intersect),
-                 self.suffix_cost, binned_above, self.bin_lowers, self.bin_uppers,
-                 self.bin_weight, self.bin_count, self.level_nodes, node_left, node_right, node_parent,
-                 node_begin, node_end, node_count, item_order],
-            )
+            self._launch(sah.init_root_kernel, 1, [k, node_left, node_right, node_parent, node_begin, node_end])
+            shared = [k, self.order, self.order_next, self.item_side, item_lowers, item_uppers, item_weights, mode,
+                      num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal), wp.float64(t_intersect),
+                      self.suffix_cost, binned_above, self.bin_lowers, self.bin_uppers, self.bin_weight,
+                      self.bin_count, self.level_nodes, node_left, node_right, node_parent, node_begin, node_end,
+                      node_count, item_order]
+
+            def subtree(root, first_free, split_root_only=0, write_count=0):
+                self._launch(sah.build_depth_first_kernel, 1, shared + [root, first_free, split_root_only, write_count])
+
+            # Subtrees run side by side only where their node ids are known in advance: with one
+            # item per leaf, a subtree of s items has exactly 2s - 2 nodes below its root.
+            exact = max_leaf_size == 1 and terminate_leaf_size <= 0
+            if threads <= 1 or not exact or k < PARALLEL_MIN_ITEMS:
+                subtree(0, 1, write_count=1)
+                return 1
+            frontier, next_free = self._split_frontier(subtree, threads, node_left, node_begin, node_end)
+            jobs = []
+            for root, size in frontier:
+                jobs.append(lambda root=root, base=next_free: subtree(root, base))
+                next_free += 2 * size - 2
+            threads_module.run(jobs, threads)
+            node_count.fill_(2 * k - 1)
             return 1
         self._launch(
             sah.init_top_down_kernel,
@@ -234,6 +276,7 @@ def build_top_down(
         node_count=out.node_count,
         item_order=out.prim_order,
         emission=config.resolved_emission(device),
+        threads=threads_module.resolved_threads(config, device),
     )
     # Bounding boxes of all nodes, bottom-up.
     timer.stage("bbox")
@@ -385,6 +428,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
             item_order=top.arena.prim_order,
             emission=self.emission,
             binned_above=TOP_TREE_BINNED_ABOVE,
+            threads=threads_module.resolved_threads(cfg, self.device),
         )
 
         # Join: top nodes take slots [0, 2C - 1), clusters move to where the top tree put them.

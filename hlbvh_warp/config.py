@@ -44,6 +44,9 @@ class BuildConfig:
             threads one after another, so that passes rescanning all N primitives cost time
             without buying parallelism. ``"auto"`` (default) picks ``"depth_first"`` on the CPU
             and ``"treelets"`` elsewhere.
+        cpu_threads: on the CPU device, how many threads run the independent subtrees of the
+            depth-first stages side by side (``hlbvh_warp.threads``); 0 (default) uses every core
+            the process may run on, 1 runs them one after another. The tree does not depend on it.
     """
 
     bits_per_axis: int = 10
@@ -55,6 +58,7 @@ class BuildConfig:
     sah_intersection_cost: float = 1.0
     sah_bins: int = 16
     emission: str = "auto"
+    cpu_threads: int = 0
 
     def __post_init__(self):
         checks = [
@@ -70,6 +74,7 @@ class BuildConfig:
             (self.sah_intersection_cost > 0.0, "sah_intersection_cost must be > 0"),
             (2 <= self.sah_bins <= 256, "sah_bins must be in [2, 256]"),
             (self.emission in EMISSIONS, f"emission must be one of {EMISSIONS}"),
+            (self.cpu_threads >= 0, "cpu_threads must be >= 0"),
         ]
         for ok, message in checks:
             if not ok:

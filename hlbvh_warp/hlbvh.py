@@ -13,9 +13,13 @@ import numpy as np
 import warp as wp
 
 from . import memory
+from . import threads as threads_module
 from .bvh import Bvh
 from .config import BuildConfig
 from .kernels import block_sort, bounds, compress, morton, treelets
+
+#: Below this many primitives the depth-first emission stays in one thread (see `emit_depth_first`).
+PARALLEL_MIN_PRIMS = 8192
 
 #: Primitives per thread of the centroid-bounds reduction on the CPU device.
 CPU_REDUCTION_CHUNK = 4096
@@ -138,6 +142,10 @@ class HlbvhPipeline:
         self.root_seed_count = wp.full(1, 1, dtype=wp.int32, device=device)
         # Stands in for the node costs of an emission that does not compute them.
         self.empty_cost = wp.empty(1, dtype=wp.float64, device=device)
+        # The parallel depth-first emission: the root's two halves as seeds, a counter per run.
+        self.root_seeds = wp.zeros(2, dtype=wp.int32, device=device)
+        self.root_seed_pair = wp.zeros(1, dtype=wp.int32, device=device)
+        self.emit_counters = wp.zeros(64, dtype=wp.int32, device=device)
         self.sync_free = False
 
     # ------------------------------------------------------------------ stages
@@ -392,21 +400,54 @@ class HlbvhPipeline:
         """The depth-first schedule of the emission (``BuildConfig.emission``): one thread per
         seed segment (default: the root, [0, N)) emits its whole subtree with every box, and with
         `node_cost` given, every node's SAH cost. With seeds given, the caller has set
-        `node_count` past the seeds' nodes and links their parents afterwards."""
+        `node_count` past the seeds' nodes and links their parents afterwards.
+
+        On a multi-core CPU (``BuildConfig.cpu_threads``) with one primitive per leaf, the seeds
+        are cut into runs of about equal primitive counts emitted side by side: a seed of k
+        primitives has exactly 2k - 2 nodes below its root, so every run's node ids are known
+        before it starts and no counter is shared. The root alone is split first, so that its two
+        halves are the seeds."""
         n = self.num_prims
-        if seed_starts is None:
-            seed_starts, seed_count = self.root_seed_start, self.root_seed_count
-            self.node_count.fill_(1)
         cfg = self.config
-        self._launch(
-            treelets.emit_depth_first_kernel,
-            num_seeds,
-            [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
-             self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.node_count, self.node_left,
-             self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
-             self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
-             wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost],
-        )
+        threads = min(threads_module.resolved_threads(cfg, self.device), self.emit_counters.shape[0])
+        parallel = threads > 1 and cfg.max_leaf_size == 1 and n >= PARALLEL_MIN_PRIMS
+        root_split = False
+        if seed_starts is None:
+            if parallel:
+                self._launch(treelets.split_root_kernel, 1,
+                             [n, self.sorted_codes, self.node_left, self.node_right, self.node_begin, self.node_end,
+                              self.root_seeds, self.root_seed_pair])
+                seed_starts, seed_count, first_seed_node, num_seeds = self.root_seeds, self.root_seed_pair, 1, 2
+                self.node_count.fill_(3)
+                root_split = True
+            else:
+                seed_starts, seed_count = self.root_seed_start, self.root_seed_count
+                self.node_count.fill_(1)
+        shared = [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
+                  self.sorted_prim_ids, self.prim_lowers, self.prim_uppers]
+        tail = [self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
+                self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
+                wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost]
+        if not parallel or num_seeds < 2:
+            self._launch(treelets.emit_depth_first_kernel, num_seeds, shared + [self.node_count] + tail + [0])
+            return
+        # Runs of seeds with about n / threads primitives each; run j allocates from its own counter.
+        first_free = int(self.node_count.numpy()[0])
+        starts = seed_starts.numpy()[:num_seeds].astype(np.int64)
+        cuts = np.searchsorted(starts, np.arange(1, threads) * (n / threads), side="left")
+        bounds = np.unique(np.concatenate([[0], cuts, [num_seeds]]))
+        counters = self.emit_counters.numpy()
+        jobs = []
+        for j, (s0, s1) in enumerate(zip(bounds[:-1], bounds[1:])):
+            # Seeds before s0 hold starts[s0] primitives and own 2 * starts[s0] - 2 * s0 nodes.
+            counters[j] = first_free + 2 * int(starts[s0]) - 2 * int(s0)
+            counter = self.emit_counters[j : j + 1]
+            jobs.append(lambda s0=int(s0), s1=int(s1), counter=counter: self._launch(
+                treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0]))
+        threads_module.run(jobs, threads)
+        self.node_count.fill_(first_free + 2 * (n - int(starts[0])) - 2 * num_seeds)
+        if root_split:
+            self._launch(treelets.finish_root_kernel, 1, [self.node_parent, self.node_lowers, self.node_uppers])
 
     def compute_node_bounds(self):
         compute_bounds(

@@ -485,28 +485,32 @@ def build_depth_first_kernel(
     node_end: wp.array(dtype=wp.int32),
     node_count: wp.array(dtype=wp.int32),
     item_order: wp.array(dtype=wp.int32),
+    root: int,
+    first_free: int,
+    split_root_only: int,
+    write_count: int,
 ):
-    """The whole top-down build in one thread, depth first (``BuildConfig.emission = "depth_first"``).
+    """The subtree of `root` in one thread, depth first (``BuildConfig.emission = "depth_first"``).
 
     The same splits as the level schedule (`choose_split` on the same sorted orders), so the same
     tree up to node numbering; for Warp's CPU device, where a level's threads run one after
     another anyway and the per-level launches, scans and count reads are pure overhead. Children
-    are allocated in pairs after their parent; the stack (one slot per pending right child, at
-    most the tree's depth + 1 <= num_items) lives in a scratch array, so no tree can overflow it.
-    The orders are partitioned in place: left items are compacted forwards, right items spill
-    to `spill` on [b, e) and are copied back, which keeps both sides stable.
+    are allocated in pairs after their parent, from `first_free` on; the stack (one slot per
+    pending right child, at most the subtree's depth + 1 <= its item count) lives in the scratch
+    slots of the root's own range, so no tree can overflow it and disjoint subtrees can be built
+    at once (by separate launches: the node ids of each come from its own range). The orders are
+    partitioned in place: left items are compacted forwards, right items spill to `spill` on
+    [b, e) and are copied back, which keeps both sides stable. With `split_root_only` the root
+    is split (or made a leaf) and nothing more; with `write_count`, node_count gets the next free
+    id at the end.
     """
-    node_begin[0] = 0
-    node_end[0] = num_items
-    node_left[0] = -1
-    node_right[0] = -1
-    node_parent[0] = -1
-    count = int(1)
-    stack[0] = 0
+    base_slot = node_begin[root]
+    count = first_free
+    stack[base_slot] = root
     top = int(1)
     while top > 0:
         top -= 1
-        node = stack[top]
+        node = stack[base_slot + top]
         b = node_begin[node]
         e = node_end[node]
         split = choose_split(b, e, order, num_items, item_lowers, item_uppers, item_weights, mode, num_bins,
@@ -556,8 +560,27 @@ def build_depth_first_kernel(
                 for j in range(spilled):
                     order[base + pos + j] = spill[b + j]
 
+        if split_root_only != 0:
+            break
         # Left on top: the left subtree is finished before the right one starts.
-        stack[top] = right
-        stack[top + 1] = left
+        stack[base_slot + top] = right
+        stack[base_slot + top + 1] = left
         top += 2
-    node_count[0] = count
+    if write_count != 0:
+        node_count[0] = count
+
+
+@wp.kernel
+def init_root_kernel(
+    num_items: int,
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+):
+    node_begin[0] = 0
+    node_end[0] = num_items
+    node_left[0] = -1
+    node_right[0] = -1
+    node_parent[0] = -1

@@ -463,6 +463,7 @@ def emit_depth_first_kernel(
     t_traversal: wp.float64,
     t_intersect: wp.float64,
     node_cost: wp.array(dtype=wp.float64),
+    seed_offset: int,
 ):
     """Emit the subtree of seed segment s: [seed_starts[s], seed_starts[s + 1] or N), rooted at
     node first_seed_node + s, parentless until the caller links it.
@@ -476,8 +477,11 @@ def emit_depth_first_kernel(
     finished, and so on up while the finished node is a right child. That replaces a separate
     bottom-up pass over the 2N - 1 nodes. With `with_cost`, the SAH cost of every node (eq. 1
     of Pantaleoni & Luebke 2010, the cluster weights of section 3.3) is accumulated the same way.
+
+    Thread t emits seed `seed_offset` + t, allocating node pairs from `node_count`; launches over
+    disjoint seed ranges with counters of their own can run side by side (`hlbvh_warp.threads`).
     """
-    s = wp.tid()
+    s = seed_offset + wp.tid()
     num_seeds = seed_count[0]
     if s >= num_seeds:
         return
@@ -542,3 +546,39 @@ def emit_depth_first_kernel(
         stack_end[top + 1] = split
         stack_node[top + 1] = left
         top += 2
+
+
+@wp.kernel
+def split_root_kernel(
+    num_prims: int,
+    codes: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    seed_starts: wp.array(dtype=wp.int32),
+    seed_count: wp.array(dtype=wp.int32),
+):
+    # The root's radix split, so that its two subtrees become seeds emitted side by side.
+    split = radix_split(codes, 0, num_prims)
+    node_begin[0] = 0
+    node_end[0] = num_prims
+    node_left[0] = 1
+    node_right[0] = 2
+    seed_starts[0] = 0
+    seed_starts[1] = split
+    seed_count[0] = 2
+
+
+@wp.kernel
+def finish_root_kernel(
+    node_parent: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    # Link the two seeded subtrees under the root and box it.
+    node_parent[0] = -1
+    node_parent[1] = 0
+    node_parent[2] = 0
+    node_lowers[0] = wp.min(node_lowers[1], node_lowers[2])
+    node_uppers[0] = wp.max(node_uppers[1], node_uppers[2])

@@ -1,0 +1,63 @@
+"""Independent CPU launches on several cores.
+
+Warp's CPU device runs the threads of one launch one after another. The serial stages of a build
+(a depth-first walk per subtree) are independent once their subtrees are known, so on a
+multi-core CPU their launches can run side by side: a Warp CPU launch releases the GIL while the
+kernel runs, and each launch carries its own argument block. Work given to `run` must write
+disjoint memory and must not rely on ``wp.atomic_*`` between launches (on the CPU device those
+are plain read-modify-writes, atomic only within one serial launch).
+
+The thread count comes from ``BuildConfig.cpu_threads``: 0 (the default) uses the cores this
+process may run on; 1 keeps everything in the calling thread.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def resolved_threads(config, device) -> int:
+    """Threads for the serial stages of a build on `device` (always 1 off the CPU)."""
+    if not device.is_cpu:
+        return 1
+    requested = config.cpu_threads
+    return max(1, requested if requested > 0 else usable_cores())
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max_workers=max(usable_cores() - 1, 1), thread_name_prefix="hlbvh_warp")
+        return _POOL
+
+
+def run(jobs, threads: int):
+    """Run the callables `jobs` on up to `threads` threads (the caller's included); re-raises."""
+    jobs = list(jobs)
+    if threads <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            job()
+        return
+    # Greedy: the caller takes every `threads`-th job, the pool the rest in order.
+    mine = jobs[::threads]
+    others = [job for i, job in enumerate(jobs) if i % threads != 0]
+    futures = [_pool().submit(job) for job in others]
+    try:
+        for job in mine:
+            job()
+    finally:
+        for future in futures:
+            future.result()
