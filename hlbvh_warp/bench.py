@@ -177,7 +177,7 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
     total = len(settings) + len(peers)
     for step, (builder, label, overrides) in enumerate(settings, 1):
         progress(f"[{name} {step}/{total}] {builder} {label}")
-        config = BuildConfig(**overrides)
+        config = BuildConfig(**{"cpu_threads": args.cpu_threads, **overrides})
         # Correctness before speed: a batch of rays against the float64 brute force.
         bvh = api.build(verts, tris, method=builder, device=device, config=config, timings=True)
         t, prim = api_intersect(bvh, origins, directions)
@@ -328,6 +328,8 @@ def parse_args(argv):
     parser.add_argument("--json", default="out/bench.json", help="where to write the rows")
     parser.add_argument("--plot", default=None, help="PNG of time vs SAH ratio (default: beside the JSON)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--cpu-threads", type=int, default=0,
+                        help="BuildConfig.cpu_threads of our builders (0: every core; 1: one thread, like wp.Bvh)")
     args = parser.parse_args(argv)
     args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
     api._load_optional_builders()
@@ -336,6 +338,8 @@ def parse_args(argv):
         parser.error(f"unknown builders {unknown}; choose from {sorted(api.BUILDERS) + list(PEERS)}")
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
+    if args.cpu_threads < 0:
+        parser.error("--cpu-threads must be >= 0")
     return args
 
 
@@ -351,7 +355,7 @@ def main(argv=None) -> int:
     def progress(text):
         print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
 
-    print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}")
+    print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}  cpu_threads: {args.cpu_threads or 'all cores'}")
     print(HEADER)
     rows = []
     for name, vertices, faces in meshes:
@@ -363,7 +367,8 @@ def main(argv=None) -> int:
                 print(format_row(row), flush=True)
     json_path = pathlib.Path(args.json)
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "rows": rows}, indent=1))
+    json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "cpu_threads": args.cpu_threads,
+                                     "rows": rows}, indent=1))
     plot_path = pathlib.Path(args.plot) if args.plot else json_path.with_suffix(".png")
     plot(rows, plot_path)
     print(f"wrote {json_path} and {plot_path}")
