@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.kernels import morton
 from hlbvh_warp.scenes import scene
@@ -57,7 +58,7 @@ class WarpBvhPeer:
 
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
-                 headless=False):
+                 headless=False, cpu_threads=0):
         vertices, faces = scene(mesh, num_tris)
         self.num_frames = max(int(num_frames), 1)
         self.headless = headless
@@ -79,7 +80,7 @@ class Example:
                 if isinstance(options, str):
                     runner = WarpBvhPeer(len(faces), options, device)
                 else:
-                    runner = Builder(len(faces), device=device, **options)
+                    runner = Builder(len(faces), BuildConfig(cpu_threads=cpu_threads), device=device, **options)
                 runner.build(anim.vertices, anim.faces)  # setup and kernel compilation: not timed
                 runners[label] = runner
             self.sequences[name] = {"anim": anim, "param": param, "runners": runners,
@@ -167,11 +168,13 @@ if __name__ == "__main__":
     parser.add_argument("--sequences", type=str, default="explode,bend")
     parser.add_argument("--modes", type=str, default=",".join(MODES), help="Comma-separated subset of the modes.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the plot.")
+    parser.add_argument("--cpu-threads", type=int, default=0,
+                        help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
     args = parser.parse_known_args()[0]
 
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, args.num_frames, args.sequences.split(","),
-                          args.modes.split(","), headless=args.headless)
+                          args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads)
         for _ in range(args.num_frames):
             example.step()
             example.render()
