@@ -20,6 +20,7 @@ pipeline's ``sync_free`` build.
 
 from __future__ import annotations
 
+import collections
 import time
 
 import numpy as np
@@ -53,6 +54,8 @@ class Builder:
             tree's SAH cost holds: a deformation can make a fresh build better while the refit
             tree's cost stays flat, which no measure of the refit tree alone can see.
         timings: synchronize around every stage and record ms per stage in the reports.
+        keep_reports: how many of the latest frame reports `reports` keeps (a long animation
+            would otherwise grow the list by one dict per frame for as long as it runs).
 
     Example::
 
@@ -64,7 +67,7 @@ class Builder:
 
     def __init__(self, num_prims: int, config: BuildConfig | None = None, device=None, method: str = "hlbvh", *,
                  resort: bool = True, policy: str = "rebuild", sah_growth_limit: float = 0.10,
-                 large_motion: float = 0.05, max_refits: int = 8, timings: bool = False):
+                 large_motion: float = 0.05, max_refits: int = 8, timings: bool = False, keep_reports: int = 1024):
         if config is None:
             config = BuildConfig()
         if not isinstance(config, BuildConfig):
@@ -119,7 +122,9 @@ class Builder:
         self.frame = 0
         self.sah_reference = None
         self.last_report: dict = {}
-        self.reports: list[dict] = []
+        if int(keep_reports) < 1:
+            raise ValueError(f"keep_reports must be >= 1, got {keep_reports}")
+        self.reports: collections.deque = collections.deque(maxlen=int(keep_reports))
 
     # --------------------------------------------------------------- inputs
     def _check_vertices(self, vertices) -> int:
@@ -180,7 +185,7 @@ class Builder:
                        node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
                        node_count=pipe.node_count, vertices=self.vertices, faces=self.faces)
         self.frame = 0
-        self.reports = []
+        self.reports.clear()
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
