@@ -155,13 +155,20 @@ class TopDownBuilder:
         by side on the CPU (depth first, one item per leaf; see `hlbvh_warp.threads`).
         """
         k = self.num_items
+        inputs = sah.SplitInputs()
+        inputs.order = self.order
+        inputs.num_items = k
+        inputs.item_lowers, inputs.item_uppers, inputs.item_weights = item_lowers, item_uppers, item_weights
+        inputs.mode, inputs.num_bins, inputs.binned_above = mode, num_bins, binned_above
+        inputs.max_leaf_size, inputs.terminate_leaf_size = max_leaf_size, terminate_leaf_size
+        inputs.t_traversal, inputs.t_intersect = wp.float64(t_traversal), wp.float64(t_intersect)
+        inputs.suffix_cost = self.suffix_cost
+        inputs.bin_lowers, inputs.bin_uppers = self.bin_lowers, self.bin_uppers
+        inputs.bin_weight, inputs.bin_count = self.bin_weight, self.bin_count
         if emission == "depth_first":
             self._launch(sah.init_root_kernel, 1, [k, node_left, node_right, node_parent, node_begin, node_end])
-            shared = [k, self.order, self.order_next, self.item_side, item_lowers, item_uppers, item_weights, mode,
-                      num_bins, max_leaf_size, terminate_leaf_size, wp.float64(t_traversal), wp.float64(t_intersect),
-                      self.suffix_cost, binned_above, self.bin_lowers, self.bin_uppers, self.bin_weight,
-                      self.bin_count, self.level_nodes, node_left, node_right, node_parent, node_begin, node_end,
-                      node_count, item_order]
+            shared = [inputs, self.order_next, self.item_side, self.level_nodes, node_left, node_right, node_parent,
+                      node_begin, node_end, node_count, item_order]
 
             def subtree(root, first_free, split_root_only=0, write_count=0):
                 self._launch(sah.build_depth_first_kernel, 1, shared + [root, first_free, split_root_only, write_count])
@@ -190,14 +197,12 @@ class TopDownBuilder:
         levels = 0
         while count > 0:
             levels += 1
-            # Every open node of the level picks its split (or stays a leaf).
+            # Every open node of the level picks its split (or stays a leaf) on this level's orders.
+            inputs.order = self.order
             self._launch(
                 sah.choose_splits_kernel,
                 count,
-                [self.level_count, self.level_nodes, node_begin, node_end, self.order, k, item_lowers,
-                 item_uppers, item_weights, mode, num_bins, max_leaf_size, terminate_leaf_size,
-                 wp.float64(t_traversal), wp.float64(t_intersect), self.suffix_cost,
-                 binned_above, self.bin_lowers, self.bin_uppers, self.bin_weight, self.bin_count,
+                [self.level_count, self.level_nodes, node_begin, node_end, inputs,
                  self.split_axis, self.split_pos, self.split_flag],
             )
             # Number the children of the splitting nodes without holes.

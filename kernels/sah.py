@@ -83,22 +83,34 @@ def bin_of(c: float, cmin: float, scale: float, num_bins: int) -> int:
     return wp.clamp(int((c - cmin) * scale), 0, num_bins - 1)
 
 
+@wp.struct
+class SplitInputs:
+    """What a split decision reads: the presorted orders, the items, the rule and its scratch.
+
+    Scratch arrays are indexed by position, so a node touches only the slots of its own range.
+    """
+
+    order: wp.array(dtype=wp.int32)
+    num_items: int
+    item_lowers: wp.array(dtype=wp.vec3)
+    item_uppers: wp.array(dtype=wp.vec3)
+    item_weights: wp.array(dtype=wp.float64)
+    mode: int
+    num_bins: int
+    max_leaf_size: int
+    terminate_leaf_size: int
+    t_traversal: wp.float64
+    t_intersect: wp.float64
+    binned_above: int
+    suffix_cost: wp.array(dtype=wp.float64)
+    bin_lowers: wp.array(dtype=wp.vec3)
+    bin_uppers: wp.array(dtype=wp.vec3)
+    bin_weight: wp.array(dtype=wp.float64)
+    bin_count: wp.array(dtype=wp.int32)
+
+
 @wp.func
-def binned_split_presorted(
-    b: int,
-    e: int,
-    order: wp.array(dtype=wp.int32),
-    num_items: int,
-    item_lowers: wp.array(dtype=wp.vec3),
-    item_uppers: wp.array(dtype=wp.vec3),
-    item_weights: wp.array(dtype=wp.float64),
-    num_bins: int,
-    bin_lowers: wp.array(dtype=wp.vec3),
-    bin_uppers: wp.array(dtype=wp.vec3),
-    bin_weight: wp.array(dtype=wp.float64),
-    bin_count: wp.array(dtype=wp.int32),
-    suffix_cost: wp.array(dtype=wp.float64),
-):
+def binned_split_presorted(b: int, e: int, inputs: SplitInputs):
     """Binned SAH (Wald 2007) on presorted items in one light pass per axis: ``(axis, pos, found)``.
 
     The same candidates and costs as pricing every bin boundary of the full sweep (MODE_BINNED
@@ -107,6 +119,17 @@ def binned_split_presorted(
     then runs over the bins. Bins live in scratch slots [b, b + num_bins) of this node's own
     range, so the range needs at least `num_bins` items.
     """
+    order = inputs.order
+    num_items = inputs.num_items
+    item_lowers = inputs.item_lowers
+    item_uppers = inputs.item_uppers
+    item_weights = inputs.item_weights
+    num_bins = inputs.num_bins
+    bin_lowers = inputs.bin_lowers
+    bin_uppers = inputs.bin_uppers
+    bin_weight = inputs.bin_weight
+    bin_count = inputs.bin_count
+    suffix_cost = inputs.suffix_cost
     size = e - b
     best_cost = NO_COST
     best_axis = int(-1)
@@ -197,27 +220,7 @@ def binned_split_presorted(
 
 
 @wp.func
-def choose_split(
-    b: int,
-    e: int,
-    order: wp.array(dtype=wp.int32),
-    num_items: int,
-    item_lowers: wp.array(dtype=wp.vec3),
-    item_uppers: wp.array(dtype=wp.vec3),
-    item_weights: wp.array(dtype=wp.float64),
-    mode: int,
-    num_bins: int,
-    max_leaf_size: int,
-    terminate_leaf_size: int,
-    t_traversal: wp.float64,
-    t_intersect: wp.float64,
-    suffix_cost: wp.array(dtype=wp.float64),
-    binned_above: int,
-    bin_lowers: wp.array(dtype=wp.vec3),
-    bin_uppers: wp.array(dtype=wp.vec3),
-    bin_weight: wp.array(dtype=wp.float64),
-    bin_count: wp.array(dtype=wp.int32),
-):
+def choose_split(b: int, e: int, inputs: SplitInputs):
     """The split of the range [b, e) under `mode`: ``(axis, position, 1)``, or ``(0, 0, 0)`` for a leaf.
 
     Uses the scratch arrays on [b, e) only, so disjoint ranges can be split at once. Ranges of
@@ -225,13 +228,24 @@ def choose_split(
     swept in full, as binned SAH always is; the SAH-optimized HLBVH uses that for the few large
     nodes at the top of its cluster tree.
     """
+    order = inputs.order
+    num_items = inputs.num_items
+    item_lowers = inputs.item_lowers
+    item_uppers = inputs.item_uppers
+    item_weights = inputs.item_weights
+    mode = inputs.mode
+    num_bins = inputs.num_bins
+    terminate_leaf_size = inputs.terminate_leaf_size
+    t_traversal = inputs.t_traversal
+    t_intersect = inputs.t_intersect
+    suffix_cost = inputs.suffix_cost
     size = e - b
-    if size <= max_leaf_size:
+    if size <= inputs.max_leaf_size:
         return wp.vec3i(0, 0, 0)
+    binned_above = inputs.binned_above
     fast_binned = mode == MODE_BINNED or (mode == MODE_SWEEP and binned_above > 0 and size > binned_above)
     if fast_binned and size >= num_bins and size > terminate_leaf_size:
-        split = binned_split_presorted(b, e, order, num_items, item_lowers, item_uppers, item_weights, num_bins,
-                                       bin_lowers, bin_uppers, bin_weight, bin_count, suffix_cost)
+        split = binned_split_presorted(b, e, inputs)
         if split[2] == 1:
             return split
         # No plane separates the centroids on any axis: halve by index, as below.
@@ -333,23 +347,7 @@ def choose_splits_kernel(
     level_nodes: wp.array(dtype=wp.int32),
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    num_items: int,
-    item_lowers: wp.array(dtype=wp.vec3),
-    item_uppers: wp.array(dtype=wp.vec3),
-    item_weights: wp.array(dtype=wp.float64),
-    mode: int,
-    num_bins: int,
-    max_leaf_size: int,
-    terminate_leaf_size: int,
-    t_traversal: wp.float64,
-    t_intersect: wp.float64,
-    suffix_cost: wp.array(dtype=wp.float64),
-    binned_above: int,
-    bin_lowers: wp.array(dtype=wp.vec3),
-    bin_uppers: wp.array(dtype=wp.vec3),
-    bin_weight: wp.array(dtype=wp.float64),
-    bin_count: wp.array(dtype=wp.int32),
+    inputs: SplitInputs,
     split_axis: wp.array(dtype=wp.int32),
     split_pos: wp.array(dtype=wp.int32),
     split_flag: wp.array(dtype=wp.int32),
@@ -359,9 +357,7 @@ def choose_splits_kernel(
     if s >= level_count[0]:
         return
     node = level_nodes[s]
-    split = choose_split(node_begin[node], node_end[node], order, num_items, item_lowers, item_uppers, item_weights,
-                         mode, num_bins, max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_cost,
-                         binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
+    split = choose_split(node_begin[node], node_end[node], inputs)
     split_axis[s] = split[0]
     split_pos[s] = split[1]
     split_flag[s] = split[2]
@@ -458,25 +454,9 @@ def fill_float64_kernel(values: wp.array(dtype=wp.float64), value: wp.float64):
 
 @wp.kernel
 def build_depth_first_kernel(
-    num_items: int,
-    order: wp.array(dtype=wp.int32),
+    inputs: SplitInputs,
     spill: wp.array(dtype=wp.int32),
     item_side: wp.array(dtype=wp.int32),
-    item_lowers: wp.array(dtype=wp.vec3),
-    item_uppers: wp.array(dtype=wp.vec3),
-    item_weights: wp.array(dtype=wp.float64),
-    mode: int,
-    num_bins: int,
-    max_leaf_size: int,
-    terminate_leaf_size: int,
-    t_traversal: wp.float64,
-    t_intersect: wp.float64,
-    suffix_cost: wp.array(dtype=wp.float64),
-    binned_above: int,
-    bin_lowers: wp.array(dtype=wp.vec3),
-    bin_uppers: wp.array(dtype=wp.vec3),
-    bin_weight: wp.array(dtype=wp.float64),
-    bin_count: wp.array(dtype=wp.int32),
     stack: wp.array(dtype=wp.int32),
     node_left: wp.array(dtype=wp.int32),
     node_right: wp.array(dtype=wp.int32),
@@ -504,6 +484,8 @@ def build_depth_first_kernel(
     is split (or made a leaf) and nothing more; with `write_count`, node_count gets the next free
     id at the end.
     """
+    order = inputs.order
+    num_items = inputs.num_items
     base_slot = node_begin[root]
     count = first_free
     stack[base_slot] = root
@@ -513,9 +495,7 @@ def build_depth_first_kernel(
         node = stack[base_slot + top]
         b = node_begin[node]
         e = node_end[node]
-        split = choose_split(b, e, order, num_items, item_lowers, item_uppers, item_weights, mode, num_bins,
-                             max_leaf_size, terminate_leaf_size, t_traversal, t_intersect, suffix_cost,
-                             binned_above, bin_lowers, bin_uppers, bin_weight, bin_count)
+        split = choose_split(b, e, inputs)
         if split[2] == 0:
             # A finished leaf: its items take their final place (all three orders agree on the set).
             for i in range(b, e):
