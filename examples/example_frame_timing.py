@@ -6,7 +6,6 @@
 #   python examples/example_frame_timing.py [--mesh PATH] [--num-frames 24] [--headless]
 
 import argparse
-import gc
 import os
 import time
 import warnings
@@ -14,6 +13,7 @@ import warnings
 import numpy as np
 import warp as wp
 
+from hlbvh_warp.bench import collector_paused
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
@@ -92,12 +92,8 @@ class Example:
         self.frame += 1
         for seq in self.sequences.values():
             vertices = seq["anim"].update(seq["param"](self.frame))
-            # As timeit does: collect garbage outside the timed region and keep the collector off
-            # inside it, or a full collection (75-160 ms here) lands in one random mode's frame.
-            collect_after = gc.isenabled()
-            gc.collect()
-            gc.disable()
-            try:
+            # A full garbage collection (75-160 ms here) would land in one random mode's frame.
+            with collector_paused():
                 for label, runner in seq["runners"].items():
                     wp.synchronize_device()
                     start = time.perf_counter()
@@ -105,9 +101,6 @@ class Example:
                     wp.synchronize_device()
                     seq["ms"][label].append((time.perf_counter() - start) * 1e3)
                     seq["decisions"][label].append(report["decision"])
-            finally:
-                if collect_after:
-                    gc.enable()
             for label, runner in seq["runners"].items():
                 # Tree quality, outside the timed region (Builders only).
                 seq["sah"][label].append(runner.sah_cost() if isinstance(runner, Builder) else float("nan"))

@@ -19,6 +19,7 @@ Pareto frontier marked.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import json
 import pathlib
@@ -93,25 +94,32 @@ def sweep_settings(builders) -> list[tuple[str, str, dict]]:
     return out
 
 
+@contextlib.contextmanager
+def collector_paused():
+    """As timeit does: collect garbage first, keep the collector off inside (a full collection
+    costs tens of ms and would land in one random timed run), restore it after."""
+    collect_after = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if collect_after:
+            gc.enable()
+
+
 def _time(fn, device, repeats: int, warmup: int) -> list[float]:
     for _ in range(warmup):
         fn()
     wp.synchronize_device(device)
     times = []
-    # As timeit does: the garbage collector stays off while timing (a full collection costs tens
-    # of ms and would land in one random run); every builder and peer is timed the same way.
-    collect_after = gc.isenabled()
-    gc.collect()
-    gc.disable()
-    try:
+    # Every builder and peer is timed the same way.
+    with collector_paused():
         for _ in range(repeats):
             start = time.perf_counter()
             fn()
             wp.synchronize_device(device)
             times.append((time.perf_counter() - start) * 1e3)
-    finally:
-        if collect_after:
-            gc.enable()
     return times
 
 
