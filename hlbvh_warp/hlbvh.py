@@ -146,6 +146,7 @@ class HlbvhPipeline:
         self.root_seeds = wp.zeros(2, dtype=wp.int32, device=device)
         self.root_seed_pair = wp.zeros(1, dtype=wp.int32, device=device)
         self.emit_counters = wp.zeros(64, dtype=wp.int32, device=device)
+        self.emit_counter_views = [self.emit_counters[j : j + 1] for j in range(self.emit_counters.shape[0])]
         self.sync_free = False
 
     # ------------------------------------------------------------------ stages
@@ -441,7 +442,7 @@ class HlbvhPipeline:
         for j, (s0, s1) in enumerate(zip(bounds[:-1], bounds[1:])):
             # Seeds before s0 hold starts[s0] primitives and own 2 * starts[s0] - 2 * s0 nodes.
             counters[j] = first_free + 2 * int(starts[s0]) - 2 * int(s0)
-            counter = self.emit_counters[j : j + 1]
+            counter = self.emit_counter_views[j]
             jobs.append(lambda s0=int(s0), s1=int(s1), counter=counter: self._launch(
                 treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0]))
         threads_module.run(jobs, threads)
