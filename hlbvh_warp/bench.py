@@ -85,6 +85,10 @@ def sweep_settings(builders) -> list[tuple[str, str, dict]]:
         if b in ("hlbvh", "hlbvh_sah"):
             out += [(b, f"m={m}", {"coarse_bits": m}) for m in (3, 4, 5, 7, 8)]
             out += [(b, f"n={n}", {"bits_per_axis": n, "coarse_bits": min(6, n)}) for n in (6, 8)]
+        if b == "hlbvh_sah":
+            # The automatic grid coarsens small clusters (BuildConfig.cluster_min_prims).
+            out += [(b, "m=6", {"coarse_bits": 6})]
+            out += [(b, f"cluster>={k}", {"cluster_min_prims": k}) for k in (0.0, 3.0, 12.0, 24.0)]
         if b == "hlbvh":
             out += [(b, f"p={p}", {"planes_per_pass": p}) for p in (1, 2, 4)]
         if b == "binned_sah":

@@ -344,7 +344,6 @@ class HlbvhSahPipeline(HlbvhPipeline):
     def build_sah(self, timer: StageTimer) -> dict:
         n = self.num_prims
         cfg = self.config
-        voxel_bits = 3 * (cfg.bits_per_axis - self.coarse_bits)
 
         # Morton codes, run-length encoding by coarse voxel, compress-sort-decompress, voxel sort:
         # the primitive order of HLBVH, unchanged.
@@ -359,9 +358,18 @@ class HlbvhSahPipeline(HlbvhPipeline):
         timer.stage("voxel_sort")
         self.voxel_sort(num_runs)
 
+        # Clusters: the non-empty voxels, merged into coarser voxels while they are too small
+        # on average (BuildConfig.cluster_min_prims).
+        num_clusters = int(self.voxel_count.numpy()[0])
+        self.cluster_bits = self.coarse_bits
+        if cfg.coarse_bits is None:
+            while self.cluster_bits > 1 and n < cfg.cluster_min_prims * num_clusters:
+                self.cluster_bits -= 1
+                num_clusters = self.merge_clusters(num_clusters)
+        voxel_bits = 3 * (cfg.bits_per_axis - self.cluster_bits)
+
         # Voxel hierarchy: one treelet segment per cluster, emitted over the low 3(n - m) bits.
         timer.stage("voxel_hierarchy")
-        num_clusters = int(self.voxel_count.numpy()[0])
         if self.emission == "depth_first":
             # The top tree's 2C - 1 slots are taken; treelet nodes are numbered after them.
             self.node_count.fill_(2 * num_clusters - 1)
@@ -475,6 +483,23 @@ class HlbvhSahPipeline(HlbvhPipeline):
                            self.node_begin, self.node_end, self.prim_order, self.prim_lowers, self.prim_uppers,
                            self.node_visits, self.node_lowers, self.node_uppers)
         return timer.finish()
+
+
+    def merge_clusters(self, num_voxels: int) -> int:
+        """Merge the clusters into the voxels of `cluster_bits` bits per axis; returns their
+        count. The primitive order is unchanged: sorted by the full codes, it is sorted by any
+        prefix of them."""
+        shift = 3 * (self.config.bits_per_axis - self.cluster_bits)
+        self._launch(upper_sah.coarser_cluster_flags_kernel, num_voxels,
+                     [self.voxel_starts, self.sorted_codes, shift, self.voxel_flags])
+        wp.utils.array_scan(self.voxel_flags[:num_voxels], self.voxel_index[:num_voxels], inclusive=True)
+        # block_starts is free once the voxel sort is done.
+        self._launch(upper_sah.compact_clusters_kernel, num_voxels,
+                     [num_voxels, self.voxel_starts, self.voxel_flags, self.voxel_index, self.block_starts,
+                      self.voxel_count])
+        num_clusters = int(self.voxel_count.numpy()[0])
+        wp.copy(self.voxel_starts, self.block_starts, count=num_clusters)
+        return num_clusters
 
 
 class _TopTree:

@@ -28,6 +28,39 @@ def cluster_end(voxel_starts: wp.array(dtype=wp.int32), num_clusters: int, num_p
 
 
 @wp.kernel
+def coarser_cluster_flags_kernel(
+    voxel_starts: wp.array(dtype=wp.int32),
+    sorted_codes: wp.array(dtype=wp.int32),
+    shift: int,
+    flags: wp.array(dtype=wp.int32),
+):
+    # 1 where a voxel starts a new voxel of the grid one bit coarser per axis: its code above
+    # `shift` differs from the previous voxel's (the sorted order already groups them).
+    v = wp.tid()
+    flags[v] = 1
+    if v > 0:
+        if (sorted_codes[voxel_starts[v]] >> shift) == (sorted_codes[voxel_starts[v - 1]] >> shift):
+            flags[v] = 0
+
+
+@wp.kernel
+def compact_clusters_kernel(
+    num_voxels: int,
+    voxel_starts: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+    index: wp.array(dtype=wp.int32),
+    cluster_starts: wp.array(dtype=wp.int32),
+    cluster_count: wp.array(dtype=wp.int32),
+):
+    # index is the inclusive scan of flags.
+    v = wp.tid()
+    if flags[v] != 0:
+        cluster_starts[index[v] - 1] = voxel_starts[v]
+    if v == num_voxels - 1:
+        cluster_count[0] = index[v]
+
+
+@wp.kernel
 def seed_clusters_kernel(
     num_prims: int,
     num_clusters: int,

@@ -82,6 +82,42 @@ def test_top_down_schedules_agree(device, rng, method, leaf):
     assert trees[0]["node_left"].shape == trees[1]["node_left"].shape
 
 
+def numpy_cluster_bits(v, f, m, min_prims):
+    """The automatic cluster grid of hlbvh_sah, recomputed in NumPy: from m bits per axis down,
+    while the non-empty voxels hold fewer than `min_prims` box centroids on average."""
+    tri = v[f].astype(np.float64)
+    c = 0.5 * (tri.min(1) + tri.max(1))
+    lo, hi = c.min(0), c.max(0)
+    q = np.clip(np.floor((c - lo) / (hi - lo) * 1024), 0, 1023).astype(np.int64)
+    while m > 1 and len(f) < min_prims * len(np.unique(q >> (10 - m), axis=0)):
+        m -= 1
+    return m
+
+
+def test_hlbvh_sah_merges_small_clusters(device, rng):
+    # A soup of 6000 triangles gives almost one triangle per voxel at m = 6: the automatic grid
+    # coarsens until clusters hold 6 on average. The tree must be the one an explicit build on
+    # that grid gives (the primitive order sorted by full codes is the same for any m).
+    v, f = random_soup(rng, 6000)
+    m = numpy_cluster_bits(v, f, 6, 6.0)
+    assert m < 6
+    merged = hw.build(v, f, method="hlbvh_sah", device=device)
+    explicit = hw.build(v, f, method="hlbvh_sah", device=device, config=hw.BuildConfig(coarse_bits=m))
+    unmerged = hw.build(v, f, method="hlbvh_sah", device=device, config=hw.BuildConfig(cluster_min_prims=0))
+    check_tree_invariants(merged.to_numpy(), 6000, 1, exact_node_count=2 * 6000 - 1)
+    assert np.array_equal(merged.to_numpy()["prim_order"], explicit.to_numpy()["prim_order"])
+    assert sah_cost(merged) == pytest.approx(sah_cost(explicit), rel=1e-9)
+    # Switched off, the clusters stay the m = 6 voxels: a different (larger) cluster tree.
+    assert sah_cost(unmerged) != pytest.approx(sah_cost(merged), rel=1e-6)
+    six = hw.build(v, f, method="hlbvh_sah", device=device, config=hw.BuildConfig(coarse_bits=6))
+    assert sah_cost(unmerged) == pytest.approx(sah_cost(six), rel=1e-9)
+
+
+def test_cluster_min_prims_validated():
+    with pytest.raises(ValueError, match="cluster_min_prims"):
+        hw.BuildConfig(cluster_min_prims=-1.0)
+
+
 def test_hlbvh_sah_binned_top_costs_little(device, rng, monkeypatch):
     # The cluster tree bins its largest nodes; pricing every position instead must not be
     # noticeably better (and the binned tree must still be a valid tree).
