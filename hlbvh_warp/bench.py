@@ -112,18 +112,24 @@ def collector_paused():
             gc.enable()
 
 
-def _time(fn, device, repeats: int, warmup: int) -> list[float]:
-    for _ in range(warmup):
-        fn()
+def _time_interleaved(fns, device, repeats: int, warmup: int) -> list[list[float]]:
+    """Times of every callable in `fns`, `repeats` rounds of one run each, in turn. Interleaving
+    puts every builder and peer under the same machine load: on a shared machine whose speed
+    drifts by tens of percent over a minute, timing one builder after another would move the
+    ratios by as much."""
+    for fn in fns:
+        for _ in range(warmup):
+            fn()
     wp.synchronize_device(device)
-    times = []
+    times = [[] for _ in fns]
     # Every builder and peer is timed the same way.
     with collector_paused():
         for _ in range(repeats):
-            start = time.perf_counter()
-            fn()
-            wp.synchronize_device(device)
-            times.append((time.perf_counter() - start) * 1e3)
+            for fn, out in zip(fns, times):
+                start = time.perf_counter()
+                fn()
+                wp.synchronize_device(device)
+                out.append((time.perf_counter() - start) * 1e3)
     return times
 
 
@@ -131,9 +137,9 @@ def _summary(times: list[float]) -> dict:
     return {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times}
 
 
-def _rebuild_times(builder, lowers, uppers, config, device, args) -> dict | None:
-    """Per-frame rebuilds on buffers allocated once (what `Builder` does every frame), timed like
-    the one-shot builds; None for builders without reusable buffers."""
+def _rebuild_runner(builder, lowers, uppers, config, device):
+    """A per-frame rebuild on buffers allocated once (what `Builder` does every frame), to be
+    timed like the one-shot builds; None for builders without reusable buffers."""
     from .builders import HlbvhSahPipeline
     from .hlbvh import HlbvhPipeline
 
@@ -152,7 +158,7 @@ def _rebuild_times(builder, lowers, uppers, config, device, args) -> dict | None
         return None
     wp.copy(pipe.prim_lowers, lowers)
     wp.copy(pipe.prim_uppers, uppers)
-    return _summary(_time(run, device, args.repeats, args.warmup))
+    return run
 
 
 def _bytes_per_tri(bvh, num_tris: int, config: BuildConfig, device) -> float:
@@ -187,6 +193,8 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
         ref_bvh = api.build(verts, tris, method=REFERENCE, device=device, config=BuildConfig(max_leaf_size=leaf))
         reference_cost[leaf] = sah_cost(ref_bvh)
     total = len(settings) + len(peers)
+    # Every row gets its one-shot runner (and rebuild runner); all are then timed in turn.
+    entries = []
     for step, (builder, label, overrides) in enumerate(settings, 1):
         progress(f"[{name} {step}/{total}] {builder} {label}")
         config = BuildConfig(**{"cpu_threads": args.cpu_threads, **overrides})
@@ -204,20 +212,18 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
         def run(fn=fn, config=config):
             fn(lowers, uppers, config, device, StageTimer(device, False))
 
-        times = _time(run, device, args.repeats, args.warmup)
-        rebuild = _rebuild_times(builder, lowers, uppers, config, device, args)
         cost = sah_cost(bvh, config.sah_traversal_cost, config.sah_intersection_cost)
-        rows.append({
+        row = {
             "mesh": name, "num_tris": n, "builder": builder, "setting": label, "config": overrides,
-            "time_ms": {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times},
-            "rebuild_ms": rebuild,
             "stages_ms": {k: v for k, v in bvh.timings.items() if k != "skipped"},
             "sah": cost, "sah_ratio": cost / reference_cost[config.max_leaf_size],
             "num_nodes": bvh.num_nodes, "bytes_per_tri": _bytes_per_tri(bvh, n, config, device),
             "rays_checked": int(len(t)),
-        })
+        }
+        entries.append((row, run, _rebuild_runner(builder, lowers, uppers, config, device)))
     for step, peer in enumerate(peers, len(settings) + 1):
         progress(f"[{name} {step}/{total}] {peer}")
+        rebuild = None
         if peer == "wp.Mesh":
             points = wp.array(verts, dtype=wp.vec3, device=device)
             indices = wp.array(tris.reshape(-1), dtype=wp.int32, device=device)
@@ -230,27 +236,38 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
             def run(constructor=constructor):
                 wp.Bvh(lowers, uppers, constructor=constructor)
 
-        rebuild = None
+        row = {"mesh": name, "num_tris": n, "builder": peer, "setting": "default", "config": {}, "stages_ms": {},
+               "sah": None, "sah_ratio": None, "num_nodes": None, "bytes_per_tri": None, "rays_checked": 0}
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                times = _time(run, device, args.repeats, args.warmup)
+                run()
                 if peer != "wp.Mesh":
                     # In-place rebuild on the same buffers: the peer of our reused pipelines.
                     peer_bvh = wp.Bvh(lowers, uppers, constructor=constructor)
-                    rebuild = _summary(_time(lambda: peer_bvh.rebuild(constructor), device, args.repeats,
-                                             args.warmup))
+
+                    def rebuild(peer_bvh=peer_bvh, constructor=constructor):
+                        peer_bvh.rebuild(constructor)
+
+                    rebuild()
         except Exception as exc:  # a constructor this device lacks (e.g. lbvh on some versions)
             rows.append({"mesh": name, "builder": peer, "setting": "default", "error": str(exc)})
             continue
-        rows.append({
-            "mesh": name, "num_tris": n, "builder": peer, "setting": "default", "config": {},
-            "time_ms": {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times},
-            "rebuild_ms": rebuild, "stages_ms": {}, "sah": None, "sah_ratio": None, "num_nodes": None, "bytes_per_tri": None,
-            "rays_checked": 0,
-            # e.g. wp.Bvh's lbvh constructor falls back to sah on the CPU: say so in the row.
-            "notes": sorted({str(w.message) for w in caught}),
-        })
+        # e.g. wp.Bvh's lbvh constructor falls back to sah on the CPU: say so in the row.
+        row["notes"] = sorted({str(w.message) for w in caught})
+        entries.append((row, run, rebuild))
+
+    progress(f"[{name}] timing {len(entries)} builders in turn, {args.repeats} rounds")
+    fns = [run for _, run, _ in entries]
+    rebuild_fns = [rebuild for _, _, rebuild in entries if rebuild is not None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        times = _time_interleaved(fns + rebuild_fns, device, args.repeats, args.warmup)
+    rebuild_times = iter(times[len(fns):])
+    for (row, _, rebuild), one_shot in zip(entries, times):
+        row["time_ms"] = _summary(one_shot)
+        row["rebuild_ms"] = _summary(next(rebuild_times)) if rebuild is not None else None
+        rows.append(row)
     return rows
 
 
