@@ -56,9 +56,21 @@ class WarpBvhPeer:
         return {"decision": "rebuild"}
 
 
+def sequence_bounds(anim, param, num_frames):
+    """Bounds of the triangle-box centroids over frames 0..num_frames of an animation (its
+    ``update`` is a pure function of the frame's parameter)."""
+    lower, upper = np.full(3, np.inf), np.full(3, -np.inf)
+    for frame in range(num_frames + 1):
+        tri = anim.update(param(frame)).numpy()[anim.faces]
+        centroids = 0.5 * (tri.min(axis=1) + tri.max(axis=1))
+        lower, upper = np.minimum(lower, centroids.min(axis=0)), np.maximum(upper, centroids.max(axis=0))
+    anim.update(param(0))
+    return (tuple(lower), tuple(upper))
+
+
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
-                 headless=False, cpu_threads=0):
+                 headless=False, cpu_threads=0, fixed_grid=False):
         vertices, faces = scene(mesh, num_tris)
         self.num_frames = max(int(num_frames), 1)
         self.headless = headless
@@ -74,13 +86,17 @@ class Example:
                 param = lambda frame, n=self.num_frames: min(frame / n, 1.0)  # noqa: E731
             else:
                 raise ValueError(f"unknown sequence {name!r}")
+            config = BuildConfig(cpu_threads=cpu_threads)
+            if fixed_grid:
+                # One Morton grid for the whole sequence: the bounds of every frame's centroids.
+                config = config.replace(morton_bounds=sequence_bounds(anim, param, self.num_frames))
             runners = {}
             for label in modes or MODES:
                 options = MODES[label]
                 if isinstance(options, str):
                     runner = WarpBvhPeer(len(faces), options, device)
                 else:
-                    runner = Builder(len(faces), BuildConfig(cpu_threads=cpu_threads), device=device, **options)
+                    runner = Builder(len(faces), config, device=device, **options)
                 runner.build(anim.vertices, anim.faces)  # setup and kernel compilation: not timed
                 runners[label] = runner
             self.sequences[name] = {"anim": anim, "param": param, "runners": runners,
@@ -161,13 +177,17 @@ if __name__ == "__main__":
     parser.add_argument("--sequences", type=str, default="explode,bend")
     parser.add_argument("--modes", type=str, default=",".join(MODES), help="Comma-separated subset of the modes.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the plot.")
+    parser.add_argument("--fixed-grid", action="store_true",
+                        help="One Morton grid for the whole sequence (BuildConfig.morton_bounds) instead of "
+                             "the centroid bounds of each frame.")
     parser.add_argument("--cpu-threads", type=int, default=0,
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
     args = parser.parse_known_args()[0]
 
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, args.num_frames, args.sequences.split(","),
-                          args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads)
+                          args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads,
+                          fixed_grid=args.fixed_grid)
         for _ in range(args.num_frames):
             example.step()
             example.render()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 #: Morton codes live in int32 (the radix sort's key type): 3 * 10 = 30 bits at most.
 MAX_BITS_PER_AXIS = 10
 #: A treelet pass keeps its 2^p - 1 split slots in a fixed-size local vector.
@@ -51,6 +53,13 @@ class BuildConfig:
             threads one after another, so that passes rescanning all N primitives cost time
             without buying parallelism. ``"auto"`` (default) picks ``"depth_first"`` on the CPU
             and ``"treelets"`` elsewhere.
+        morton_bounds: ``None`` (default): the Morton grid spans the centroid bounds of the
+            primitives being built, recomputed every build, as the paper does. Or a fixed box
+            ``((x0, y0, z0), (x1, y1, z1))``, e.g. the bounds of a whole animation: centroids
+            outside it fall into the border cells. Over a fixed grid a primitive's code changes
+            only when it moves across cells, so the previous frame's tree order stays almost
+            sorted (resorting, the paper's section 2.2); over a per-frame grid every code moves
+            whenever the scene's bounds do (a bending or exploding mesh).
         cpu_threads: on the CPU device, how many threads run the independent subtrees of the
             depth-first stages side by side (``hlbvh_warp.threads``); 0 (default) uses every core
             the process may run on, 1 runs them one after another. The tree does not depend on it.
@@ -67,6 +76,7 @@ class BuildConfig:
     cluster_min_prims: float = 6.0
     emission: str = "auto"
     cpu_threads: int = 0
+    morton_bounds: tuple | None = None
 
     def __post_init__(self):
         checks = [
@@ -88,6 +98,21 @@ class BuildConfig:
         for ok, message in checks:
             if not ok:
                 raise ValueError(f"BuildConfig: {message} (got {self})")
+        if self.morton_bounds is not None:
+            try:
+                box = np.asarray(self.morton_bounds, dtype=np.float64)
+            except (TypeError, ValueError):
+                box = np.zeros(0)
+            if box.shape != (2, 3):
+                raise ValueError(f"BuildConfig: morton_bounds must be ((x0, y0, z0), (x1, y1, z1)) "
+                                 f"(got {self.morton_bounds!r})")
+            if not np.all(np.isfinite(box)):
+                raise ValueError(f"BuildConfig: morton_bounds must be finite (got {self.morton_bounds!r})")
+            if np.any(box[0] > box[1]):
+                raise ValueError(f"BuildConfig: morton_bounds lower corner exceeds the upper one "
+                                 f"(got {self.morton_bounds!r})")
+            # Plain floats, so the config stays hashable and prints the same either way.
+            object.__setattr__(self, "morton_bounds", tuple(tuple(float(x) for x in row) for row in box))
 
     def resolved_coarse_bits(self, num_prims: int) -> int:
         """m for `num_prims` primitives: the paper uses m = 6 up to ~1M triangles and m = 7 for ~10M."""

@@ -158,10 +158,14 @@ class HlbvhPipeline:
 
     def compute_morton_codes(self):
         n = self.num_prims
-        self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
-        chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
-        self._launch(morton.centroid_bounds_kernel, (n + chunk - 1) // chunk,
-                     [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds])
+        if self.config.morton_bounds is not None:
+            lower, upper = self.config.morton_bounds
+            self._launch(morton.set_bounds_kernel, 1, [self.scene_bounds, wp.vec3(*lower), wp.vec3(*upper)])
+        else:
+            self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
+            chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
+            self._launch(morton.centroid_bounds_kernel, (n + chunk - 1) // chunk,
+                         [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds])
         self._launch(
             morton.morton_codes_kernel,
             n,

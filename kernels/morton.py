@@ -34,6 +34,13 @@ def reset_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3)):
 
 
 @wp.kernel
+def set_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3), lower: wp.vec3, upper: wp.vec3):
+    # A fixed Morton grid (BuildConfig.morton_bounds) in place of the centroid bounds.
+    scene_bounds[0] = lower
+    scene_bounds[1] = upper
+
+
+@wp.kernel
 def centroid_bounds_kernel(
     num_prims: int,
     chunk: int,
