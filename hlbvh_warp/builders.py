@@ -24,6 +24,7 @@ from . import threads as threads_module
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
+from .kernels import block_sort
 from .kernels import bounds as bounds_kernels
 from .kernels import metrics as metrics_kernels
 from .kernels import sah, treelets, upper_sah
@@ -493,11 +494,14 @@ class HlbvhSahPipeline(HlbvhPipeline):
         self._launch(upper_sah.coarser_cluster_flags_kernel, num_voxels,
                      [self.voxel_starts, self.sorted_codes, shift, self.voxel_flags])
         wp.utils.array_scan(self.voxel_flags[:num_voxels], self.voxel_index[:num_voxels], inclusive=True)
-        # block_starts is free once the voxel sort is done.
-        self._launch(upper_sah.compact_clusters_kernel, num_voxels,
-                     [num_voxels, self.voxel_starts, self.voxel_flags, self.voxel_index, self.block_starts,
-                      self.voxel_count])
-        num_clusters = int(self.voxel_count.numpy()[0])
+        # The voxel-start compaction of the voxel sort, over voxels instead of runs; block_starts
+        # and block_count are free once that sort is done (the count goes to its own array, as
+        # every thread reads the input count).
+        self._launch(block_sort.compact_voxel_starts_kernel, num_voxels,
+                     [self.voxel_count, self.voxel_flags, self.voxel_index, self.voxel_starts, self.block_starts,
+                      self.block_count])
+        num_clusters = int(self.block_count.numpy()[0])
+        self.voxel_count.fill_(num_clusters)
         wp.copy(self.voxel_starts, self.block_starts, count=num_clusters)
         return num_clusters
 

@@ -44,23 +44,6 @@ def coarser_cluster_flags_kernel(
 
 
 @wp.kernel
-def compact_clusters_kernel(
-    num_voxels: int,
-    voxel_starts: wp.array(dtype=wp.int32),
-    flags: wp.array(dtype=wp.int32),
-    index: wp.array(dtype=wp.int32),
-    cluster_starts: wp.array(dtype=wp.int32),
-    cluster_count: wp.array(dtype=wp.int32),
-):
-    # index is the inclusive scan of flags.
-    v = wp.tid()
-    if flags[v] != 0:
-        cluster_starts[index[v] - 1] = voxel_starts[v]
-    if v == num_voxels - 1:
-        cluster_count[0] = index[v]
-
-
-@wp.kernel
 def seed_clusters_kernel(
     num_prims: int,
     num_clusters: int,
