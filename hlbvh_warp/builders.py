@@ -25,7 +25,6 @@ from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
 from .kernels import block_sort
-from .kernels import bounds as bounds_kernels
 from .kernels import metrics as metrics_kernels
 from .kernels import sah, treelets, upper_sah
 
@@ -69,7 +68,7 @@ class TopDownBuilder:
             return memory.empty(count, dtype=wp.int32, device=device)
 
         # The radix sort needs keys and values of twice the item count.
-        self.sort_keys = memory.empty(2 * k, dtype=float, device=device)
+        self.sort_keys = ints(2 * k)
         self.sort_ids = ints(2 * k)
         # Per-axis orders, ping-ponged every level: order[axis * k + position].
         self.order = ints(3 * k)
@@ -475,10 +474,12 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # Bounding boxes of all nodes, bottom-up.
         timer.stage("bbox")
         if self.emission == "depth_first":
-            # Cluster subtrees were boxed while costing them; only the top tree's 2C - 1 are new.
-            self._launch(bounds_kernels.bounds_sweep_kernel, 1,
-                         [2 * num_clusters - 1, self.node_left, self.node_right, self.node_begin, self.node_end,
-                          self.prim_order, self.prim_lowers, self.prim_uppers, self.node_lowers, self.node_uppers])
+            # Cluster subtrees were boxed while costing them; only the top tree's 2C - 1 are new,
+            # swept over the top tree's own arena from the cluster boxes.
+            self._launch(upper_sah.top_bounds_sweep_kernel, 1,
+                         [2 * num_clusters - 1, top.arena.node_left, top.arena.node_right, top.arena.node_begin,
+                          cluster_order, top.cluster_lowers, top.cluster_uppers, top.arena.node_lowers,
+                          top.arena.node_uppers, self.node_lowers, self.node_uppers])
         else:
             compute_bounds(self.device, self.node_count, self.node_left, self.node_right, self.node_parent,
                            self.node_begin, self.node_end, self.prim_order, self.prim_lowers, self.prim_uppers,

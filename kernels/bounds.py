@@ -109,30 +109,3 @@ def interior_bounds_sweep_kernel(
             node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
             node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
         node -= 1
-
-
-@wp.kernel
-def bounds_sweep_kernel(
-    num_nodes: int,
-    node_left: wp.array(dtype=wp.int32),
-    node_right: wp.array(dtype=wp.int32),
-    node_begin: wp.array(dtype=wp.int32),
-    node_end: wp.array(dtype=wp.int32),
-    prim_order: wp.array(dtype=wp.int32),
-    prim_lowers: wp.array(dtype=wp.vec3),
-    prim_uppers: wp.array(dtype=wp.vec3),
-    node_lowers: wp.array(dtype=wp.vec3),
-    node_uppers: wp.array(dtype=wp.vec3),
-):
-    # One thread, nodes [0, num_nodes) in reverse, leaves and interiors alike: boxes of nodes past
-    # num_nodes must already be right (the SAH-optimized HLBVH's cluster subtrees).
-    node = num_nodes - 1
-    while node >= 0:
-        left = node_left[node]
-        if left < 0:
-            leaf_box(node, node_begin, node_end, prim_order, prim_lowers, prim_uppers, node_lowers, node_uppers)
-        else:
-            right = node_right[node]
-            node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
-            node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
-        node -= 1

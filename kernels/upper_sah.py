@@ -205,3 +205,40 @@ def scatter_clusters_kernel(
     for pos in range(voxel_starts[c], cluster_end(voxel_starts, num_clusters, num_prims, c)):
         prim_order[pos + shift] = sorted_prim_ids[pos]
         position_cluster[pos] = c
+
+
+@wp.kernel
+def top_bounds_sweep_kernel(
+    num_top_nodes: int,
+    top_left: wp.array(dtype=wp.int32),
+    top_right: wp.array(dtype=wp.int32),
+    top_begin: wp.array(dtype=wp.int32),
+    cluster_order: wp.array(dtype=wp.int32),
+    cluster_lowers: wp.array(dtype=wp.vec3),
+    cluster_uppers: wp.array(dtype=wp.vec3),
+    top_lowers: wp.array(dtype=wp.vec3),
+    top_uppers: wp.array(dtype=wp.vec3),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+):
+    # One thread, the top tree's nodes in reverse (children come after their parents), in the
+    # top tree's own compact arena: a top leaf is one cluster, whose box was copied out with its
+    # cost. Reading those boxes through the joined tree instead went to the cluster roots'
+    # children, scattered over the 2N - 1 node arena: 1.1 ms of cache misses on the armadillo's
+    # 11,771 clusters against 0.1 ms here.
+    j = num_top_nodes - 1
+    while j >= 0:
+        left = top_left[j]
+        if left < 0:
+            c = cluster_order[top_begin[j]]
+            lower = cluster_lowers[c]
+            upper = cluster_uppers[c]
+        else:
+            right = top_right[j]
+            lower = wp.min(top_lowers[left], top_lowers[right])
+            upper = wp.max(top_uppers[left], top_uppers[right])
+        top_lowers[j] = lower
+        top_uppers[j] = upper
+        node_lowers[j] = lower
+        node_uppers[j] = upper
+        j -= 1
