@@ -25,9 +25,11 @@ def register_builder(name: str):
 def _pipeline_builder(method: str):
     def run(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
         n = prim_lowers.shape[0]
-        pipe = HlbvhPipeline(n, config, device, prim_lowers, prim_uppers)
+        pipe = HlbvhPipeline.one_shot(n, config, device, prim_lowers, prim_uppers)
         pipeline_timings = pipe.build(method, timer)
-        return bvh_from_pipeline(pipe, method, pipeline_timings)
+        bvh = bvh_from_pipeline(pipe, method, pipeline_timings)
+        pipe.give_back()
+        return bvh
 
     return run
 

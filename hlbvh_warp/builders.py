@@ -341,6 +341,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
         self.prim_order = memory.empty(num_prims, dtype=wp.int32, device=self.device)
         self.top = None
 
+    #: sorted_prim_ids stays scratch here: the tree's order is `prim_order`, written by the join.
+    OUTPUTS = HlbvhPipeline.OUTPUTS[:-1] + ("prim_order",)
+
     def build_sah(self, timer: StageTimer) -> dict:
         n = self.num_prims
         cfg = self.config
@@ -410,7 +413,10 @@ class HlbvhSahPipeline(HlbvhPipeline):
                  self.node_begin, self.node_end, self.sorted_prim_ids, self.prim_lowers, self.prim_uppers,
                  t_traversal, t_intersect, self.node_visits, self.node_lowers, self.node_uppers, self.node_cost],
             )
-        top = self.top = _TopTree(num_clusters, self.device)
+        # The top tree's scratch is kept while the cluster count repeats (the same mesh again).
+        if self.top is None or self.top.num_clusters != num_clusters:
+            self.top = _TopTree(num_clusters, self.device)
+        top = self.top
         self._launch(
             upper_sah.cluster_items_kernel,
             num_clusters,
@@ -511,7 +517,7 @@ class _TopTree:
     """Scratch of the top-level SAH build over `num_clusters` clusters."""
 
     def __init__(self, num_clusters: int, device):
-        c = num_clusters
+        self.num_clusters = c = num_clusters
 
         def ints(count):
             return memory.empty(count, dtype=wp.int32, device=device)
@@ -541,7 +547,7 @@ def _top_down(method: str):
 
 def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
     n = prim_lowers.shape[0]
-    pipe = HlbvhSahPipeline(n, config, device, prim_lowers, prim_uppers)
+    pipe = HlbvhSahPipeline.one_shot(n, config, device, prim_lowers, prim_uppers)
     timings = pipe.build_sah(timer)
     bvh = Bvh(
         method="hlbvh_sah",
@@ -561,6 +567,7 @@ def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
         timings=timings,
     )
     bvh.buffer_bytes = array_bytes(pipe) + pipe.top.nbytes()
+    pipe.give_back()
     return bvh
 
 

@@ -66,6 +66,34 @@ class StageTimer:
 class HlbvhPipeline:
     """Scratch buffers for one primitive count, allocated once and reused by every build."""
 
+    #: The arrays a `Bvh` takes over from a build (`api.bvh_from_pipeline`).
+    OUTPUTS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_parent", "node_begin", "node_end",
+               "node_count", "sorted_prim_ids")
+
+    @classmethod
+    def one_shot(cls, num_prims: int, config: BuildConfig, device, prim_lowers: wp.array, prim_uppers: wp.array):
+        """A pipeline for one build over the caller's boxes: the one the previous one-shot build
+        of this class, size, config and device gave back (`memory.ScratchCache`), with fresh
+        outputs, else a new one. Hand it back with `give_back` once its outputs are in a `Bvh`."""
+        device = wp.get_device(device)
+        pipe = memory.take_scratch((cls, num_prims, config, device.alias))
+        if pipe is None:
+            return cls(num_prims, config, device, prim_lowers, prim_uppers)
+        pipe.renew_outputs()
+        pipe.prim_lowers, pipe.prim_uppers = prim_lowers, prim_uppers
+        return pipe
+
+    def give_back(self):
+        """Keep this pipeline's scratch for the next `one_shot` build; its outputs now belong to a
+        `Bvh` and are replaced before the pipeline builds again."""
+        self.prim_lowers = self.prim_uppers = None
+        memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self)
+
+    def renew_outputs(self):
+        for name in self.OUTPUTS:
+            old = getattr(self, name)
+            setattr(self, name, memory.empty(old.shape, dtype=old.dtype, device=self.device))
+
     def __init__(self, num_prims: int, config: BuildConfig, device, prim_lowers: wp.array | None = None,
                  prim_uppers: wp.array | None = None):
         if num_prims < 1:

@@ -74,3 +74,26 @@ def test_builds_on_recycled_memory_match_fresh_ones(pool, device, rng, method):
     # A live tree is never handed out: the kept build is unchanged by the builds after it.
     for key, value in kept_before.items():
         assert np.array_equal(kept.to_numpy()[key], value), key
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah"])
+def test_one_shot_builds_reuse_the_pipeline_but_never_its_outputs(pool, device, rng, method):
+    v, f = random_soup(rng, 5_000)
+    other_v, other_f = random_soup(rng, 5_000)
+    memory.set_host_cache_limit(0)
+    expected = hw.build(other_v, other_f, method=method, device=device).to_numpy()
+    assert not memory._SCRATCH._entries, "a disabled pool keeps no scratch"
+    memory.set_host_cache_limit(1 << 30)
+    first = hw.build(v, f, method=method, device=device)
+    first_arrays = first.to_numpy()
+    (kept,) = memory._SCRATCH._entries.values()
+    second = hw.build(other_v, other_f, method=method, device=device)
+    assert next(iter(memory._SCRATCH._entries.values())) is kept, "the second build did not reuse the first's pipeline"
+    for name in ("node_left", "node_lowers", "prim_order"):
+        assert getattr(first, name).ptr != getattr(second, name).ptr, name
+    for key, value in first_arrays.items():
+        assert np.array_equal(first.to_numpy()[key], value), key
+    for key, value in expected.items():
+        assert np.array_equal(second.to_numpy()[key], value), key
+    memory.clear_host_cache()
+    assert not memory._SCRATCH._entries
