@@ -204,25 +204,27 @@ class Builder:
 
         Resorted (Pantaleoni & Luebke 2010, 2.2): the boxes are computed in the user's face order
         (sequential, and they are the BVH's `prim_lowers`/`prim_uppers`), then gathered in the
-        previous tree's order as the build's input; afterwards only the primitive ids are mapped
-        back. Gathering triangles in tree order and scattering their boxes back to the user's
-        order instead cost two random accesses per primitive (about 5 ms of a 16 ms frame on a
-        100k-triangle explosion on the CPU), this costs one (about 0.6 ms).
+        previous tree's order as the build's input, with their Morton codes computed in the
+        same pass; afterwards only the primitive ids are mapped back. Gathering triangles in
+        tree order and scattering their boxes back to the user's order instead cost two random
+        accesses per primitive (about 5 ms of a 16 ms frame on a 100k-triangle explosion on the
+        CPU), this costs one (about 0.6 ms). Both kinds of frame reduce the centroid bounds in
+        the pass that computes the triangle boxes.
         """
         n, device, pipe = self.num_prims, self.device, self.pipeline
+        # Triangle boxes in the user's face order, and the centroid bounds in the same pass.
         timer.stage("prim_bounds")
+        pipe.compute_triangle_bounds(self.vertices, self.faces, self.prim_lowers, self.prim_uppers)
         if self.resort:
-            wp.launch(morton.triangle_bounds_kernel, dim=n,
-                      inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=device)
-            # Resorting: the previous tree's order becomes this build's input order.
-            timer.stage("resort_gather")
-            wp.launch(dynamic.resort_gather_kernel, dim=n,
-                      inputs=[self.prim_order, self.prim_lowers, self.prim_uppers, self.input_order, pipe.prim_lowers,
-                              pipe.prim_uppers], device=device)
-        else:
-            pipe.compute_triangle_bounds(self.vertices, self.faces)
+            # Resorting: the previous tree's order becomes this build's input order; the Morton
+            # codes are computed in the same gather.
+            timer.stage("resort_gather_morton")
+            wp.launch(dynamic.resort_gather_codes_kernel, dim=n,
+                      inputs=[self.prim_order, self.prim_lowers, self.prim_uppers, pipe.scene_bounds,
+                              self.config.bits_per_axis, self.input_order, pipe.prim_lowers, pipe.prim_uppers,
+                              pipe.morton_codes], device=device)
         pipeline_timings = timer.timings
-        pipe.build(self.method, timer, sync_free=self.sync_free)
+        pipe.build(self.method, timer, sync_free=self.sync_free, inputs_ready="codes" if self.resort else "bounds")
         pipeline_timings.pop("total", None)
         if self.resort:
             # Map build-input ids back to the user's face indices.

@@ -181,19 +181,38 @@ class HlbvhPipeline:
     def _launch(self, kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    def compute_triangle_bounds(self, vertices: wp.array, faces: wp.array):
-        self._launch(morton.triangle_bounds_kernel, self.num_prims, [vertices, faces, self.prim_lowers, self.prim_uppers])
-
-    def compute_morton_codes(self):
+    def compute_triangle_bounds(self, vertices: wp.array, faces: wp.array, lowers: wp.array | None = None,
+                                uppers: wp.array | None = None):
+        """Triangle boxes (into `prim_lowers`/`prim_uppers` unless given), and in the same pass the
+        scene's centroid bounds that `compute_morton_codes(bounds_ready=True)` then uses."""
         n = self.num_prims
+        lowers = self.prim_lowers if lowers is None else lowers
+        uppers = self.prim_uppers if uppers is None else uppers
         if self.config.morton_bounds is not None:
-            lower, upper = self.config.morton_bounds
-            self._launch(morton.set_bounds_kernel, 1, [self.scene_bounds, wp.vec3(*lower), wp.vec3(*upper)])
-        else:
-            self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
-            chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
-            self._launch(morton.centroid_bounds_kernel, (n + chunk - 1) // chunk,
-                         [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds])
+            self._launch(morton.triangle_bounds_kernel, n, [vertices, faces, lowers, uppers])
+            self._set_fixed_bounds()
+            return
+        self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
+        chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
+        self._launch(morton.triangle_bounds_centroids_kernel, (n + chunk - 1) // chunk,
+                     [n, chunk, vertices, faces, lowers, uppers, self.scene_bounds])
+
+    def _set_fixed_bounds(self):
+        lower, upper = self.config.morton_bounds
+        self._launch(morton.set_bounds_kernel, 1, [self.scene_bounds, wp.vec3(*lower), wp.vec3(*upper)])
+
+    def compute_morton_codes(self, bounds_ready: bool = False):
+        """Morton codes of the primitive centroids over the centroid bounds (or the fixed grid);
+        `bounds_ready`: `compute_triangle_bounds` has already reduced the bounds."""
+        n = self.num_prims
+        if not bounds_ready:
+            if self.config.morton_bounds is not None:
+                self._set_fixed_bounds()
+            else:
+                self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
+                chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
+                self._launch(morton.centroid_bounds_kernel, (n + chunk - 1) // chunk,
+                             [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds])
         self._launch(
             morton.morton_codes_kernel,
             n,
@@ -500,7 +519,8 @@ class HlbvhPipeline:
         )
 
     # ------------------------------------------------------------ orchestrator
-    def build(self, method: str = "hlbvh", timer: StageTimer | None = None, sync_free: bool = False):
+    def build(self, method: str = "hlbvh", timer: StageTimer | None = None, sync_free: bool = False,
+              inputs_ready: str = "boxes"):
         """Run the pipeline on `prim_lowers` / `prim_uppers` (already filled); returns the timings.
 
         Args:
@@ -508,15 +528,21 @@ class HlbvhPipeline:
             timer: a `StageTimer`; stages are timed only when it is enabled.
             sync_free: keep every count on the device (launches sized by their bounds) so that the
                 build never waits for the device and can be captured in a CUDA graph.
+            inputs_ready: what the caller has already computed: ``"boxes"``; ``"bounds"`` (and
+                the centroid bounds, `compute_triangle_bounds`); ``"codes"`` (and the Morton
+                codes, as a resorted `Builder` frame does while gathering).
         """
+        if inputs_ready not in ("boxes", "bounds", "codes"):
+            raise ValueError(f"inputs_ready must be 'boxes', 'bounds' or 'codes', got {inputs_ready!r}")
         n = self.num_prims
         timer = timer or StageTimer(self.device, False)
         bits = 3 * self.config.bits_per_axis
         self.sync_free = sync_free
 
         # Morton codes of the primitive centroids over the centroid bounds (n bits per axis).
-        timer.stage("morton")
-        self.compute_morton_codes()
+        if inputs_ready != "codes":
+            timer.stage("morton")
+            self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
 
         if method == "hlbvh":
             # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.

@@ -7,30 +7,40 @@ sorted. The host side (``hlbvh_warp.builder``, ``hlbvh_warp.dynamic``) allocates
 
 import warp as wp
 
+from .morton import morton_code
+
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
 
 # ------------------------------------------------------------------ resorting
 @wp.kernel
-def resort_gather_kernel(
+def resort_gather_codes_kernel(
     prim_order: wp.array(dtype=wp.int32),
     user_lowers: wp.array(dtype=wp.vec3),
     user_uppers: wp.array(dtype=wp.vec3),
+    scene_bounds: wp.array(dtype=wp.vec3),
+    bits_per_axis: int,
     input_order: wp.array(dtype=wp.int32),
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
+    morton_codes: wp.array(dtype=wp.int32),
 ):
     # The previous tree's order becomes the build's input order: input i is user face order[i].
     # The boxes were computed in the user's face order (a sequential pass that also leaves the
-    # BVH's per-face boxes current); this is the one random access per primitive of a resorted
-    # build, 28 bytes read, where gathering the triangles instead reads a face and its three
-    # vertices (about 3x slower on the CPU device for a 100k-triangle mesh).
+    # BVH's per-face boxes current, and the centroid bounds); this is the one random access per
+    # primitive of a resorted build, 28 bytes read, where gathering the triangles instead reads
+    # a face and its three vertices (about 3x slower on the CPU device for a 100k-triangle mesh).
+    # The Morton code is computed here while the box is at hand, which saves the pipeline's own
+    # pass over the gathered boxes.
     i = wp.tid()
     f = prim_order[i]
     input_order[i] = f
-    lowers[i] = user_lowers[f]
-    uppers[i] = user_uppers[f]
+    lower = user_lowers[f]
+    upper = user_uppers[f]
+    lowers[i] = lower
+    uppers[i] = upper
+    morton_codes[i] = morton_code(lower, upper, scene_bounds[0], scene_bounds[1], bits_per_axis)
 
 
 @wp.kernel

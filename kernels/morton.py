@@ -26,6 +26,41 @@ def triangle_bounds_kernel(
 
 
 @wp.kernel
+def triangle_bounds_centroids_kernel(
+    num_prims: int,
+    chunk: int,
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    scene_bounds: wp.array(dtype=wp.vec3),
+):
+    # triangle_bounds_kernel and centroid_bounds_kernel in one pass (chunked like the latter), for
+    # per-frame builds from vertices: the reduction reads the boxes while they are in registers
+    # instead of in a second pass over 24 bytes per triangle.
+    begin = wp.tid() * chunk
+    end = wp.min(begin + chunk, num_prims)
+    if begin >= end:
+        return
+    big = 3.4e38
+    lower = wp.vec3(big, big, big)
+    upper = wp.vec3(-big, -big, -big)
+    for i in range(begin, end):
+        a = vertices[faces[i, 0]]
+        b = vertices[faces[i, 1]]
+        c = vertices[faces[i, 2]]
+        box_lower = wp.min(wp.min(a, b), c)
+        box_upper = wp.max(wp.max(a, b), c)
+        prim_lowers[i] = box_lower
+        prim_uppers[i] = box_upper
+        centroid = 0.5 * (box_lower + box_upper)
+        lower = wp.min(lower, centroid)
+        upper = wp.max(upper, centroid)
+    wp.atomic_min(scene_bounds, 0, lower)
+    wp.atomic_max(scene_bounds, 1, upper)
+
+
+@wp.kernel
 def reset_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3)):
     # scene_bounds[0] is the lower corner, scene_bounds[1] the upper corner.
     big = 3.4e38
@@ -89,6 +124,18 @@ def quantize(c: float, lo: float, hi: float, cells: int):
     return wp.clamp(q, 0, cells - 1)
 
 
+@wp.func
+def morton_code(lower: wp.vec3, upper: wp.vec3, scene_lower: wp.vec3, scene_upper: wp.vec3, bits_per_axis: int):
+    # The code of a box's centroid on the grid of 2^bits cells per axis over the scene box.
+    c = 0.5 * (lower + upper)
+    cells = 1 << bits_per_axis
+    x = quantize(c[0], scene_lower[0], scene_upper[0], cells)
+    y = quantize(c[1], scene_lower[1], scene_upper[1], cells)
+    z = quantize(c[2], scene_lower[2], scene_upper[2], cells)
+    # x takes the most significant bit of each triple: code = ... x1 y1 z1 x0 y0 z0.
+    return (spread_bits_10(x) << 2) | (spread_bits_10(y) << 1) | spread_bits_10(z)
+
+
 @wp.kernel
 def morton_codes_kernel(
     prim_lowers: wp.array(dtype=wp.vec3),
@@ -98,15 +145,7 @@ def morton_codes_kernel(
     morton_codes: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
-    c = 0.5 * (prim_lowers[tid] + prim_uppers[tid])
-    lo = scene_bounds[0]
-    hi = scene_bounds[1]
-    cells = 1 << bits_per_axis
-    x = quantize(c[0], lo[0], hi[0], cells)
-    y = quantize(c[1], lo[1], hi[1], cells)
-    z = quantize(c[2], lo[2], hi[2], cells)
-    # x takes the most significant bit of each triple: code = ... x1 y1 z1 x0 y0 z0.
-    morton_codes[tid] = (spread_bits_10(x) << 2) | (spread_bits_10(y) << 1) | spread_bits_10(z)
+    morton_codes[tid] = morton_code(prim_lowers[tid], prim_uppers[tid], scene_bounds[0], scene_bounds[1], bits_per_axis)
 
 
 @wp.kernel

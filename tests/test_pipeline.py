@@ -107,6 +107,26 @@ def test_morton_codes(device, rng, bits):
     np.testing.assert_array_equal(pipe.morton_codes.numpy(), morton_reference(lo, hi, bits))
 
 
+def test_triangle_bounds_reduce_centroids_in_the_same_pass(device, rng):
+    """The fused box + centroid-bounds pass of per-frame builds, against NumPy; 10,001 triangles
+    so that the CPU's last chunk is partial, and codes from it equal the two-pass codes."""
+    n = 10_001
+    verts = (rng.standard_normal((3 * n, 3)) * [3.0, 1.0, 0.5]).astype(np.float32)
+    faces = rng.integers(0, 3 * n, size=(n, 3)).astype(np.int32)
+    lo, hi = verts[faces].min(axis=1), verts[faces].max(axis=1)
+    pipe = make_pipeline(np.zeros_like(lo), np.zeros_like(hi), device)
+    pipe.compute_triangle_bounds(wp.array(verts, dtype=wp.vec3, device=device),
+                                 wp.array(faces, dtype=wp.int32, device=device))
+    np.testing.assert_array_equal(pipe.prim_lowers.numpy(), lo)
+    np.testing.assert_array_equal(pipe.prim_uppers.numpy(), hi)
+    centroids = np.float32(0.5) * (lo + hi)
+    bounds = pipe.scene_bounds.numpy()
+    np.testing.assert_array_equal(bounds[0], centroids.min(axis=0))
+    np.testing.assert_array_equal(bounds[1], centroids.max(axis=0))
+    pipe.compute_morton_codes(bounds_ready=True)
+    np.testing.assert_array_equal(pipe.morton_codes.numpy(), morton_reference(lo, hi, 10))
+
+
 def test_run_length_encoding_and_csd(device, rng):
     lo, hi = soup_bounds(rng, 4000)
     # Coherent input: sort half of it so that runs are long, keep the rest shuffled.
