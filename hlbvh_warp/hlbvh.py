@@ -192,10 +192,15 @@ class HlbvhPipeline:
             self._launch(morton.triangle_bounds_kernel, n, [vertices, faces, lowers, uppers])
             self._set_fixed_bounds()
             return
+        self._reduce_centroid_bounds(morton.triangle_bounds_centroids_kernel, [vertices, faces, lowers, uppers])
+
+    def _reduce_centroid_bounds(self, kernel, inputs: list):
+        """Reset `scene_bounds`, then launch a chunked centroid reduction `kernel(n, chunk, *inputs,
+        scene_bounds)`: chunks of CPU_REDUCTION_CHUNK primitives on the CPU, one per thread on CUDA."""
+        n = self.num_prims
         self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
         chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
-        self._launch(morton.triangle_bounds_centroids_kernel, (n + chunk - 1) // chunk,
-                     [n, chunk, vertices, faces, lowers, uppers, self.scene_bounds])
+        self._launch(kernel, (n + chunk - 1) // chunk, [n, chunk, *inputs, self.scene_bounds])
 
     def _set_fixed_bounds(self):
         lower, upper = self.config.morton_bounds
@@ -209,10 +214,7 @@ class HlbvhPipeline:
             if self.config.morton_bounds is not None:
                 self._set_fixed_bounds()
             else:
-                self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
-                chunk = CPU_REDUCTION_CHUNK if self.device.is_cpu else 1
-                self._launch(morton.centroid_bounds_kernel, (n + chunk - 1) // chunk,
-                             [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds])
+                self._reduce_centroid_bounds(morton.centroid_bounds_kernel, [self.prim_lowers, self.prim_uppers])
         self._launch(
             morton.morton_codes_kernel,
             n,
