@@ -33,6 +33,8 @@ from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
 from .kernels import compress, dynamic, morton
 
 POLICIES = ("rebuild", "refit", "auto")
+# Vertices per thread of the auto policy's motion measure on the CPU (one atomic per chunk).
+MOTION_CHUNK_CPU = 4096
 PIPELINE_METHODS = ("hlbvh", "lbvh")
 
 
@@ -113,11 +115,14 @@ class Builder:
             self.prim_uppers = pipe.prim_uppers
         self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
         # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
-        self.sah_scratch = (wp.empty(2 * n - 1, dtype=wp.int32, device=device),
-                            wp.zeros(2 * n - 1, dtype=wp.float64, device=device))
+        self.sah_scratch = wp.empty(metrics.sah_scratch_size(pipe.node_left.shape[0], device), dtype=wp.float64,
+                                    device=device)
         # Vertex buffers: allocated by the first `build`, when the vertex count is known.
         self.vertices = None
+        # The auto policy's copy of the previous frame, kept only for callers who write new
+        # vertices into `self.vertices` in place (`update()` with no argument).
         self.previous_vertices = None
+        self.snapshot_valid = False
         self.bvh: Bvh | None = None
         self.frame = 0
         self.sah_reference = None
@@ -144,22 +149,61 @@ class Builder:
             raise ValueError(f"vertices has a NaN or Inf coordinate (first at row {row})")
         return arr.shape[0]
 
-    def _load_vertices(self, vertices, dest: wp.array):
-        """Copy into a preallocated device buffer: no device allocation on the per-frame path."""
+    def _vertex_source(self, vertices) -> wp.array:
+        """A vec3 view of checked `vertices`: on their own device, or on the host for NumPy input."""
         count = self._check_vertices(vertices)
-        if count != dest.shape[0]:
-            raise ValueError(f"vertices has {count} rows, the builder was set up with {dest.shape[0]}")
+        if count != self.vertices.shape[0]:
+            raise ValueError(f"vertices has {count} rows, the builder was set up with {self.vertices.shape[0]}")
         if isinstance(vertices, wp.array):
-            src = vertices
-            if vertices.dtype != wp.vec3:
-                if not vertices.is_contiguous:
-                    raise ValueError("float32 (V, 3) vertices must be contiguous")
-                src = wp.array(ptr=vertices.ptr, dtype=wp.vec3, shape=count, device=vertices.device)
-            if src.ptr != dest.ptr:
-                wp.copy(dest, src)
-        else:
-            host = np.ascontiguousarray(vertices, dtype=np.float32)
-            wp.copy(dest, wp.array(host, dtype=wp.vec3, device="cpu", copy=False))
+            if vertices.dtype == wp.vec3:
+                return vertices
+            if not vertices.is_contiguous:
+                raise ValueError("float32 (V, 3) vertices must be contiguous")
+            return wp.array(ptr=vertices.ptr, dtype=wp.vec3, shape=count, device=vertices.device)
+        host = np.ascontiguousarray(vertices, dtype=np.float32)
+        return wp.array(host, dtype=wp.vec3, device="cpu", copy=False)
+
+    def _load_vertices(self, vertices):
+        """Copy into the preallocated vertex buffer: no device allocation on the per-frame path."""
+        # Whatever the call, the vertices are no longer those of the auto policy's snapshot.
+        self.snapshot_valid = False
+        if vertices is None:
+            return
+        src = self._vertex_source(vertices)
+        if src.ptr != self.vertices.ptr:
+            wp.copy(self.vertices, src)
+
+    def _load_and_measure(self, vertices) -> bool:
+        """Load the frame's vertices and put the largest vertex displacement since the previous
+        frame in ``stats[0]``, in one pass (`dynamic.load_and_measure_kernel`). Returns False when
+        there is nothing to measure against: the vertices were changed in place (``vertices`` is
+        None or the builder's own buffer) and the previous frame left no snapshot."""
+        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats], device=self.device)
+        in_place = vertices is None or (isinstance(vertices, wp.array) and vertices.ptr == self.vertices.ptr)
+        if in_place:
+            # Written into `self.vertices` by the caller: compare with the snapshot of the previous
+            # frame, refreshing it in the same pass. Only callers who write in place pay for one.
+            measured = self.snapshot_valid
+            if measured:
+                self._measure(self.vertices, self.previous_vertices)
+            else:
+                wp.copy(self.previous_vertices, self.vertices)
+            self.snapshot_valid = True
+            return measured
+        src = self._vertex_source(vertices)
+        if src.device != self.device:
+            # NumPy input or another device: stage it on this device first.
+            wp.copy(self.previous_vertices, src)
+            src = self.previous_vertices
+        self._measure(src, self.vertices)
+        self.snapshot_valid = False
+        return True
+
+    def _measure(self, source: wp.array, dest: wp.array):
+        count = dest.shape[0]
+        chunk = MOTION_CHUNK_CPU if self.device.is_cpu else 1
+        wp.launch(dynamic.load_and_measure_kernel, dim=(count + chunk - 1) // chunk,
+                  inputs=[count, chunk, source, dest, self.stats], device=self.device)
 
     # ---------------------------------------------------------------- build
     def build(self, vertices, faces) -> Bvh:
@@ -175,6 +219,7 @@ class Builder:
             self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
             self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
         self.vertices.assign(verts_np)
+        self.snapshot_valid = False
         self.faces.assign(faces_np)
         if self.resort:
             wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
@@ -255,8 +300,7 @@ class Builder:
         """
         self._require_built()
         start = time.perf_counter()
-        if vertices is not None:
-            self._load_vertices(vertices, self.vertices)
+        self._load_vertices(vertices)
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
         stages = self._finish(timer)
@@ -268,8 +312,7 @@ class Builder:
         """Recompute every box for new vertices, keeping the topology."""
         self._require_built()
         start = time.perf_counter()
-        if vertices is not None:
-            self._load_vertices(vertices, self.vertices)
+        self._load_vertices(vertices)
         timer = StageTimer(self.device, self.timings)
         self._refit(timer)
         stages = self._finish(timer)
@@ -298,33 +341,37 @@ class Builder:
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
         timer.stage("motion")
-        # Keep the previous frame's vertices, then measure the largest displacement on the device.
-        wp.copy(self.previous_vertices, self.vertices)
-        if vertices is not None:
-            self._load_vertices(vertices, self.vertices)
-        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats], device=self.device)
-        wp.launch(dynamic.max_displacement_kernel, dim=self.vertices.shape[0],
-                  inputs=[self.previous_vertices, self.vertices, self.stats], device=self.device)
+        # Load the vertices and measure the largest displacement on the device, in one pass.
+        measured = self._load_and_measure(vertices)
         wp.launch(dynamic.root_diagonal_kernel, dim=1,
                   inputs=[self.bvh.node_lowers, self.bvh.node_uppers, self.stats], device=self.device)
         moved, diagonal = (float(x) for x in self.stats.numpy())
         relative = moved / diagonal if diagonal > 0.0 else (0.0 if moved == 0.0 else float("inf"))
-        extra = {"max_displacement": moved, "relative_motion": relative}
+        extra = {"max_displacement": moved, "relative_motion": relative} if measured else {}
         skipped = []
-        if moved == 0.0:
+        large = False
+        if not measured:
+            decision = "rebuild"
+            reason = "vertices changed in place, with no snapshot of the previous frame to measure against"
+            self._rebuild(timer)
+        elif moved == 0.0:
             decision, reason = "none", "no vertex moved since the previous frame"
             skipped = ["prim_bounds", "refit", "rebuild"]
-        elif relative > self.large_motion or self.sah_reference is None:
+        elif relative > self.large_motion:
             decision = "rebuild"
             reason = (f"large motion: a vertex moved {relative:.1%} of the scene diagonal "
-                      f"(limit {self.large_motion:.1%})" if self.sah_reference is not None
-                      else "no SAH reference yet")
+                      f"(limit {self.large_motion:.1%})")
+            large = True
             self._rebuild(timer)
         elif self.chaotic_frames > 0:
             self.chaotic_frames -= 1
             decision = "rebuild"
             reason = ("chaotic motion: a refit tree recently exceeded the SAH limit on its first frame "
                       f"(refit retried in {self.chaotic_frames + 1} frames)")
+            self._rebuild(timer)
+        elif self.sah_reference is None:
+            decision = "rebuild"
+            reason = "no SAH reference: the last tree was not priced (a rebuild on request or for large motion)"
             self._rebuild(timer)
         elif self.refits_since_rebuild >= self.max_refits:
             decision = "rebuild"
@@ -359,9 +406,18 @@ class Builder:
         elif decision == "rebuild":
             self.refits_since_rebuild = 0
         if decision == "rebuild":
-            timer.stage("sah")
-            self.sah_reference = self.sah_cost()
-            extra["sah"] = self.sah_reference
+            if large or self.chaotic_frames > 0:
+                # Pricing a tree costs a pass over its nodes and a read; only a refit ever compares
+                # with the price. After chaotic motion the next frame rebuilds anyway. After large
+                # motion it likely does too; when it does not, it rebuilds once more for want of a
+                # reference, which costs less than pricing every frame of a fast sequence.
+                skipped.append("sah")
+                if large:
+                    self.sah_reference = None
+            else:
+                timer.stage("sah")
+                self.sah_reference = self.sah_cost()
+                extra["sah"] = self.sah_reference
         elif decision == "refit":
             extra["sah"] = extra["sah_refit"]
         stages = self._finish(timer)

@@ -64,18 +64,31 @@ def reset_stats_kernel(stats: wp.array(dtype=wp.float32)):
 
 
 @wp.kernel
-def max_displacement_kernel(
-    previous: wp.array(dtype=wp.vec3),
-    current: wp.array(dtype=wp.vec3),
+def load_and_measure_kernel(
+    num_vertices: int,
+    chunk: int,
+    source: wp.array(dtype=wp.vec3),
+    dest: wp.array(dtype=wp.vec3),
     stats: wp.array(dtype=wp.float32),
 ):
-    # stats[0] = max |current - previous| over the vertices; a NaN coordinate counts as infinite.
-    tid = wp.tid()
-    d = wp.length(current[tid] - previous[tid])
-    if d != d:
-        d = 3.4e38
-    if d > 0.0:
-        wp.atomic_max(stats, 0, d)
+    # One pass that loads a frame's vertices and measures how far they moved: stats[0] = max
+    # |source - dest| (a NaN coordinate counts as infinite), then dest = source. Copying the last
+    # frame aside and comparing afterwards took three passes over the vertices (about 2.6 ms a
+    # frame for the 300k vertices of the exploding armadillo on the CPU). A thread takes a chunk
+    # and does one atomic, not one per vertex.
+    c = wp.tid()
+    begin = c * chunk
+    end = wp.min(begin + chunk, num_vertices)
+    largest = float(0.0)
+    for i in range(begin, end):
+        p = source[i]
+        d = wp.length(p - dest[i])
+        if d != d:
+            d = 3.4e38
+        largest = wp.max(largest, d)
+        dest[i] = p
+    if largest > 0.0:
+        wp.atomic_max(stats, 0, largest)
 
 
 @wp.kernel

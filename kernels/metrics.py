@@ -58,6 +58,39 @@ def interior_cost(
 
 
 @wp.kernel
+def sah_terms_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    chunk: int,
+    partial: wp.array(dtype=wp.float64),
+):
+    # The root's cost without the climb: multiplying eq. (1) by area(node) gives
+    # S(node) = term(node) area(node) + sum_i S(child_i), with term = 2 T1 for an interior node and
+    # T2 N for a leaf, so C(root) = sum over all nodes of term(n) area(n) / area(root). A zero-area
+    # subtree adds nothing either way (the ratio into it is 0 / area(parent)); the caller handles a
+    # root of zero area. One thread sums a chunk of nodes, in index order, so the sum is the same
+    # on every run; the host adds the chunks' sums.
+    c = wp.tid()
+    count = node_count[0]
+    begin = c * chunk
+    end = wp.min(begin + chunk, count)
+    total = wp.float64(0.0)
+    two_t1 = wp.float64(2.0) * t_traversal
+    for node in range(begin, end):
+        term = two_t1
+        if node_left[node] < 0:
+            term = t_intersect * wp.float64(node_end[node] - node_begin[node])
+        total += term * box_area64(node_lowers[node], node_uppers[node])
+    partial[c] = total
+
+
+@wp.kernel
 def reset_visits_kernel(node_visits: wp.array(dtype=wp.int32)):
     node_visits[wp.tid()] = 0
 

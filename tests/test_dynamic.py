@@ -236,3 +236,75 @@ def test_reports_keep_the_latest_frames(device):
     assert [r["frame"] for r in builder.reports] == [3, 4, 5]
     with pytest.raises(ValueError, match="keep_reports"):
         Builder(len(f), device=device, keep_reports=0)
+
+
+def test_auto_measures_the_motion_while_loading(device, small_scene):
+    # The displacement is measured in the pass that loads the vertices: check it and the load
+    # against NumPy, for device and host input.
+    v, f = small_scene
+    mesh = BendingMesh(v, f, device=device)
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(mesh.vertices, f)
+    previous = mesh.vertices.numpy().copy()
+    for amount, host in ((0.01, False), (0.05, True), (0.02, False)):
+        frame = mesh.update(amount)
+        expected = np.linalg.norm(frame.numpy().astype(np.float64) - previous, axis=1).max()
+        report = builder.update(frame.numpy() if host else frame)
+        assert report["max_displacement"] == pytest.approx(expected, rel=1e-5)
+        np.testing.assert_array_equal(builder.vertices.numpy(), frame.numpy())
+        previous = frame.numpy().copy()
+
+
+def test_auto_with_vertices_written_in_place(device, small_scene, rng):
+    # update() with no argument: the caller wrote the frame into builder.vertices. The first such
+    # frame has nothing to compare with and rebuilds; later ones measure against a snapshot.
+    v, f = small_scene
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(v, f)
+    moved = v * np.float32(1.3)
+    builder.vertices.assign(moved)
+    report = builder.update()
+    assert report["decision"] == "rebuild" and "in place" in report["reason"]
+    check_rays(builder.bvh, moved, f, rng)
+    assert builder.update()["decision"] == "none"
+    nudged = moved + np.float32(1e-3) * rng.standard_normal(moved.shape).astype(np.float32)
+    builder.vertices.assign(nudged)
+    report = builder.update()
+    expected = np.linalg.norm(nudged.astype(np.float64) - moved, axis=1).max()
+    assert report["decision"] in ("refit", "rebuild")
+    assert report["max_displacement"] == pytest.approx(expected, rel=1e-5)
+    check_rays(builder.bvh, nudged, f, rng)
+    # An explicit frame in between leaves the snapshot stale: the next in-place frame rebuilds.
+    builder.update(v)
+    builder.vertices.assign(moved)
+    assert "in place" in builder.update()["reason"]
+    check_rays(builder.bvh, moved, f, rng)
+
+
+def test_auto_prices_only_trees_a_refit_will_compare_with(device):
+    # After a rebuild for large or chaotic motion the tree's SAH cost is not computed: the next
+    # frame rebuilds anyway, or, when it turns out calm, rebuilds once more to get a priced tree.
+    # Every refit's growth must still be measured against the cost of the tree right after the
+    # last priced rebuild (or the lowest refit cost since), which this test recomputes with NumPy.
+    v, f = default_scene(4000)
+    mesh = ExplodingMesh(v, f, device=device, seed=2)
+    builder = Builder(len(mesh.faces), device=device, policy="auto", max_refits=3)
+    builder.build(mesh.vertices, mesh.faces)
+    reference = numpy_sah(builder.bvh.to_numpy())
+    # Fast at first (large motion, then chaotic refits), then slow enough to refit.
+    times = [k / 12.0 for k in range(1, 7)] + [0.5 + k * 2e-4 for k in range(1, 13)]
+    seen, priced = [], True
+    for t in times:
+        report = builder.update(mesh.update(t))
+        cost = numpy_sah(builder.bvh.to_numpy())
+        seen.append((report["decision"], "sah" in report["stages_skipped"]))
+        if report["decision"] == "refit":
+            assert priced, "a refit compared with a tree that was never priced"
+            assert report["sah_growth"] == pytest.approx(cost / reference - 1.0, rel=1e-3, abs=1e-6)
+            reference = min(reference, cost)
+        elif report["decision"] == "rebuild":
+            priced = "sah" not in report["stages_skipped"]
+            if priced:
+                reference = cost
+                assert report["sah"] == pytest.approx(cost, rel=1e-6)
+    assert ("rebuild", True) in seen and ("refit", False) in seen, seen

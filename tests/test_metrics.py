@@ -104,3 +104,43 @@ def test_tree_stats_match_numpy(device, rng):
     assert stats["depth"] == int(depth.max())
     assert stats["leaf_size_histogram"] == np.bincount(sizes).tolist()
     assert stats["sah_cost"] == pytest.approx(numpy_sah(tree), rel=1e-6)
+
+
+def climbed_root_cost(bvh, t1=1.0, t2=1.0):
+    """The root of `node_costs`: eq. (1) evaluated bottom-up, the recursive form."""
+    from hlbvh_warp.metrics import node_costs
+
+    return float(node_costs(bvh, t1, t2).numpy()[0])
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median"])
+def test_one_pass_cost_equals_the_bottom_up_recursion(device, rng, method):
+    # `sah_cost` sums term x area over the nodes in one pass; the climb evaluates eq. (1) as written.
+    # Zero-area subtrees under a positive root (duplicated points, flat slivers) are where the two
+    # forms could part: the sum drops them, the recursion passes their costs through and then
+    # scales them by 0.
+    v, f = random_soup(rng, 300)
+    point = v[f[:40, 0]]
+    v = np.concatenate([v, point, point, point]).astype(np.float32)
+    k = len(v) - 3 * len(point)
+    degenerate = np.stack([np.arange(40), np.arange(40) + 40, np.arange(40) + 80], axis=1) + k
+    f = np.concatenate([f, degenerate, degenerate]).astype(np.int32)
+    for leaf in (1, 4):
+        bvh = hw.build(v, f, method=method, device=device, config=hw.BuildConfig(max_leaf_size=leaf))
+        for t1, t2 in ((1.0, 1.0), (1.2, 1.0), (0.0, 2.5)):
+            assert sah_cost(bvh, t1, t2) == pytest.approx(climbed_root_cost(bvh, t1, t2), rel=1e-12)
+        assert sah_cost(bvh) == pytest.approx(numpy_sah(bvh.to_numpy()), rel=1e-9)
+
+
+def test_one_pass_cost_takes_scratch_and_rejects_a_short_one(device, rng):
+    import warp as wp
+
+    from hlbvh_warp.metrics import sah_scratch_size
+
+    v, f = random_soup(rng, 50)
+    bvh = hw.build(v, f, device=device)
+    size = sah_scratch_size(bvh.node_left.shape[0], device)
+    scratch = wp.empty(size, dtype=wp.float64, device=device)
+    assert sah_cost(bvh, scratch=scratch) == pytest.approx(climbed_root_cost(bvh), rel=1e-12)
+    with pytest.raises(ValueError, match="scratch"):
+        sah_cost(bvh, scratch=wp.empty(size - 1, dtype=wp.float64, device=device))
