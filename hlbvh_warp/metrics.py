@@ -79,11 +79,17 @@ def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scrat
     wp.launch(kernels.sah_terms_kernel, dim=threads,
               inputs=[bvh.node_count, bvh.node_left, bvh.node_begin, bvh.node_end, bvh.node_lowers, bvh.node_uppers,
                       wp.float64(t_traversal), wp.float64(t_intersect), chunk, partial], device=device)
-    root = bvh.node_lowers[0:1].numpy()[0].astype(np.float64), bvh.node_uppers[0:1].numpy()[0].astype(np.float64)
-    extent = root[1] - root[0]
+    return cost_from_sum(bvh, float(partial[:threads].numpy().sum()), count, t_traversal, t_intersect)
+
+
+def cost_from_sum(bvh: Bvh, total: float, count: int, t_traversal: float, t_intersect: float) -> float:
+    """C(root) from the sum over the nodes of term x area (`sah_cost`), for a tree of `count` nodes."""
+    lower = bvh.node_lowers[0:1].numpy()[0].astype(np.float64)
+    upper = bvh.node_uppers[0:1].numpy()[0].astype(np.float64)
+    extent = upper - lower
     root_area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0])
     if root_area > 0.0:
-        return float(partial[:threads].numpy().sum() / root_area)
+        return float(total / root_area)
     # Zero-area root: every ratio is taken as 1, so the cost is the sum of the terms of a binary
     # tree with N primitives in (count + 1) / 2 leaves.
     return float(2.0 * t_traversal * ((count + 1) // 2 - 1) + t_intersect * bvh.num_prims)

@@ -8,6 +8,8 @@ The same kernel refits a tree whose primitives moved (topology unchanged).
 
 import warp as wp
 
+from .metrics import box_area64
+
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
@@ -109,3 +111,37 @@ def interior_bounds_sweep_kernel(
             node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
             node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
         node -= 1
+
+
+@wp.kernel
+def interior_bounds_sweep_cost_kernel(
+    node_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    cost_sum: wp.array(dtype=wp.float64),
+):
+    # The CPU sweep above, also summing the SAH terms of every node as its box becomes final
+    # (metrics.sah_cost's one-pass form of Pantaleoni & Luebke 2010, eq. 1: term x area, divided
+    # by the root's area on the host), so that a refit frame of the auto policy prices its tree
+    # without a second pass over the nodes.
+    node = node_count[0] - 1
+    total = wp.float64(0.0)
+    two_t1 = wp.float64(2.0) * t_traversal
+    while node >= 0:
+        left = node_left[node]
+        term = two_t1
+        if left >= 0:
+            right = node_right[node]
+            node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
+            node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
+        else:
+            term = t_intersect * wp.float64(node_end[node] - node_begin[node])
+        total += term * box_area64(node_lowers[node], node_uppers[node])
+        node -= 1
+    cost_sum[0] = total
