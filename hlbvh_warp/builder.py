@@ -94,6 +94,9 @@ class Builder:
             raise ValueError(f"max_refits must be >= 0, got {max_refits}")
         self.max_refits = int(max_refits)
         self.refits_since_rebuild = 0
+        # SAH growth of the latest refit frame (over the best cost since the last rebuild).
+        self.last_growth = 0.0
+        self.previous_growth = 0.0
         # Frames left during which `auto` rebuilds without trying a refit (chaotic motion).
         self.chaotic_frames = 0
         self.timings = bool(timings)
@@ -355,6 +358,15 @@ class Builder:
         return metrics.sah_cost(self.bvh, self.config.sah_traversal_cost, self.config.sah_intersection_cost,
                                 self.sah_scratch)
 
+    def _projected_growth(self) -> float:
+        """The refit SAH growth the next refit frame is on course for: the last refit's growth (over
+        the best cost since the last rebuild) plus one more frame at the larger of its last step
+        and its average step; a refit tree's cost tends to grow faster as the motion piles up."""
+        k = self.refits_since_rebuild
+        if k == 0:
+            return 0.0
+        return self.last_growth + max(self.last_growth - self.previous_growth, self.last_growth / k)
+
     def _auto(self, vertices):
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
@@ -396,6 +408,13 @@ class Builder:
             reason = (f"small motion ({relative:.2%} of the diagonal), but {self.refits_since_rebuild} refits in a row "
                       f"(limit {self.max_refits})")
             self._rebuild(timer)
+        elif self._projected_growth() > self.sah_growth_limit:
+            # A refit that would exceed the limit costs a refit, its pricing and the rebuild after.
+            decision = "rebuild"
+            reason = (f"small motion ({relative:.2%} of the diagonal), but the refit SAH cost, "
+                      f"{self.last_growth:+.1%} after {self.refits_since_rebuild} refits, is on course for about "
+                      f"{self._projected_growth():+.1%} (limit {self.sah_growth_limit:.0%})")
+            self._rebuild(timer)
         else:
             sah = self._refit(timer, price=True)
             # Growth over the best cost seen since the last rebuild: a deformation that lowers the
@@ -417,10 +436,12 @@ class Builder:
                           f"since the last rebuild (limit {self.sah_growth_limit:.0%})")
                 skipped = ["rebuild"]
                 self.sah_reference = min(self.sah_reference, sah)
+                self.previous_growth, self.last_growth = self.last_growth, growth
         if decision == "refit":
             self.refits_since_rebuild += 1
         elif decision == "rebuild":
             self.refits_since_rebuild = 0
+            self.previous_growth = self.last_growth = 0.0
         if decision == "rebuild":
             if large or self.chaotic_frames > 0:
                 # Pricing a tree costs a pass over its nodes and a read; only a refit ever compares

@@ -308,3 +308,28 @@ def test_auto_prices_only_trees_a_refit_will_compare_with(device):
                 reference = cost
                 assert report["sah"] == pytest.approx(cost, rel=1e-6)
     assert ("rebuild", True) in seen and ("refit", False) in seen, seen
+
+
+def test_auto_rebuilds_ahead_of_a_refit_on_course_to_exceed_the_limit(device):
+    # A refit frame that would exceed the SAH limit pays for the refit, its pricing and then the
+    # rebuild: `auto` rebuilds at once when the growth so far is on course past the limit. The
+    # projection is recomputed here from the reported growths: last + max(last step, mean step).
+    v, f = default_scene(3000)
+    mesh = BendingMesh(v, f, device=device)
+    limit = 0.05
+    builder = Builder(len(f), device=device, policy="auto", max_refits=50, sah_growth_limit=limit, timings=True)
+    builder.build(mesh.vertices, f)
+    growths, ahead = [0.0], 0
+    for frame in range(1, 25):
+        report = builder.update(mesh.update(frame / 24))
+        k = len(growths) - 1
+        projected = growths[-1] + max(growths[-1] - growths[-2], growths[-1] / k) if k > 0 else 0.0
+        if report["decision"] == "refit":
+            assert projected <= limit
+            growths.append(report["sah_growth"])
+            continue
+        if "on course" in report["reason"]:
+            assert projected > limit and "refit" not in report["stages_ms"]
+            ahead += 1
+        growths = [0.0]
+    assert ahead > 0
