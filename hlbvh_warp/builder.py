@@ -9,11 +9,12 @@ per-frame policy finds the full rebuild unnecessary:
 - ``policy="refit"``: recompute the boxes, keep the topology.
 - ``policy="auto"``: nothing moved -> no work; small motion -> refit while the SAH cost has
   grown by at most ``sah_growth_limit`` over its lowest value since the last rebuild, for at
-  most ``max_refits`` frames in a row; large motion, too much SAH growth or too many refits
-  -> full (resorted) rebuild. Each decision and its reason land in ``Builder.last_report``.
+  most ``max_refits`` frames in a row; large motion, too much SAH growth (or growth on course
+  past the limit by the next refit), or too many refits -> full (resorted) rebuild. Each
+  decision and its reason land in ``Builder.last_report``.
 
-Only ``"auto"`` reads values back to the host (one displacement read, one SAH read per frame):
-it has to, to decide. ``rebuild`` and ``refit`` given device arrays never synchronize, and on
+Only ``"auto"`` reads values back to the host (the displacement every frame, the SAH cost of the
+trees a refit may compare with): it has to, to decide. ``rebuild`` and ``refit`` given device arrays never synchronize, and on
 CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``): there it runs the
 pipeline's ``sync_free`` build.
 """
