@@ -31,7 +31,7 @@ from . import inputs, metrics
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
-from .kernels import bounds, compress, dynamic, morton
+from .kernels import compress, dynamic, morton
 
 POLICIES = ("rebuild", "refit", "auto")
 # Vertices per thread of the auto policy's motion measure on the CPU (one atomic per chunk).
@@ -288,22 +288,16 @@ class Builder:
                   inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=self.device)
         timer.stage("refit")
         bvh, pipe, cfg = self.bvh, self.pipeline, self.config
-        if price and self.device.is_cpu:
-            # The CPU refit ends in one serial sweep over the nodes; it sums the SAH terms as it
-            # goes, where pricing afterwards took a second pass (about 1.5 ms on 100k triangles).
-            count = bvh.num_nodes
-            wp.launch(bounds.leaf_bounds_kernel, dim=count, device=self.device,
-                      inputs=[bvh.node_count, bvh.node_left, bvh.node_begin, bvh.node_end, bvh.prim_order,
-                              bvh.prim_lowers, bvh.prim_uppers, bvh.node_lowers, bvh.node_uppers])
-            wp.launch(bounds.interior_bounds_sweep_cost_kernel, dim=1, device=self.device,
-                      inputs=[bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_begin, bvh.node_end,
-                              wp.float64(cfg.sah_traversal_cost), wp.float64(cfg.sah_intersection_cost),
-                              bvh.node_lowers, bvh.node_uppers, self.sah_scratch])
-            total = float(self.sah_scratch[0:1].numpy()[0])
-            return metrics.cost_from_sum(bvh, total, count, cfg.sah_traversal_cost, cfg.sah_intersection_cost)
+        costs = (cfg.sah_traversal_cost, cfg.sah_intersection_cost)
+        # The CPU refit ends in one serial sweep over the nodes; it sums the SAH terms as it goes,
+        # where pricing afterwards took a second pass (about 1.5 ms on 100k triangles).
+        priced = (*costs, self.sah_scratch) if price and self.device.is_cpu else None
         compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
                        bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
-                       pipe.node_visits, bvh.node_lowers, bvh.node_uppers)
+                       pipe.node_visits, bvh.node_lowers, bvh.node_uppers, "sweep" if priced else None, priced)
+        if priced is not None:
+            total = float(self.sah_scratch[0:1].numpy()[0])
+            return metrics.cost_from_sum(bvh, total, bvh.num_nodes, *costs)
         if not price:
             return None
         timer.stage("sah")

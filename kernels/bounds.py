@@ -8,7 +8,7 @@ The same kernel refits a tree whose primitives moved (topology unchanged).
 
 import warp as wp
 
-from .metrics import box_area64
+from .metrics import weighted_term
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -97,51 +97,32 @@ def interior_bounds_sweep_kernel(
     node_count: wp.array(dtype=wp.int32),
     node_left: wp.array(dtype=wp.int32),
     node_right: wp.array(dtype=wp.int32),
-    node_lowers: wp.array(dtype=wp.vec3),
-    node_uppers: wp.array(dtype=wp.vec3),
-):
-    # One thread: children are numbered after their parents, so a reverse sweep sees both
-    # children finished. Used on the CPU device, which runs a launch's threads one after another
-    # anyway: the sweep does the climb's work without its atomics and random parent hops.
-    node = node_count[0] - 1
-    while node >= 0:
-        left = node_left[node]
-        if left >= 0:
-            right = node_right[node]
-            node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
-            node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
-        node -= 1
-
-
-@wp.kernel
-def interior_bounds_sweep_cost_kernel(
-    node_count: wp.array(dtype=wp.int32),
-    node_left: wp.array(dtype=wp.int32),
-    node_right: wp.array(dtype=wp.int32),
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
+    price: int,
     t_traversal: wp.float64,
     t_intersect: wp.float64,
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
     cost_sum: wp.array(dtype=wp.float64),
 ):
-    # The CPU sweep above, also summing the SAH terms of every node as its box becomes final
-    # (metrics.sah_cost's one-pass form of Pantaleoni & Luebke 2010, eq. 1: term x area, divided
-    # by the root's area on the host), so that a refit frame of the auto policy prices its tree
-    # without a second pass over the nodes.
+    # One thread: children are numbered after their parents, so a reverse sweep sees both
+    # children finished. Used on the CPU device, which runs a launch's threads one after another
+    # anyway: the sweep does the climb's work without its atomics and random parent hops.
+    # With `price`, it also sums every node's SAH term as its box becomes final (the one-pass form
+    # of Pantaleoni & Luebke 2010, eq. 1, that metrics.sah_cost divides by the root's area), so a
+    # refit frame of the auto policy prices its tree without a second pass over the nodes.
     node = node_count[0] - 1
     total = wp.float64(0.0)
-    two_t1 = wp.float64(2.0) * t_traversal
     while node >= 0:
         left = node_left[node]
-        term = two_t1
         if left >= 0:
             right = node_right[node]
             node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
             node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
-        else:
-            term = t_intersect * wp.float64(node_end[node] - node_begin[node])
-        total += term * box_area64(node_lowers[node], node_uppers[node])
+        if price != 0:
+            total += weighted_term(node, node_left, node_begin, node_end, node_lowers[node], node_uppers[node],
+                                   t_traversal, t_intersect)
         node -= 1
-    cost_sum[0] = total
+    if price != 0:
+        cost_sum[0] = total

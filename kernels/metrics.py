@@ -57,6 +57,25 @@ def interior_cost(
     return c
 
 
+@wp.func
+def weighted_term(
+    node: int,
+    node_left: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    lower: wp.vec3,
+    upper: wp.vec3,
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+) -> wp.float64:
+    # term(node) x area(node), the node's share of C(root) x area(root) (sah_terms_kernel):
+    # 2 T1 for an interior node, T2 N for a leaf of N primitives.
+    term = wp.float64(2.0) * t_traversal
+    if node_left[node] < 0:
+        term = t_intersect * wp.float64(node_end[node] - node_begin[node])
+    return term * box_area64(lower, upper)
+
+
 @wp.kernel
 def sah_terms_kernel(
     node_count: wp.array(dtype=wp.int32),
@@ -81,12 +100,9 @@ def sah_terms_kernel(
     begin = c * chunk
     end = wp.min(begin + chunk, count)
     total = wp.float64(0.0)
-    two_t1 = wp.float64(2.0) * t_traversal
     for node in range(begin, end):
-        term = two_t1
-        if node_left[node] < 0:
-            term = t_intersect * wp.float64(node_end[node] - node_begin[node])
-        total += term * box_area64(node_lowers[node], node_uppers[node])
+        total += weighted_term(node, node_left, node_begin, node_end, node_lowers[node], node_uppers[node],
+                               t_traversal, t_intersect)
     partial[c] = total
 
 

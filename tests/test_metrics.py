@@ -144,3 +144,24 @@ def test_one_pass_cost_takes_scratch_and_rejects_a_short_one(device, rng):
     assert sah_cost(bvh, scratch=scratch) == pytest.approx(climbed_root_cost(bvh), rel=1e-12)
     with pytest.raises(ValueError, match="scratch"):
         sah_cost(bvh, scratch=wp.empty(size - 1, dtype=wp.float64, device=device))
+
+
+def test_the_cpu_refit_sweep_prices_the_tree_and_only_the_sweep_can(rng):
+    import warp as wp
+
+    from hlbvh_warp.hlbvh import compute_bounds
+    from hlbvh_warp.metrics import cost_from_sum
+
+    v, f = random_soup(rng, 200)
+    bvh = hw.build(v, f, device="cpu", config=hw.BuildConfig(max_leaf_size=2))
+    expected = numpy_sah(bvh.to_numpy(), 1.2, 1.0)
+    cost_sum = wp.zeros(1, dtype=wp.float64, device="cpu")
+    visits = wp.empty(bvh.node_left.shape[0], dtype=wp.int32, device="cpu")
+    bvh.node_lowers.zero_()  # the sweep must rebuild every box before it prices it
+    args = ["cpu", bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent, bvh.node_begin, bvh.node_end,
+            bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers, visits, bvh.node_lowers, bvh.node_uppers]
+    compute_bounds(*args, "sweep", (1.2, 1.0, cost_sum))
+    total = float(cost_sum.numpy()[0])
+    assert cost_from_sum(bvh, total, bvh.num_nodes, 1.2, 1.0) == pytest.approx(expected, rel=1e-9)
+    with pytest.raises(ValueError, match="sweep"):
+        compute_bounds(*args, "climb", (1.2, 1.0, cost_sum))
