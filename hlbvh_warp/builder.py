@@ -14,8 +14,8 @@ per-frame policy finds the full rebuild unnecessary:
   decision and its reason land in ``Builder.last_report``.
 
 Only ``"auto"`` reads values back to the host (the displacement every frame, the SAH cost of the
-trees a refit may compare with): it has to, to decide. ``rebuild`` and ``refit`` given device arrays never synchronize, and on
-CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``): there it runs the
+trees a refit may compare with): it has to, to decide. ``rebuild`` and ``refit`` given device
+arrays never synchronize, and on CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``): there it runs the
 pipeline's ``sync_free`` build.
 """
 

@@ -61,7 +61,7 @@ def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scrat
     every frame. A root of zero area (every primitive at one point or on one segment) passes every
     cost through unscaled, as `node_costs` does: the sum of the terms.
 
-    ``scratch``: an optional float64 array of at least ``ceil(capacity / chunk) + 1`` entries, so
+    ``scratch``: an optional float64 array of at least ``ceil(capacity / chunk)`` entries, so
     that a per-frame caller allocates nothing (`sah_scratch_size`).
     """
     if t_traversal < 0 or t_intersect <= 0:
@@ -98,7 +98,7 @@ def cost_from_sum(bvh: Bvh, total: float, count: int, t_traversal: float, t_inte
 def sah_scratch_size(capacity: int, device) -> int:
     """Entries of the float64 scratch `sah_cost` needs for a node arena of `capacity` nodes."""
     chunk = CPU_SAH_CHUNK if wp.get_device(device).is_cpu else CUDA_SAH_CHUNK
-    return (capacity + chunk - 1) // chunk + 1
+    return max((capacity + chunk - 1) // chunk, 1)
 
 
 def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> dict:
