@@ -8,7 +8,7 @@ import argparse
 
 import warp as wp
 
-from hlbvh_warp.builder import Builder
+from hlbvh_warp.builder import PIPELINE_METHODS, Builder
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
 from hlbvh_warp.render import Camera
 from hlbvh_warp.scenes import scene
@@ -43,7 +43,7 @@ if __name__ == "__main__":
     parser.add_argument("--num-frames", type=int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=str, default=None, help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=int, default=60000, help="Size of the generated scene.")
-    parser.add_argument("--method", choices=("hlbvh", "lbvh"), default="hlbvh")
+    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
     parser.add_argument("--image-size", type=int, default=256)

@@ -28,6 +28,7 @@ import numpy as np
 import warp as wp
 
 from . import inputs, metrics
+from .builders import HlbvhSahPipeline
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
@@ -36,7 +37,7 @@ from .kernels import compress, dynamic, morton
 POLICIES = ("rebuild", "refit", "auto")
 # Vertices per thread of the auto policy's motion measure on the CPU (one atomic per chunk).
 MOTION_CHUNK_CPU = 4096
-PIPELINE_METHODS = ("hlbvh", "lbvh")
+PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 
 
 class Builder:
@@ -46,7 +47,10 @@ class Builder:
         num_prims: the number of triangles (faces) of every frame.
         config: `BuildConfig`; defaults when ``None``.
         device: Warp device; the current default device when ``None``.
-        method: ``"hlbvh"`` or ``"lbvh"`` (the pipeline's methods).
+        method: ``"hlbvh"``, ``"lbvh"`` or ``"hlbvh_sah"`` (SAH-optimized HLBVH, paper 3.3: the
+            same sort, the top levels a SAH sweep over the coarse clusters; its rebuilds read
+            the cluster count on the host, so only ``"hlbvh"`` and ``"lbvh"`` rebuilds can be
+            captured in a CUDA graph).
         resort: feed each rebuild the primitives in the previous tree's order (paper 2.2).
         policy: ``"rebuild"``, ``"refit"`` or ``"auto"`` for `update`.
         sah_growth_limit: ``auto`` rebuilds once a refit tree's SAH cost exceeds the cost right
@@ -101,9 +105,19 @@ class Builder:
         # Frames left during which `auto` rebuilds without trying a refit (chaotic motion).
         self.chaotic_frames = 0
         self.timings = bool(timings)
-        self.pipeline = pipe = HlbvhPipeline(n, config, device)
-        # A CUDA rebuild keeps every count on the device, so it never waits and can be captured.
-        self.sync_free = device.is_cuda
+        if method == "hlbvh_sah":
+            self.pipeline = pipe = HlbvhSahPipeline(n, config, device)
+            # The cluster tree's scratch, for as many clusters as any frame can have.
+            pipe.reserve_top_tree()
+            # The tree's order (build-input ids) is written by the SAH build's join.
+            local_order = pipe.prim_order
+        else:
+            self.pipeline = pipe = HlbvhPipeline(n, config, device)
+            local_order = pipe.sorted_prim_ids[:n]
+        self.local_order = local_order
+        # A CUDA rebuild keeps every count on the device, so it never waits and can be captured
+        # (not hlbvh_sah's, which reads its cluster count).
+        self.sync_free = device.is_cuda and method != "hlbvh_sah"
 
         self.faces = wp.empty((n, 3), dtype=wp.int32, device=device)
         if self.resort:
@@ -114,7 +128,7 @@ class Builder:
             self.prim_uppers = wp.empty(n, dtype=wp.vec3, device=device)
         else:
             self.input_order = None
-            self.prim_order = pipe.sorted_prim_ids[:n]
+            self.prim_order = local_order
             self.prim_lowers = pipe.prim_lowers
             self.prim_uppers = pipe.prim_uppers
         self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
@@ -273,13 +287,17 @@ class Builder:
                               self.config.bits_per_axis, self.input_order, pipe.prim_lowers, pipe.prim_uppers,
                               pipe.morton_codes], device=device)
         pipeline_timings = timer.timings
-        pipe.build(self.method, timer, sync_free=self.sync_free, inputs_ready="codes" if self.resort else "bounds")
+        ready = "codes" if self.resort else "bounds"
+        if self.method == "hlbvh_sah":
+            pipe.build_sah(timer, inputs_ready=ready)
+        else:
+            pipe.build(self.method, timer, sync_free=self.sync_free, inputs_ready=ready)
         pipeline_timings.pop("total", None)
         if self.resort:
             # Map build-input ids back to the user's face indices.
             timer.stage("resort_map")
             wp.launch(dynamic.resort_map_kernel, dim=n,
-                      inputs=[self.input_order, pipe.sorted_prim_ids, self.prim_order], device=device)
+                      inputs=[self.input_order, self.local_order, self.prim_order], device=device)
 
     def _refit(self, timer: StageTimer, price: bool = False) -> float | None:
         """Refit every box; with `price`, also return the refit tree's SAH cost (`sah_cost`)."""
@@ -315,6 +333,9 @@ class Builder:
         it launches work only: no host synchronization, no allocation.
         """
         self._require_built()
+        if not self.sync_free and self.device.is_cuda and self.device.is_capturing:
+            raise RuntimeError(f"a {self.method!r} rebuild reads counts on the host and cannot be captured in a "
+                               "CUDA graph; capture a Builder with method='hlbvh' or 'lbvh'")
         start = time.perf_counter()
         self._load_vertices(vertices)
         timer = StageTimer(self.device, self.timings)

@@ -56,12 +56,18 @@ def array_bytes(*holders) -> int:
 
 
 class TopDownBuilder:
-    """Scratch of the level-parallel top-down build over `num_items` items, allocated once."""
+    """Scratch of the level-parallel top-down build over `num_items` items, allocated once.
 
-    def __init__(self, num_items: int, device):
+    ``capacity`` (default `num_items`) sizes the scratch; `resize` then sets the item count of
+    the next builds anywhere up to it without allocating, as the cluster tree of a per-frame
+    ``hlbvh_sah`` build needs (its cluster count changes every frame).
+    """
+
+    def __init__(self, num_items: int, device, capacity: int | None = None):
         if num_items < 1:
             raise ValueError("a top-down build needs at least one item")
-        self.num_items = k = num_items
+        self.capacity = k = max(num_items, capacity or 0)
+        self.num_items = num_items
         self.device = device = wp.get_device(device)
 
         def ints(count):
@@ -89,6 +95,14 @@ class TopDownBuilder:
         self.split_pos = ints(k)
         self.split_flag = ints(k)
         self.split_offset = ints(k)
+
+    def resize(self, num_items: int):
+        """Build over the first `num_items` items next (at most `capacity`); allocates nothing.
+        The per-axis orders are laid out with the item count as their stride, so any count up to
+        the capacity fits the same arrays."""
+        if not 1 <= num_items <= self.capacity:
+            raise ValueError(f"num_items must be in [1, {self.capacity}], got {num_items}")
+        self.num_items = num_items
 
     def _launch(self, kernel, dim, inputs):
         wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
@@ -344,22 +358,54 @@ class HlbvhSahPipeline(HlbvhPipeline):
     #: sorted_prim_ids stays scratch here: the tree's order is `prim_order`, written by the join.
     OUTPUTS = HlbvhPipeline.OUTPUTS[:-1] + ("prim_order",)
 
-    def build_sah(self, timer: StageTimer) -> dict:
+    def max_clusters(self) -> int:
+        """The most clusters a build of this pipeline can have: no more than the primitives or the
+        voxels of the 3m-bit grid, and, where m is automatic, no more than one per
+        ``cluster_min_prims`` primitives (the coarsening stops there) or the 8 voxels of m = 1."""
+        n, cfg = self.num_prims, self.config
+        bound = min(n, 1 << (3 * self.coarse_bits))
+        if cfg.coarse_bits is None and cfg.cluster_min_prims > 0.0:
+            bound = min(bound, max(8, int(n / cfg.cluster_min_prims)))
+        return max(bound, 1)
+
+    def reserve_top_tree(self):
+        """Allocate the cluster tree's scratch for `max_clusters`, so that no later build allocates."""
+        capacity = self.max_clusters()
+        if self.top is None or self.top.capacity < capacity:
+            self.top = _TopTree(capacity, self.device)
+
+    def build_sah(self, timer: StageTimer, inputs_ready: str = "boxes") -> dict:
+        """Run the SAH-optimized build on `prim_lowers` / `prim_uppers`; ``inputs_ready`` as in
+        `HlbvhPipeline.build` (what the caller has already computed: ``"boxes"``, ``"bounds"``
+        or ``"codes"``). Returns the timings.
+
+        Reads the cluster count on the host (it sizes the cluster tree), so unlike the plain
+        pipeline this build cannot be captured in a CUDA graph.
+        """
+        if inputs_ready not in ("boxes", "bounds", "codes"):
+            raise ValueError(f"inputs_ready must be 'boxes', 'bounds' or 'codes', got {inputs_ready!r}")
         n = self.num_prims
         cfg = self.config
 
         # Morton codes, run-length encoding by coarse voxel, compress-sort-decompress, voxel sort:
         # the primitive order of HLBVH, unchanged.
-        timer.stage("morton")
-        self.compute_morton_codes()
+        if inputs_ready != "codes":
+            timer.stage("morton")
+            self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
         timer.stage("run_length_encode")
         num_runs = self.run_length_encode()
+        # Runs already in order (resorted input) need no sort, as in `HlbvhPipeline.build`.
+        sort = not self.runs_in_order(num_runs)
         timer.stage("top_level_sort")
-        self.top_level_sort(num_runs)
+        self.top_level_sort(num_runs, sort)
+        if not sort:
+            timer.skipped("top_level_sort")
         timer.stage("run_length_decode")
         self.run_length_decode(num_runs)
         timer.stage("voxel_sort")
         self.voxel_sort(num_runs)
+        if timer.enabled and int(self.blocks_sorted.numpy()[0]) == 0:
+            timer.skipped("voxel_sort")
 
         # Clusters: the non-empty voxels, merged into coarser voxels while they are too small
         # on average (BuildConfig.cluster_min_prims).
@@ -413,10 +459,12 @@ class HlbvhSahPipeline(HlbvhPipeline):
                  self.node_begin, self.node_end, self.sorted_prim_ids, self.prim_lowers, self.prim_uppers,
                  t_traversal, t_intersect, self.node_visits, self.node_lowers, self.node_uppers, self.node_cost],
             )
-        # The top tree's scratch is kept while the cluster count repeats (the same mesh again).
-        if self.top is None or self.top.num_clusters != num_clusters:
+        # The top tree's scratch is kept while the clusters fit it: a per-frame `Builder` reserves
+        # it for the most clusters a build can have (`reserve_top_tree`).
+        if self.top is None or self.top.capacity < num_clusters:
             self.top = _TopTree(num_clusters, self.device)
         top = self.top
+        top.resize(num_clusters)
         self._launch(
             upper_sah.cluster_items_kernel,
             num_clusters,
@@ -455,7 +503,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
         cluster_order = top.arena.prim_order
         self._launch(upper_sah.gather_cluster_sizes_kernel, num_clusters,
                      [cluster_order, top.cluster_size, top.ordered_sizes])
-        wp.utils.array_scan(top.ordered_sizes, top.ordered_starts, inclusive=False)
+        wp.utils.array_scan(top.ordered_sizes[:num_clusters], top.ordered_starts[:num_clusters], inclusive=False)
         self._launch(upper_sah.cluster_shift_kernel, num_clusters,
                      [cluster_order, top.ordered_starts, self.voxel_starts, top.cluster_shift])
         self._launch(
@@ -514,10 +562,11 @@ class HlbvhSahPipeline(HlbvhPipeline):
 
 
 class _TopTree:
-    """Scratch of the top-level SAH build over `num_clusters` clusters."""
+    """Scratch of the top-level SAH build over up to `capacity` clusters; `resize` sets the
+    cluster count of the next build without allocating."""
 
-    def __init__(self, num_clusters: int, device):
-        self.num_clusters = c = num_clusters
+    def __init__(self, capacity: int, device):
+        self.capacity = self.num_clusters = c = capacity
 
         def ints(count):
             return memory.empty(count, dtype=wp.int32, device=device)
@@ -533,6 +582,10 @@ class _TopTree:
         self.cluster_shift = ints(c)
         self.arena = _Arena(device, c, 2 * c - 1)
         self.builder = TopDownBuilder(c, device)
+
+    def resize(self, num_clusters: int):
+        self.num_clusters = num_clusters
+        self.builder.resize(num_clusters)
 
     def nbytes(self) -> int:
         return array_bytes(self, self.arena, self.builder)

@@ -113,6 +113,34 @@ def test_hlbvh_sah_merges_small_clusters(device, rng):
     assert sah_cost(unmerged) == pytest.approx(sah_cost(six), rel=1e-9)
 
 
+def numpy_cluster_count(v, f, bits):
+    """Non-empty voxels of `bits` bits per axis over the box centroids, in NumPy (the centroids
+    in float32, as the kernels form them, then quantized in float64)."""
+    tri = v[f].astype(np.float32)
+    c = (np.float32(0.5) * (tri.min(1) + tri.max(1))).astype(np.float64)
+    lo, hi = c.min(0), c.max(0)
+    extent = np.where(hi > lo, hi - lo, 1.0)
+    q = np.clip(np.floor((c - lo) / extent * 1024), 0, 1023).astype(np.int64)
+    return len(np.unique(q >> (10 - bits), axis=0))
+
+
+@pytest.mark.parametrize("num_tris", [7, 3000])
+@pytest.mark.parametrize("coarse_bits,min_prims", [(None, 6.0), (None, 1.0), (None, 0.0), (2, 6.0), (10, 6.0)])
+def test_cluster_tree_reserve_bounds_every_build(device, rng, num_tris, coarse_bits, min_prims):
+    # A per-frame Builder reserves the cluster tree once, for `max_clusters`; no scene may need more.
+    # The cluster count of each build is checked against NumPy's count of non-empty voxels.
+    v, f = random_soup(rng, num_tris)
+    cfg = hw.BuildConfig(coarse_bits=coarse_bits, cluster_min_prims=min_prims)
+    builder = hw.Builder(num_tris, cfg, device=device, method="hlbvh_sah")
+    pipe = builder.pipeline
+    top = pipe.top
+    builder.build(v, f)
+    bits = numpy_cluster_bits(v, f, pipe.coarse_bits, min_prims) if coarse_bits is None else coarse_bits
+    assert top.num_clusters == numpy_cluster_count(v, f, bits)
+    assert pipe.top is top and top.num_clusters <= top.capacity == pipe.max_clusters()
+    check_tree_invariants(builder.bvh.to_numpy(), num_tris, 1, exact_node_count=2 * num_tris - 1)
+
+
 def test_cluster_min_prims_validated():
     with pytest.raises(ValueError, match="cluster_min_prims"):
         hw.BuildConfig(cluster_min_prims=-1.0)

@@ -7,6 +7,7 @@ import pytest
 import warp as wp
 
 import hlbvh_warp as hw
+from hlbvh_warp import metrics
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import default_scene
@@ -51,17 +52,22 @@ def test_first_build_matches_api_build(device, small_scene):
     assert builder.last_report["decision"] == "rebuild"
 
 
-def test_resorted_rebuild_equals_scratch_build(device, small_scene, rng):
+@pytest.mark.parametrize("method", ["hlbvh", "hlbvh_sah"])
+def test_resorted_rebuild_equals_scratch_build(device, small_scene, rng, method):
     v, f = small_scene
     mesh = ExplodingMesh(v, f, device=device, seed=3)
-    scratch = Builder(len(f), device=device, resort=False)
-    resorted = Builder(len(f), device=device, resort=True)
+    scratch = Builder(len(f), device=device, method=method, resort=False)
+    resorted = Builder(len(f), device=device, method=method, resort=True)
     scratch.build(mesh.vertices, mesh.faces)
     resorted.build(mesh.vertices, mesh.faces)
     for frame in range(1, 4):
         vertices = mesh.update(frame / 24.0)
         a = scratch.rebuild(vertices).to_numpy()
         b = resorted.rebuild(vertices).to_numpy()
+        # From scratch, the reused buffers give the one-shot build's tree exactly.
+        one_shot = hw.build(vertices.numpy(), mesh.faces, method=method, device=device).to_numpy()
+        for name in TOPOLOGY + ("prim_order",):
+            np.testing.assert_array_equal(a[name], one_shot[name], err_msg=name)
         # The input order differs, the Morton codes do not: the same tree shape, and primitives
         # with equal codes may only trade places.
         for name in TOPOLOGY:
@@ -85,10 +91,11 @@ def test_sah_kernel_matches_float64_numpy(device, small_scene):
     assert builder.sah_cost() == pytest.approx(sah_cost(bvh), rel=1e-4)
 
 
-def test_refit_keeps_topology_and_bounds(device, small_scene, rng):
+@pytest.mark.parametrize("method", ["hlbvh", "hlbvh_sah"])
+def test_refit_keeps_topology_and_bounds(device, small_scene, rng, method):
     v, f = small_scene
     mesh = BendingMesh(v, f, device=device)
-    builder = Builder(len(f), device=device)
+    builder = Builder(len(f), device=device, method=method)
     before = {k: a.copy() for k, a in builder.build(mesh.vertices, f).to_numpy().items()}
     bent = mesh.update(0.3)
     tree = builder.refit(bent).to_numpy()
@@ -100,21 +107,23 @@ def test_refit_keeps_topology_and_bounds(device, small_scene, rng):
     assert builder.last_report["decision"] == "refit"
 
 
-def test_auto_policy_decides_per_frame(device, small_scene):
+@pytest.mark.parametrize("method", ["hlbvh", "hlbvh_sah"])
+def test_auto_policy_decides_per_frame(device, small_scene, method):
     v, f = small_scene
     mesh = BendingMesh(v, f, device=device)
-    builder = Builder(len(f), device=device, policy="auto", timings=True)
+    builder = Builder(len(f), device=device, method=method, policy="auto", timings=True)
     builder.build(mesh.vertices, f)
     report = builder.update(mesh.vertices)
     assert report["decision"] == "none" and "no vertex moved" in report["reason"]
     assert report["max_displacement"] == 0.0 and "rebuild" in report["stages_skipped"]
     report = builder.update(mesh.update(0.02))
     assert report["decision"] == "refit", report["reason"]
-    assert "refit" in report["stages_ms"] and "hierarchy" not in report["stages_ms"]
+    assert "refit" in report["stages_ms"] and not {"hierarchy", "voxel_hierarchy"} & set(report["stages_ms"])
     assert abs(report["sah_growth"]) < 0.10
     report = builder.update(mesh.update(0.9))
     assert report["decision"] == "rebuild" and "large motion" in report["reason"]
-    assert "hierarchy" in report["stages_ms"] and report["stages_ms"]["hierarchy"] >= 0.0
+    stage = "voxel_hierarchy" if method == "hlbvh_sah" else "hierarchy"
+    assert stage in report["stages_ms"] and report["stages_ms"][stage] >= 0.0
     # Host NumPy input works too, and the frame counter advances.
     report = builder.update(mesh.vertices.numpy() + np.float32(1e-4))
     assert report["decision"] in ("refit", "rebuild") and report["frame"] == 4
@@ -154,6 +163,31 @@ def test_auto_beats_rebuild_every_frame_on_bending(device):
         assert ratio <= 1.10, f"frame {frame}: auto SAH is {ratio:.3f} x rebuild-every-frame"
     assert total["auto"] < total["every"], total
     assert {r["decision"] for r in list(auto.reports)[1:]} >= {"refit"}
+
+
+def test_hlbvh_sah_frames_reuse_the_cluster_tree(device, small_scene):
+    """The cluster count changes from frame to frame; the cluster tree's scratch, reserved for the
+    most clusters any frame can have, is never reallocated, and every frame's tree is correct."""
+    v, f = small_scene
+    mesh = ExplodingMesh(v, f, device=device, seed=5)
+    builder = Builder(len(f), device=device, method="hlbvh_sah")
+    builder.build(mesh.vertices, mesh.faces)
+    pipe = builder.pipeline
+    top = pipe.top
+    pointers = [a.ptr for a in (top.cluster_lowers, top.cluster_cost, top.arena.node_left, top.builder.order)]
+    counts = set()
+    for frame in range(1, 7):
+        vertices = mesh.update(frame / 4.0)
+        tree = builder.rebuild(vertices).to_numpy()
+        counts.add(top.num_clusters)
+        assert pipe.top is top and top.num_clusters <= top.capacity == pipe.max_clusters()
+        assert pointers == [a.ptr for a in (top.cluster_lowers, top.cluster_cost, top.arena.node_left,
+                                           top.builder.order)]
+        check_tree_invariants(tree, len(f))
+        one_shot = hw.build(vertices.numpy(), mesh.faces, method="hlbvh_sah", device=device)
+        assert builder.sah_cost() == pytest.approx(metrics.sah_cost(one_shot), rel=1e-6)
+    assert len(counts) > 1, "the scene should change its cluster count"
+    check_rays(builder.bvh, mesh.vertices.numpy(), mesh.faces, np.random.default_rng(0))
 
 
 def test_inputs_are_validated(small_scene):

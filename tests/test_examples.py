@@ -54,13 +54,16 @@ def test_bending_mesh(device, tmp_path):
 def test_frame_timing(device, tmp_path):
     module = load_example("example_frame_timing")
     with wp.ScopedDevice(device):
-        example = module.Example(num_tris=1000, num_frames=3, modes=["hlbvh scratch", "hlbvh auto", "wp.Bvh sah"],
-                                 headless=True)
+        modes = ["hlbvh scratch", "hlbvh auto", "hlbvh_sah scratch", "hlbvh_sah resorted", "wp.Bvh sah"]
+        example = module.Example(num_tris=1000, num_frames=3, modes=modes, headless=True)
         for _ in range(3):
             example.step()
             example.render()
     table = example.table()
-    assert "hlbvh auto" in table and "wp.Bvh sah" in table
+    assert all(mode in table for mode in modes)
+    # Resorting does not change the tree: the SAH of every resorted frame is the scratch build's.
+    for seq in example.sequences.values():
+        np.testing.assert_allclose(seq["sah"]["hlbvh_sah resorted"], seq["sah"]["hlbvh_sah scratch"], rtol=1e-5)
     for seq in example.sequences.values():
         assert all(len(ms) == 3 for ms in seq["ms"].values())
     path = example.plot(str(tmp_path / "timing.png"))
