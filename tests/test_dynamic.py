@@ -260,6 +260,23 @@ def test_rebuild_is_graph_capturable_on_cuda(small_scene):
     assert numpy_sah(tree) == pytest.approx(numpy_sah(ref), rel=1e-4)
 
 
+@pytest.mark.skipif(not wp.get_cuda_devices(), reason="CUDA graph capture needs a CUDA device")
+def test_hlbvh_sah_rebuild_refuses_graph_capture(small_scene, rng):
+    # Its cluster count is read on the host, which a capture cannot replay: a clear error, raised
+    # before any launch, and the builder still works afterwards.
+    v, f = small_scene
+    device = wp.get_cuda_devices()[0]
+    builder = Builder(len(f), device=device, method="hlbvh_sah")
+    builder.build(v, f)
+    with pytest.raises(RuntimeError, match="CUDA graph"):
+        with wp.ScopedCapture(device):
+            builder.rebuild()
+    moved = v * np.float32(1.25)
+    builder.rebuild(moved)
+    check_tree_invariants(builder.bvh.to_numpy(), len(f))
+    check_rays(builder.bvh, moved, f, rng)
+
+
 def test_reports_keep_the_latest_frames(device):
     v, f = default_scene(200)
     builder = Builder(len(f), device=device, keep_reports=3)
