@@ -28,10 +28,11 @@ import numpy as np
 import warp as wp
 
 from . import inputs, metrics
+from . import threads as threads_module
 from .builders import HlbvhSahPipeline
 from .bvh import Bvh
 from .config import BuildConfig
-from .hlbvh import HlbvhPipeline, StageTimer, compute_bounds
+from .hlbvh import PARALLEL_MIN_PRIMS, HlbvhPipeline, StageTimer, compute_bounds
 from .kernels import compress, dynamic, morton
 
 POLICIES = ("rebuild", "refit", "auto")
@@ -131,6 +132,19 @@ class Builder:
             self.prim_order = local_order
             self.prim_lowers = pipe.prim_lowers
             self.prim_uppers = pipe.prim_uppers
+        # The resort gather reads one box at random per primitive: on a multi-core CPU its slices
+        # (and the map of the ids back) run side by side, each a launch over views made once here.
+        threads = threads_module.resolved_threads(config, device)
+        self.gather_parts = None
+        if self.resort and threads > 1 and n >= PARALLEL_MIN_PRIMS:
+            cuts = threads_module.split_bounds(n, threads)
+            self.gather_parts = [
+                (hi - lo, [self.prim_order[lo:hi], self.prim_lowers, self.prim_uppers, pipe.scene_bounds,
+                           config.bits_per_axis, self.input_order[lo:hi], pipe.prim_lowers[lo:hi],
+                           pipe.prim_uppers[lo:hi], pipe.morton_codes[lo:hi]])
+                for lo, hi in zip(cuts, cuts[1:])]
+            self.map_parts = [(hi - lo, [self.input_order, local_order[lo:hi], self.prim_order[lo:hi]])
+                              for lo, hi in zip(cuts, cuts[1:])]
         self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
         # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
         self.sah_scratch = wp.empty(metrics.sah_scratch_size(pipe.node_left.shape[0], device), dtype=wp.float64,
@@ -282,10 +296,14 @@ class Builder:
             # Resorting: the previous tree's order becomes this build's input order; the Morton
             # codes are computed in the same gather.
             timer.stage("resort_gather_morton")
-            wp.launch(dynamic.resort_gather_codes_kernel, dim=n,
-                      inputs=[self.prim_order, self.prim_lowers, self.prim_uppers, pipe.scene_bounds,
-                              self.config.bits_per_axis, self.input_order, pipe.prim_lowers, pipe.prim_uppers,
-                              pipe.morton_codes], device=device)
+            if self.gather_parts is not None:
+                threads_module.launch_parts(dynamic.resort_gather_codes_kernel, device, self.gather_parts,
+                                            len(self.gather_parts))
+            else:
+                wp.launch(dynamic.resort_gather_codes_kernel, dim=n,
+                          inputs=[self.prim_order, self.prim_lowers, self.prim_uppers, pipe.scene_bounds,
+                                  self.config.bits_per_axis, self.input_order, pipe.prim_lowers, pipe.prim_uppers,
+                                  pipe.morton_codes], device=device)
         pipeline_timings = timer.timings
         ready = "codes" if self.resort else "bounds"
         if self.method == "hlbvh_sah":
@@ -296,8 +314,11 @@ class Builder:
         if self.resort:
             # Map build-input ids back to the user's face indices.
             timer.stage("resort_map")
-            wp.launch(dynamic.resort_map_kernel, dim=n,
-                      inputs=[self.input_order, self.local_order, self.prim_order], device=device)
+            if self.gather_parts is not None:
+                threads_module.launch_parts(dynamic.resort_map_kernel, device, self.map_parts, len(self.map_parts))
+            else:
+                wp.launch(dynamic.resort_map_kernel, dim=n,
+                          inputs=[self.input_order, self.local_order, self.prim_order], device=device)
 
     def _refit(self, timer: StageTimer, price: bool = False) -> float | None:
         """Refit every box; with `price`, also return the refit tree's SAH cost (`sah_cost`)."""

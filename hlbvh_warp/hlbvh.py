@@ -87,6 +87,7 @@ class HlbvhPipeline:
         """Keep this pipeline's scratch for the next `one_shot` build; its outputs now belong to a
         `Bvh` and are replaced before the pipeline builds again."""
         self.prim_lowers = self.prim_uppers = None
+        self._morton_parts = None
         memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self)
 
     def renew_outputs(self):
@@ -176,6 +177,8 @@ class HlbvhPipeline:
         self.emit_counters = wp.zeros(64, dtype=wp.int32, device=device)
         self.emit_counter_views = [self.emit_counters[j : j + 1] for j in range(self.emit_counters.shape[0])]
         self.sync_free = False
+        # The Morton pass's slices for the CPU's cores (`compute_morton_codes`), made on first use.
+        self._morton_parts = None
 
     # ------------------------------------------------------------------ stages
     def _launch(self, kernel, dim, inputs):
@@ -215,6 +218,18 @@ class HlbvhPipeline:
                 self._set_fixed_bounds()
             else:
                 self._reduce_centroid_bounds(morton.centroid_bounds_kernel, [self.prim_lowers, self.prim_uppers])
+        threads = threads_module.resolved_threads(self.config, self.device)
+        if threads > 1 and n >= PARALLEL_MIN_PRIMS:
+            # Slices side by side on a multi-core CPU; the views are made once per set of boxes.
+            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, threads)
+            if self._morton_parts is None or self._morton_parts[0] != key:
+                cuts = threads_module.split_bounds(n, threads)
+                parts = [(hi - lo, [self.prim_lowers[lo:hi], self.prim_uppers[lo:hi], self.scene_bounds,
+                                    self.config.bits_per_axis, self.morton_codes[lo:hi]])
+                         for lo, hi in zip(cuts, cuts[1:])]
+                self._morton_parts = (key, parts)
+            threads_module.launch_parts(morton.morton_codes_kernel, self.device, self._morton_parts[1], threads)
+            return
         self._launch(
             morton.morton_codes_kernel,
             n,

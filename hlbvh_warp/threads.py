@@ -64,3 +64,19 @@ def run(jobs, threads: int):
     finally:
         for future in futures:
             future.result()
+
+
+def split_bounds(num: int, parts: int) -> list:
+    """`parts` + 1 boundaries cutting [0, num) into contiguous slices of near-equal size."""
+    parts = max(1, min(parts, num))
+    return [num * j // parts for j in range(parts + 1)]
+
+
+def launch_parts(kernel, device, parts: list, threads: int):
+    """Launch `kernel` once per ``(dim, inputs)`` of `parts` on up to `threads` threads: one
+    elementwise launch cut into slices whose inputs are views of the whole arrays. The views are
+    made once by the caller, so a per-frame launch creates no arrays."""
+    import warp as wp
+
+    run([lambda dim=dim, inputs=inputs: wp.launch(kernel, dim=dim, inputs=inputs, device=device)
+         for dim, inputs in parts], threads)
