@@ -404,7 +404,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
         self.run_length_decode(num_runs)
         timer.stage("voxel_sort")
         self.voxel_sort(num_runs)
-        if timer.enabled and int(self.blocks_sorted.numpy()[0]) == 0:
+        if timer.enabled and not self.blocks_were_sorted():
             timer.skipped("voxel_sort")
 
         # Clusters: the non-empty voxels, merged into coarser voxels while they are too small

@@ -133,7 +133,9 @@ class HlbvhPipeline:
         self.block_index = ints(n)
         self.block_starts = ints(n)
         self.block_count = ints(1)
-        self.blocks_sorted = ints(1)
+        # Blocks the voxel sort had to sort: one counter per slice of blocks run side by side.
+        self.blocks_sorted = ints(64)
+        self.blocks_sorted_views = [self.blocks_sorted[j : j + 1] for j in range(self.blocks_sorted.shape[0])]
         self.scratch_codes = ints(n)
         self.scratch_ids = ints(n)
         # Treelet emission.
@@ -286,20 +288,16 @@ class HlbvhPipeline:
             [self.run_count, self.run_ids, self.run_lengths, self.sorted_run_lengths],
         )
         wp.utils.array_scan(self.sorted_run_lengths[:num_runs], self.sorted_run_offsets[:num_runs], inclusive=False)
-        self._launch(
-            compress.decompress_runs_kernel,
-            num_runs,
-            [
-                self.run_count,
-                self.run_ids,
-                self.run_starts,
-                self.run_lengths,
-                self.sorted_run_offsets,
-                self.morton_codes,
-                self.sorted_prim_ids,
-                self.sorted_codes,
-            ],
-        )
+        args = [self.run_count, self.run_ids, self.run_starts, self.run_lengths, self.sorted_run_offsets,
+                self.morton_codes, self.sorted_prim_ids, self.sorted_codes]
+        threads = threads_module.resolved_threads(self.config, self.device)
+        if threads > 1 and self.num_prims >= PARALLEL_MIN_PRIMS and not self.sync_free:
+            # On a multi-core CPU: slices of the runs side by side (they write disjoint ranges).
+            cuts = threads_module.split_bounds(num_runs, threads)
+            parts = [(hi - lo, args + [lo]) for lo, hi in zip(cuts, cuts[1:])]
+            threads_module.launch_parts(compress.decompress_runs_kernel, self.device, parts, threads)
+            return
+        self._launch(compress.decompress_runs_kernel, num_runs, args + [0])
 
     def voxel_sort(self, num_runs: int):
         """Group voxel segments into blocks and sort every block by its codes in one launch."""
@@ -323,21 +321,24 @@ class HlbvhPipeline:
             [self.voxel_count, self.block_flags, self.block_index, self.voxel_starts, self.block_starts, self.block_count],
         )
         self.blocks_sorted.zero_()
-        self._launch(
-            block_sort.block_sort_kernel,
-            num_runs,
-            [
-                n,
-                3 * (self.config.bits_per_axis - self.coarse_bits),
-                self.block_count,
-                self.block_starts,
-                self.sorted_codes,
-                self.sorted_prim_ids,
-                self.scratch_codes,
-                self.scratch_ids,
-                self.blocks_sorted,
-            ],
-        )
+        args = [n, 3 * (self.config.bits_per_axis - self.coarse_bits), self.block_count, self.block_starts,
+                self.sorted_codes, self.sorted_prim_ids, self.scratch_codes, self.scratch_ids]
+        threads = min(threads_module.resolved_threads(self.config, self.device), self.blocks_sorted.shape[0])
+        if threads > 1 and n >= PARALLEL_MIN_PRIMS and not self.sync_free:
+            # On a multi-core CPU: slices of blocks cut at about equal primitive counts (the block
+            # starts are read on the host, free there), side by side, each with its own counter.
+            num_blocks = int(self.block_count.numpy()[0])
+            starts = self.block_starts.numpy()[:num_blocks]
+            cuts = [0] + [int(np.searchsorted(starts, n * j // threads)) for j in range(1, threads)] + [num_blocks]
+            parts = [(hi - lo, args + [self.blocks_sorted_views[j], lo])
+                     for j, (lo, hi) in enumerate(zip(cuts, cuts[1:])) if hi > lo]
+            threads_module.launch_parts(block_sort.block_sort_kernel, self.device, parts, threads)
+            return
+        self._launch(block_sort.block_sort_kernel, num_runs, args + [self.blocks_sorted, 0])
+
+    def blocks_were_sorted(self) -> bool:
+        """Whether the last voxel sort had any block to sort (read on the host)."""
+        return int(self.blocks_sorted.numpy().sum()) > 0
 
     def global_sort(self):
         """LBVH baseline (the paper's Table 1): one radix sort over all 3n bits."""
@@ -577,7 +578,7 @@ class HlbvhPipeline:
             # Sort each block of voxels by the low 3(n - m) bits; blocks in order are left alone.
             timer.stage("voxel_sort")
             self.voxel_sort(num_runs)
-            if timer.enabled and int(self.blocks_sorted.numpy()[0]) == 0:
+            if timer.enabled and not self.blocks_were_sorted():
                 timer.skipped("voxel_sort")
         elif method == "lbvh":
             timer.stage("global_sort")

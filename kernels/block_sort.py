@@ -170,8 +170,11 @@ def block_sort_kernel(
     scratch_codes: wp.array(dtype=wp.int32),
     scratch_ids: wp.array(dtype=wp.int32),
     blocks_sorted: wp.array(dtype=wp.int32),
+    first_block: int,
 ):
-    b = wp.tid()
+    # Blocks are independent: on a multi-core CPU, slices of them run as launches side by side,
+    # each from its `first_block` (0 for one launch over all of them).
+    b = wp.tid() + first_block
     nb = block_count[0]
     if b >= nb:
         return

@@ -80,9 +80,11 @@ def decompress_runs_kernel(
     morton_codes: wp.array(dtype=wp.int32),
     sorted_prim_ids: wp.array(dtype=wp.int32),
     sorted_codes: wp.array(dtype=wp.int32),
+    first_run: int,
 ):
-    # One thread per run: runs are contiguous in the input and are copied whole.
-    r = wp.tid()
+    # One thread per run: runs are contiguous in the input and are copied whole. On a multi-core
+    # CPU, slices of the runs run as launches side by side, each from its `first_run`.
+    r = wp.tid() + first_run
     if r >= run_count[0]:
         return
     run = sorted_run_ids[r]
