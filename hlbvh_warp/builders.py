@@ -382,30 +382,13 @@ class HlbvhSahPipeline(HlbvhPipeline):
         Reads the cluster count on the host (it sizes the cluster tree), so unlike the plain
         pipeline this build cannot be captured in a CUDA graph.
         """
-        if inputs_ready not in ("boxes", "bounds", "codes"):
-            raise ValueError(f"inputs_ready must be 'boxes', 'bounds' or 'codes', got {inputs_ready!r}")
         n = self.num_prims
         cfg = self.config
 
         # Morton codes, run-length encoding by coarse voxel, compress-sort-decompress, voxel sort:
         # the primitive order of HLBVH, unchanged.
-        if inputs_ready != "codes":
-            timer.stage("morton")
-            self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
-        timer.stage("run_length_encode")
-        num_runs = self.run_length_encode()
-        # Runs already in order (resorted input) need no sort, as in `HlbvhPipeline.build`.
-        sort = not self.runs_in_order(num_runs)
-        timer.stage("top_level_sort")
-        self.top_level_sort(num_runs, sort)
-        if not sort:
-            timer.skipped("top_level_sort")
-        timer.stage("run_length_decode")
-        self.run_length_decode(num_runs)
-        timer.stage("voxel_sort")
-        self.voxel_sort(num_runs)
-        if timer.enabled and not self.blocks_were_sorted():
-            timer.skipped("voxel_sort")
+        self.compute_codes(timer, inputs_ready)
+        self.sort_codes(timer)
 
         # Clusters: the non-empty voxels, merged into coarser voxels while they are too small
         # on average (BuildConfig.cluster_min_prims).

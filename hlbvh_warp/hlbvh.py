@@ -537,6 +537,40 @@ class HlbvhPipeline:
         )
 
     # ------------------------------------------------------------ orchestrator
+    def compute_codes(self, timer: StageTimer, inputs_ready: str = "boxes"):
+        """The Morton codes, unless the caller has them: ``inputs_ready`` is what it has already
+        computed: ``"boxes"``; ``"bounds"`` (and the centroid bounds, `compute_triangle_bounds`);
+        ``"codes"`` (and the Morton codes, as a resorted `Builder` frame does while gathering)."""
+        if inputs_ready not in ("boxes", "bounds", "codes"):
+            raise ValueError(f"inputs_ready must be 'boxes', 'bounds' or 'codes', got {inputs_ready!r}")
+        # Morton codes of the primitive centroids over the centroid bounds (n bits per axis).
+        if inputs_ready != "codes":
+            timer.stage("morton")
+            self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
+
+    def sort_codes(self, timer: StageTimer, sync_free: bool = False) -> int:
+        """HLBVH's primitive sort (paper 2.1-2.2): run-length encoding by the high 3m bits,
+        compress-sort-decompress, the voxel sort; skips the sorts whose work is already done.
+        Returns M, the run count (its bound N with `sync_free`)."""
+        # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.
+        timer.stage("run_length_encode")
+        num_runs = self.run_length_encode(sync_free)
+        # Compress-sort-decompress: sort the M run codes, then expand the runs in order.
+        # Runs already in order (resorted input) need no sort.
+        sort = sync_free or not self.runs_in_order(num_runs)
+        timer.stage("top_level_sort")
+        self.top_level_sort(num_runs, sort)
+        if not sort:
+            timer.skipped("top_level_sort")
+        timer.stage("run_length_decode")
+        self.run_length_decode(num_runs)
+        # Sort each block of voxels by the low 3(n - m) bits; blocks in order are left alone.
+        timer.stage("voxel_sort")
+        self.voxel_sort(num_runs)
+        if timer.enabled and not self.blocks_were_sorted():
+            timer.skipped("voxel_sort")
+        return num_runs
+
     def build(self, method: str = "hlbvh", timer: StageTimer | None = None, sync_free: bool = False,
               inputs_ready: str = "boxes"):
         """Run the pipeline on `prim_lowers` / `prim_uppers` (already filled); returns the timings.
@@ -550,36 +584,13 @@ class HlbvhPipeline:
                 the centroid bounds, `compute_triangle_bounds`); ``"codes"`` (and the Morton
                 codes, as a resorted `Builder` frame does while gathering).
         """
-        if inputs_ready not in ("boxes", "bounds", "codes"):
-            raise ValueError(f"inputs_ready must be 'boxes', 'bounds' or 'codes', got {inputs_ready!r}")
         n = self.num_prims
         timer = timer or StageTimer(self.device, False)
         bits = 3 * self.config.bits_per_axis
         self.sync_free = sync_free
-
-        # Morton codes of the primitive centroids over the centroid bounds (n bits per axis).
-        if inputs_ready != "codes":
-            timer.stage("morton")
-            self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
-
+        self.compute_codes(timer, inputs_ready)
         if method == "hlbvh":
-            # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.
-            timer.stage("run_length_encode")
-            num_runs = self.run_length_encode(sync_free)
-            # Compress-sort-decompress: sort the M run codes, then expand the runs in order.
-            # Runs already in order (resorted input) need no sort.
-            sort = sync_free or not self.runs_in_order(num_runs)
-            timer.stage("top_level_sort")
-            self.top_level_sort(num_runs, sort)
-            if not sort:
-                timer.skipped("top_level_sort")
-            timer.stage("run_length_decode")
-            self.run_length_decode(num_runs)
-            # Sort each block of voxels by the low 3(n - m) bits; blocks in order are left alone.
-            timer.stage("voxel_sort")
-            self.voxel_sort(num_runs)
-            if timer.enabled and not self.blocks_were_sorted():
-                timer.skipped("voxel_sort")
+            self.sort_codes(timer, sync_free)
         elif method == "lbvh":
             timer.stage("global_sort")
             self.global_sort()
