@@ -110,41 +110,38 @@ class Builder:
             self.pipeline = pipe = HlbvhSahPipeline(n, config, device)
             # The cluster tree's scratch, for as many clusters as any frame can have.
             pipe.reserve_top_tree()
-            # The tree's order (build-input ids) is written by the SAH build's join.
+            # The tree's order is written by the SAH build's join.
             local_order = pipe.prim_order
         else:
             self.pipeline = pipe = HlbvhPipeline(n, config, device)
             local_order = pipe.sorted_prim_ids[:n]
-        self.local_order = local_order
         # A CUDA rebuild keeps every count on the device, so it never waits and can be captured
         # (not hlbvh_sah's, which reads its cluster count).
         self.sync_free = device.is_cuda and method != "hlbvh_sah"
 
         self.faces = wp.empty((n, 3), dtype=wp.int32, device=device)
-        if self.resort:
-            # The build sees faces in input_order; the tree is mapped back to the user's indices.
-            self.input_order = wp.empty(n, dtype=wp.int32, device=device)
-            self.prim_order = wp.empty(n, dtype=wp.int32, device=device)
-            self.prim_lowers = wp.empty(n, dtype=wp.vec3, device=device)
-            self.prim_uppers = wp.empty(n, dtype=wp.vec3, device=device)
-        else:
-            self.input_order = None
-            self.prim_order = local_order
-            self.prim_lowers = pipe.prim_lowers
-            self.prim_uppers = pipe.prim_uppers
-        # The resort gather reads one box at random per primitive: on a multi-core CPU its slices
-        # (and the map of the ids back) run side by side, each a launch over views made once here.
-        threads = threads_module.resolved_threads(config, device)
+        # The BVH's per-face boxes are the pipeline's input boxes, in the user's face order.
+        self.prim_lowers = pipe.prim_lowers
+        self.prim_uppers = pipe.prim_uppers
+        self.prim_order = local_order
+        self.input_order = self.user_codes = None
         self.gather_parts = None
-        if self.resort and threads > 1 and n >= PARALLEL_MIN_PRIMS:
-            cuts = threads_module.split_bounds(n, threads)
-            self.gather_parts = [
-                (hi - lo, [self.prim_order[lo:hi], self.prim_lowers, self.prim_uppers, pipe.scene_bounds,
-                           config.bits_per_axis, self.input_order[lo:hi], pipe.prim_lowers[lo:hi],
-                           pipe.prim_uppers[lo:hi], pipe.morton_codes[lo:hi]])
-                for lo, hi in zip(cuts, cuts[1:])]
-            self.map_parts = [(hi - lo, [self.input_order, local_order[lo:hi], self.prim_order[lo:hi]])
-                              for lo, hi in zip(cuts, cuts[1:])]
+        if self.resort:
+            # The build's input is the previous tree's order: input i is user face input_order[i].
+            # The sort carries those face ids, so the tree names user faces with no pass to map
+            # them back, and reads the boxes where they were computed.
+            self.input_order = wp.empty(n, dtype=wp.int32, device=device)
+            self.user_codes = wp.empty(n, dtype=wp.int32, device=device)
+            pipe.set_input_ids(self.input_order)
+            # The gather reads one code at random per primitive: on a multi-core CPU its slices run
+            # side by side, each a launch over views made once here.
+            threads = threads_module.resolved_threads(config, device)
+            if threads > 1 and n >= PARALLEL_MIN_PRIMS:
+                cuts = threads_module.split_bounds(n, threads)
+                self.gather_parts = [
+                    (hi - lo, [self.prim_order[lo:hi], self.user_codes, self.input_order[lo:hi],
+                               pipe.morton_codes[lo:hi]])
+                    for lo, hi in zip(cuts, cuts[1:])]
         self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
         # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
         self.sah_scratch = wp.empty(metrics.sah_scratch_size(pipe.node_left.shape[0], device), dtype=wp.float64,
@@ -279,31 +276,31 @@ class Builder:
     def _rebuild(self, timer: StageTimer):
         """The launches of one full build from `self.vertices`; no host reads unless timed.
 
-        Resorted (Pantaleoni & Luebke 2010, 2.2): the boxes are computed in the user's face order
-        (sequential, and they are the BVH's `prim_lowers`/`prim_uppers`), then gathered in the
-        previous tree's order as the build's input, with their Morton codes computed in the
-        same pass; afterwards only the primitive ids are mapped back. Gathering triangles in
-        tree order and scattering their boxes back to the user's order instead cost two random
-        accesses per primitive (about 5 ms of a 16 ms frame on a 100k-triangle explosion on the
-        CPU), this costs one (about 0.6 ms). Both kinds of frame reduce the centroid bounds in
-        the pass that computes the triangle boxes.
+        Resorted (Pantaleoni & Luebke 2010, 2.2): the boxes and their Morton codes are computed in
+        the user's face order (sequential passes, as from scratch), then only the codes are
+        gathered in the previous tree's order, the build's input. The sort carries each input's
+        face id, so the tree comes out naming user faces. Gathering the boxes too (for in-order
+        reads in the emission) and mapping the ids back afterwards cost about 2 ms more of a
+        19 ms frame on the exploding 100k-triangle armadillo on the CPU; gathering the triangles
+        themselves, more again. Both kinds of frame reduce the centroid bounds in the pass that
+        computes the triangle boxes.
         """
         n, device, pipe = self.num_prims, self.device, self.pipeline
         # Triangle boxes in the user's face order, and the centroid bounds in the same pass.
         timer.stage("prim_bounds")
-        pipe.compute_triangle_bounds(self.vertices, self.faces, self.prim_lowers, self.prim_uppers)
+        pipe.compute_triangle_bounds(self.vertices, self.faces)
         if self.resort:
-            # Resorting: the previous tree's order becomes this build's input order; the Morton
-            # codes are computed in the same gather.
-            timer.stage("resort_gather_morton")
+            timer.stage("morton")
+            pipe.compute_morton_codes(bounds_ready=True, codes=self.user_codes)
+            # Resorting: the previous tree's order becomes this build's input order.
+            timer.stage("resort_gather")
             if self.gather_parts is not None:
-                threads_module.launch_parts(dynamic.resort_gather_codes_kernel, device, self.gather_parts,
+                threads_module.launch_parts(dynamic.resort_gather_kernel, device, self.gather_parts,
                                             len(self.gather_parts))
             else:
-                wp.launch(dynamic.resort_gather_codes_kernel, dim=n,
-                          inputs=[self.prim_order, self.prim_lowers, self.prim_uppers, pipe.scene_bounds,
-                                  self.config.bits_per_axis, self.input_order, pipe.prim_lowers, pipe.prim_uppers,
-                                  pipe.morton_codes], device=device)
+                wp.launch(dynamic.resort_gather_kernel, dim=n,
+                          inputs=[self.prim_order, self.user_codes, self.input_order, pipe.morton_codes],
+                          device=device)
         pipeline_timings = timer.timings
         ready = "codes" if self.resort else "bounds"
         if self.method == "hlbvh_sah":
@@ -311,14 +308,6 @@ class Builder:
         else:
             pipe.build(self.method, timer, sync_free=self.sync_free, inputs_ready=ready)
         pipeline_timings.pop("total", None)
-        if self.resort:
-            # Map build-input ids back to the user's face indices.
-            timer.stage("resort_map")
-            if self.gather_parts is not None:
-                threads_module.launch_parts(dynamic.resort_map_kernel, device, self.map_parts, len(self.map_parts))
-            else:
-                wp.launch(dynamic.resort_map_kernel, dim=n,
-                          inputs=[self.input_order, self.local_order, self.prim_order], device=device)
 
     def _refit(self, timer: StageTimer, price: bool = False) -> float | None:
         """Refit every box; with `price`, also return the refit tree's SAH cost (`sah_cost`)."""

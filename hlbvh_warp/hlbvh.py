@@ -124,6 +124,10 @@ class HlbvhPipeline:
         self.sorted_run_offsets = ints(n)
         self.sorted_codes = ints(2 * n)
         self.sorted_prim_ids = ints(2 * n)
+        # What each input position stands for, carried into the sorted ids (`set_input_ids`);
+        # empty: the position itself.
+        self.no_input_ids = wp.empty(0, dtype=wp.int32, device=device)
+        self.input_ids = self.no_input_ids
         # Voxel sort.
         self.voxel_flags = ints(n)
         self.voxel_index = ints(n)
@@ -211,10 +215,23 @@ class HlbvhPipeline:
         lower, upper = self.config.morton_bounds
         self._launch(morton.set_bounds_kernel, 1, [self.scene_bounds, wp.vec3(*lower), wp.vec3(*upper)])
 
-    def compute_morton_codes(self, bounds_ready: bool = False):
-        """Morton codes of the primitive centroids over the centroid bounds (or the fixed grid);
-        `bounds_ready`: `compute_triangle_bounds` has already reduced the bounds."""
+    def set_input_ids(self, input_ids: wp.array | None):
+        """Have the sort carry ``input_ids[i]`` for input position i (a resorted `Builder` frame:
+        the user face each position holds), so that the tree's order names those ids; None: the
+        positions themselves."""
+        if input_ids is None:
+            self.input_ids = self.no_input_ids
+            return
+        if input_ids.dtype != wp.int32 or input_ids.shape != (self.num_prims,) or input_ids.device != self.device:
+            raise ValueError(f"input_ids must be {self.num_prims} int32 on {self.device}")
+        self.input_ids = input_ids
+
+    def compute_morton_codes(self, bounds_ready: bool = False, codes: wp.array | None = None):
+        """Morton codes of the primitive centroids over the centroid bounds (or the fixed grid)
+        into `morton_codes` (or `codes`); `bounds_ready`: `compute_triangle_bounds` has already
+        reduced the bounds."""
         n = self.num_prims
+        codes = self.morton_codes if codes is None else codes
         if not bounds_ready:
             if self.config.morton_bounds is not None:
                 self._set_fixed_bounds()
@@ -223,11 +240,11 @@ class HlbvhPipeline:
         threads = threads_module.resolved_threads(self.config, self.device)
         if threads > 1 and n >= PARALLEL_MIN_PRIMS:
             # Slices side by side on a multi-core CPU; the views are made once per set of boxes.
-            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, threads)
+            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, codes.ptr, threads)
             if self._morton_parts is None or self._morton_parts[0] != key:
                 cuts = threads_module.split_bounds(n, threads)
                 parts = [(hi - lo, [self.prim_lowers[lo:hi], self.prim_uppers[lo:hi], self.scene_bounds,
-                                    self.config.bits_per_axis, self.morton_codes[lo:hi]])
+                                    self.config.bits_per_axis, codes[lo:hi]])
                          for lo, hi in zip(cuts, cuts[1:])]
                 self._morton_parts = (key, parts)
             threads_module.launch_parts(morton.morton_codes_kernel, self.device, self._morton_parts[1], threads)
@@ -235,7 +252,7 @@ class HlbvhPipeline:
         self._launch(
             morton.morton_codes_kernel,
             n,
-            [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, self.morton_codes],
+            [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, codes],
         )
 
     def run_length_encode(self, sync_free: bool = False) -> int:
@@ -289,7 +306,7 @@ class HlbvhPipeline:
         )
         wp.utils.array_scan(self.sorted_run_lengths[:num_runs], self.sorted_run_offsets[:num_runs], inclusive=False)
         args = [self.run_count, self.run_ids, self.run_starts, self.run_lengths, self.sorted_run_offsets,
-                self.morton_codes, self.sorted_prim_ids, self.sorted_codes]
+                self.morton_codes, self.input_ids, self.sorted_prim_ids, self.sorted_codes]
         threads = threads_module.resolved_threads(self.config, self.device)
         if threads > 1 and self.num_prims >= PARALLEL_MIN_PRIMS and not self.sync_free:
             # On a multi-core CPU: slices of the runs side by side (they write disjoint ranges).
@@ -344,7 +361,10 @@ class HlbvhPipeline:
         """LBVH baseline (the paper's Table 1): one radix sort over all 3n bits."""
         n = self.num_prims
         wp.copy(self.sorted_codes, self.morton_codes, count=n)
-        self._launch(compress.iota_kernel, n, [self.sorted_prim_ids])
+        if self.input_ids.shape[0] > 0:
+            wp.copy(self.sorted_prim_ids, self.input_ids, count=n)
+        else:
+            self._launch(compress.iota_kernel, n, [self.sorted_prim_ids])
         wp.utils.radix_sort_pairs(self.sorted_codes, self.sorted_prim_ids, n, end_bit=3 * self.config.bits_per_axis)
 
     def _host_count(self, count: wp.array, bound: int) -> int:

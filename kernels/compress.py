@@ -78,21 +78,30 @@ def decompress_runs_kernel(
     run_lengths: wp.array(dtype=wp.int32),
     sorted_run_offsets: wp.array(dtype=wp.int32),
     morton_codes: wp.array(dtype=wp.int32),
+    input_ids: wp.array(dtype=wp.int32),
     sorted_prim_ids: wp.array(dtype=wp.int32),
     sorted_codes: wp.array(dtype=wp.int32),
     first_run: int,
 ):
     # One thread per run: runs are contiguous in the input and are copied whole. On a multi-core
-    # CPU, slices of the runs run as launches side by side, each from its `first_run`.
+    # CPU, slices of the runs run as launches side by side, each from its `first_run`. The ids
+    # written are the input positions, or with `input_ids` (not empty) the ids they stand for:
+    # a resorted frame's input is the previous tree order, and its tree then names user faces
+    # directly, with no pass to map the ids back.
     r = wp.tid() + first_run
     if r >= run_count[0]:
         return
     run = sorted_run_ids[r]
     src = run_starts[run]
     dst = sorted_run_offsets[r]
-    for j in range(run_lengths[run]):
-        sorted_prim_ids[dst + j] = src + j
-        sorted_codes[dst + j] = morton_codes[src + j]
+    if input_ids.shape[0] > 0:
+        for j in range(run_lengths[run]):
+            sorted_prim_ids[dst + j] = input_ids[src + j]
+            sorted_codes[dst + j] = morton_codes[src + j]
+    else:
+        for j in range(run_lengths[run]):
+            sorted_prim_ids[dst + j] = src + j
+            sorted_codes[dst + j] = morton_codes[src + j]
 
 
 @wp.kernel

@@ -7,53 +7,29 @@ sorted. The host side (``hlbvh_warp.builder``, ``hlbvh_warp.dynamic``) allocates
 
 import warp as wp
 
-from .morton import morton_code
-
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
 
 # ------------------------------------------------------------------ resorting
 @wp.kernel
-def resort_gather_codes_kernel(
+def resort_gather_kernel(
     prim_order: wp.array(dtype=wp.int32),
-    user_lowers: wp.array(dtype=wp.vec3),
-    user_uppers: wp.array(dtype=wp.vec3),
-    scene_bounds: wp.array(dtype=wp.vec3),
-    bits_per_axis: int,
+    user_codes: wp.array(dtype=wp.int32),
     input_order: wp.array(dtype=wp.int32),
-    lowers: wp.array(dtype=wp.vec3),
-    uppers: wp.array(dtype=wp.vec3),
     morton_codes: wp.array(dtype=wp.int32),
 ):
-    # The previous tree's order becomes the build's input order: input i is user face order[i].
-    # The boxes were computed in the user's face order (a sequential pass that also leaves the
-    # BVH's per-face boxes current, and the centroid bounds); this is the one random access per
-    # primitive of a resorted build, 28 bytes read, where gathering the triangles instead reads
-    # a face and its three vertices (about 3x slower on the CPU device for a 100k-triangle mesh).
-    # The Morton code is computed here while the box is at hand, which saves the pipeline's own
-    # pass over the gathered boxes.
+    # The previous tree's order becomes the build's input order: input i is user face
+    # prim_order[i]. Only its 4-byte Morton code is gathered; the sort carries the face id along
+    # (input_order, the pipeline's input ids), so the tree names user faces and reads the boxes
+    # where they were computed, in the user's order. Gathering the 24-byte boxes as well, and
+    # mapping the tree's ids back afterwards, cost two random reads per primitive instead of one
+    # small one (about 2 ms more of a 19 ms frame for the exploding 100k-triangle armadillo on
+    # the CPU).
     i = wp.tid()
     f = prim_order[i]
     input_order[i] = f
-    lower = user_lowers[f]
-    upper = user_uppers[f]
-    lowers[i] = lower
-    uppers[i] = upper
-    morton_codes[i] = morton_code(lower, upper, scene_bounds[0], scene_bounds[1], bits_per_axis)
-
-
-@wp.kernel
-def resort_map_kernel(
-    input_order: wp.array(dtype=wp.int32),
-    local_order: wp.array(dtype=wp.int32),
-    prim_order: wp.array(dtype=wp.int32),
-):
-    # Tree position k holds build input i = local_order[k], i.e. user face input_order[i]. After
-    # resorting, local_order is close to the identity, so this gather reads almost sequentially;
-    # the boxes need no mapping: they are already in the user's order.
-    k = wp.tid()
-    prim_order[k] = input_order[local_order[k]]
+    morton_codes[i] = user_codes[f]
 
 
 # --------------------------------------------------------- motion and quality

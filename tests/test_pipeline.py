@@ -160,6 +160,44 @@ def test_voxel_sort_equals_stable_argsort(device, rng, capacity):
     assert pipe.sorted_prim_ids.numpy()[: len(codes)].shape == order.shape
 
 
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
+def test_sort_carries_input_ids(device, rng, method):
+    """With input ids (a resorted frame: position i holds user face ids[i]), the sorted ids are
+    those faces in the stable code order of the positions, and the boxes are read by face id."""
+    lo, hi = soup_bounds(rng, 3000, clusters=True)
+    ids = rng.permutation(len(lo)).astype(np.int32)
+    # The pipeline's boxes are in the user's order; its Morton codes are in input order.
+    pipe = make_pipeline(lo, hi, device)
+    codes = morton_reference(lo[ids], hi[ids], 10).astype(np.int32)
+    pipe.morton_codes.assign(wp.array(codes, dtype=wp.int32, device=device))
+    pipe.set_input_ids(wp.array(ids, dtype=wp.int32, device=device))
+    pipe.build(method, inputs_ready="codes")
+    expected = ids[np.argsort(codes, kind="stable")]
+    np.testing.assert_array_equal(pipe.sorted_prim_ids.numpy()[: len(lo)], expected)
+    # Every leaf's box is its face's own box, so the boxes were read by face id.
+    tree = {name: arr.numpy() for name, arr in (("left", pipe.node_left), ("begin", pipe.node_begin),
+                                                 ("lowers", pipe.node_lowers), ("uppers", pipe.node_uppers))}
+    count = int(pipe.node_count.numpy()[0])
+    leaves = np.flatnonzero(tree["left"][:count] < 0)
+    faces = expected[tree["begin"][leaves]]
+    np.testing.assert_array_equal(tree["lowers"][leaves], lo[faces])
+    np.testing.assert_array_equal(tree["uppers"][leaves], hi[faces])
+    # Set back to positions, the same pipeline sorts plain input again.
+    pipe.set_input_ids(None)
+    pipe.morton_codes.assign(wp.array(morton_reference(lo, hi, 10).astype(np.int32), dtype=wp.int32, device=device))
+    pipe.build(method, inputs_ready="codes")
+    np.testing.assert_array_equal(pipe.sorted_prim_ids.numpy()[: len(lo)],
+                                  np.argsort(morton_reference(lo, hi, 10), kind="stable"))
+
+
+def test_input_ids_are_checked(device):
+    pipe = make_pipeline(np.zeros((4, 3), np.float32), np.ones((4, 3), np.float32), device)
+    for bad in (wp.zeros(3, dtype=wp.int32, device=device), wp.zeros(4, dtype=wp.float32, device=device)):
+        with pytest.raises(ValueError, match="input_ids"):
+            pipe.set_input_ids(bad)
+    assert pipe.input_ids.shape[0] == 0
+
+
 EMISSIONS = ["treelets", "depth_first"]
 
 
