@@ -6,10 +6,12 @@ ordered by coarse voxel; consecutive voxel segments are grouped into blocks of r
 voxels are already in order, so this sorts each voxel by its low 3(n - m) bits) in one launch.
 
 The paper sorts a block with an odd-even sort in shared memory, one thread per element. Here a
-block is sorted by one thread with a stable merge sort that streams through a global scratch
-buffer: on Warp's CPU device a launch runs its threads one after another, where odd-even
-transposition would cost O(k^2) per block, and the scratch buffer lifts the paper's assumption
-that a voxel fits in a block, so an oversized voxel needs no separate path.
+block is sorted by one thread: on Warp's CPU device a launch runs its threads one after another,
+where odd-even transposition would cost O(k^2) per block. The thread insertion-sorts the block,
+O(k + inversions), which is all a block of small voxels (a surface mesh) or of the previous
+frame's order (resorting) needs; past a budget of moves it finishes with a stable merge sort per
+voxel that streams through a global scratch buffer, which also lifts the paper's assumption that
+a voxel fits in a block, so an oversized voxel needs no separate path.
 """
 
 import warp as wp
@@ -19,9 +21,12 @@ wp.set_module_options({"enable_backward": False})
 
 # Runs of this many elements are insertion-sorted before merging starts.
 INSERTION_RUN = 16
-# A block with at most this many descents (resorted input: the previous frame's order) is
-# insertion-sorted whole: O(k + inversions) instead of the merge sort's O(k log k).
-NEARLY_SORTED_DESCENTS = 8
+# A block is first insertion-sorted whole, O(k + inversions), until it has moved this many
+# elements per element of the block; past that (a large voxel in random order) the rest is merge
+# sorted voxel by voxel. On the scanned meshes' blocks of 2000 (voxels of a few primitives each,
+# from scratch or resorted) 4 halved the voxel sort against merge-sorting every voxel from the
+# start; 1 falls back too often, 64 risks O(k^2) on a random voxel.
+INSERTION_MOVES_PER_ELEMENT = 4
 
 
 @wp.kernel
@@ -159,6 +164,38 @@ def sort_range(
     return 0
 
 
+@wp.func
+def insertion_sort_bounded(
+    codes: wp.array(dtype=wp.int32),
+    prim_ids: wp.array(dtype=wp.int32),
+    begin: int,
+    start: int,
+    end: int,
+    max_moves: int,
+):
+    # Stable insertion sort of [begin, end), whose prefix [begin, start) is already in order.
+    # Returns 1 when done; 0 when it stopped after `max_moves` moves, leaving a permutation of
+    # the range in which equal codes keep their order, so a stable sort can take over.
+    moves = int(0)
+    i = start
+    while i < end:
+        key = codes[i]
+        if codes[i - 1] > key:
+            val = prim_ids[i]
+            j = i - 1
+            while j >= begin and codes[j] > key:
+                codes[j + 1] = codes[j]
+                prim_ids[j + 1] = prim_ids[j]
+                j -= 1
+            codes[j + 1] = key
+            prim_ids[j + 1] = val
+            moves += i - 1 - j
+            if moves > max_moves:
+                return 0
+        i += 1
+    return 1
+
+
 @wp.kernel
 def block_sort_kernel(
     num_prims: int,
@@ -184,19 +221,19 @@ def block_sort_kernel(
         end = block_starts[b + 1]
 
     # A block that is already in order (resorted input) costs one read and no writes.
-    descents = int(0)
+    first_descent = int(end)
     for i in range(begin + 1, end):
         if codes[i - 1] > codes[i]:
-            descents += 1
-            if descents > NEARLY_SORTED_DESCENTS:
-                break
-    if descents == 0:
+            first_descent = i
+            break
+    if first_descent == end:
         return
     wp.atomic_add(blocks_sorted, 0, 1)
 
-    if descents <= NEARLY_SORTED_DESCENTS:
-        # Nearly sorted (the previous frame's order): one insertion sort, O(k + inversions).
-        sort_range(codes, prim_ids, scratch_codes, scratch_ids, begin, end, end - begin)
+    # Nearly sorted (voxels of a few primitives, or the previous frame's order): one insertion
+    # sort from the first descent, O(k + inversions), until it exceeds its budget of moves.
+    if insertion_sort_bounded(codes, prim_ids, begin, first_descent, end,
+                              INSERTION_MOVES_PER_ELEMENT * (end - begin)) == 1:
         return
     # The block's voxels are already in order among themselves (the codes' high 3m bits), so
     # sorting the block is sorting each voxel: small voxels (a few primitives on a surface
