@@ -388,7 +388,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # Morton codes, run-length encoding by coarse voxel, compress-sort-decompress, voxel sort:
         # the primitive order of HLBVH, unchanged.
         self.compute_codes(timer, inputs_ready)
-        self.sort_codes(timer)
+        self.sort_codes(timer, need_voxels=True)
 
         # Clusters: the non-empty voxels, merged into coarser voxels while they are too small
         # on average (BuildConfig.cluster_min_prims).

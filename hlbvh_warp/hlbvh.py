@@ -568,13 +568,24 @@ class HlbvhPipeline:
             timer.stage("morton")
             self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
 
-    def sort_codes(self, timer: StageTimer, sync_free: bool = False) -> int:
+    def sort_codes(self, timer: StageTimer, sync_free: bool = False, need_voxels: bool = False) -> int:
         """HLBVH's primitive sort (paper 2.1-2.2): run-length encoding by the high 3m bits,
         compress-sort-decompress, the voxel sort; skips the sorts whose work is already done.
-        Returns M, the run count (its bound N with `sync_free`)."""
+        Returns M, the run count (its bound N with `sync_free`). `need_voxels`: the caller reads
+        the voxel segments (`voxel_starts`, the SAH-optimized build's clusters)."""
         # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.
         timer.stage("run_length_encode")
         num_runs = self.run_length_encode(sync_free)
+        if not sync_free and not need_voxels and num_runs > self.config.global_sort_runs * self.num_prims:
+            # About one run per primitive (fragments scattered at random): compress-sort-decompress
+            # has nothing to compress, and sorting the runs, expanding them and sorting the blocks
+            # cost more than the one radix sort they stand in for. That sort gives the same
+            # order: both are stable sorts of the full codes.
+            timer.stage("global_sort")
+            self.global_sort()
+            for stage in ("top_level_sort", "run_length_decode", "voxel_sort"):
+                timer.skipped(stage)
+            return num_runs
         # Compress-sort-decompress: sort the M run codes, then expand the runs in order.
         # Runs already in order (resorted input) need no sort.
         sort = sync_free or not self.runs_in_order(num_runs)

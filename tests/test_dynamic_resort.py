@@ -15,6 +15,7 @@ import warp as wp
 
 from hlbvh_warp import query
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.kernels import compress
 from hlbvh_warp.scenes import default_scene
@@ -155,7 +156,9 @@ def test_resorted_input_is_the_previous_tree_order(small_scene):
     """The build's input order is the previous tree's, and with nothing moved the sorts are skipped."""
     v, f = small_scene
     mesh, param = make_scene("bend", v, f, "cpu")
-    builder = Builder(len(f), device="cpu", resort=True, timings=True)
+    # The paper's sort for every build: this small scene has about one run per face.
+    paper = BuildConfig(global_sort_runs=1.0)
+    builder = Builder(len(f), paper, device="cpu", resort=True, timings=True)
     builder.build(mesh.vertices, mesh.faces)
     previous = builder.bvh.prim_order.numpy().copy()
     builder.rebuild(mesh.update(param(1)))
@@ -167,9 +170,10 @@ def test_resorted_input_is_the_previous_tree_order(small_scene):
     assert "top_level_sort" in skipped and "voxel_sort" in skipped, skipped
     assert "resort_gather" in builder.last_report["stages_ms"]
     # A build from scratch over the mesh's own face order has to sort.
-    scratch = Builder(len(f), device="cpu", resort=False, timings=True)
+    scratch = Builder(len(f), paper, device="cpu", resort=False, timings=True)
     scratch.build(mesh.vertices, mesh.faces)
     assert "top_level_sort" not in scratch.last_report["stages_skipped"]
+    assert "global_sort" not in scratch.last_report["stages_ms"]
 
 
 @pytest.mark.parametrize("case", ["sorted", "one_descent_last", "random", "stale_tail", "single"])

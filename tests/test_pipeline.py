@@ -265,7 +265,9 @@ def test_resorted_input_gives_equivalent_tree_and_skips_sort(device):
 @pytest.mark.parametrize("emission", ["treelets", "depth_first"])
 def test_timings_report_stages(device, rng, emission):
     lo, hi = soup_bounds(rng, 500)
-    bvh = hb.build_from_bounds(lo, hi, device=device, timings=True, config=hb.BuildConfig(emission=emission))
+    # The paper's sort for every build (a random soup has about one run per primitive).
+    config = hb.BuildConfig(emission=emission, global_sort_runs=1.0)
+    bvh = hb.build_from_bounds(lo, hi, device=device, timings=True, config=config)
     for stage in ("morton", "run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort", "hierarchy"):
         assert bvh.timings[stage] >= 0.0
     if emission == "treelets":
@@ -274,6 +276,35 @@ def test_timings_report_stages(device, rng, emission):
         # The depth-first emission writes every box as it goes: no separate pass.
         assert "bbox" in bvh.timings["skipped"] and "bbox" not in bvh.timings
     assert hb.build_from_bounds(lo, hi, device=device).timings == {}
+
+
+@pytest.mark.parametrize("clusters", [False, True])
+def test_global_sort_when_runs_do_not_compress(device, rng, clusters):
+    """About one run per primitive (a random soup): one radix sort of the full codes replaces
+    compress-sort-decompress and the voxel sort, for the same order; clustered input keeps the
+    paper's stages. Either way the order is NumPy's stable argsort of the codes."""
+    lo, hi = soup_bounds(rng, 4000, clusters=clusters)
+    if clusters:
+        # Grouped by cluster, as a mesh's coherent face order is: long runs.
+        by_cluster = np.argsort(morton_reference(lo, hi, 10) >> 12, kind="stable")
+        lo, hi = lo[by_cluster], hi[by_cluster]
+    codes = morton_reference(lo, hi, 10)
+    runs = 1 + int(np.count_nonzero(np.diff(codes >> 12)))  # m = 6: the high 18 bits
+    orders = {}
+    for fraction in (0.5, 1.0):
+        pipe = make_pipeline(lo, hi, device, global_sort_runs=fraction)
+        timer = StageTimer(pipe.device, True)
+        pipe.build("hlbvh", timer)
+        global_path = "global_sort" in timer.timings
+        assert global_path == (fraction < 1.0 and runs > fraction * len(lo)), (fraction, runs)
+        skipped = timer.timings.get("skipped", [])
+        if global_path:
+            assert {"top_level_sort", "run_length_decode", "voxel_sort"} <= set(skipped), skipped
+        else:
+            assert "run_length_decode" in timer.timings and "run_length_decode" not in skipped
+        orders[fraction] = pipe.sorted_prim_ids.numpy()[: len(lo)].copy()
+        np.testing.assert_array_equal(orders[fraction], np.argsort(codes, kind="stable"))
+    assert (runs > len(lo) // 2) != clusters
 
 
 def test_sync_free_build_matches(device, rng):
@@ -431,6 +462,8 @@ def test_bad_bounds_and_options(device):
         hb.build(np.eye(3), [[0, 1, 2]], method="nope", device=device)
     with pytest.raises(ValueError, match="planes_per_pass"):
         hb.BuildConfig(planes_per_pass=9)
+    with pytest.raises(ValueError, match="global_sort_runs"):
+        hb.BuildConfig(global_sort_runs=-0.1)
     with pytest.raises(ValueError, match="differ in shape"):
         hb.intersect(hb.build(np.eye(3), [[0, 1, 2]], device=device), np.zeros((2, 3)), np.zeros((3, 3)))
 
