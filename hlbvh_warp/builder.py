@@ -110,11 +110,11 @@ class Builder:
             self.pipeline = pipe = HlbvhSahPipeline(n, config, device)
             # The cluster tree's scratch, for as many clusters as any frame can have.
             pipe.reserve_top_tree()
-            # The tree's order is written by the SAH build's join.
-            local_order = pipe.prim_order
+            # The tree's order (user face ids) is written by the SAH build's join.
+            self.prim_order = pipe.prim_order
         else:
             self.pipeline = pipe = HlbvhPipeline(n, config, device)
-            local_order = pipe.sorted_prim_ids[:n]
+            self.prim_order = pipe.sorted_prim_ids[:n]
         # A CUDA rebuild keeps every count on the device, so it never waits and can be captured
         # (not hlbvh_sah's, which reads its cluster count).
         self.sync_free = device.is_cuda and method != "hlbvh_sah"
@@ -123,7 +123,6 @@ class Builder:
         # The BVH's per-face boxes are the pipeline's input boxes, in the user's face order.
         self.prim_lowers = pipe.prim_lowers
         self.prim_uppers = pipe.prim_uppers
-        self.prim_order = local_order
         self.input_order = self.user_codes = None
         self.gather_parts = None
         if self.resort:

@@ -121,50 +121,6 @@ def merge_pass(
 
 
 @wp.func
-def sort_range(
-    codes: wp.array(dtype=wp.int32),
-    prim_ids: wp.array(dtype=wp.int32),
-    scratch_codes: wp.array(dtype=wp.int32),
-    scratch_ids: wp.array(dtype=wp.int32),
-    begin: int,
-    end: int,
-    run_length: int,
-):
-    # Stable insertion sort of runs of `run_length`, then bottom-up merges ping-ponging with
-    # scratch (a range no longer than one run is just insertion-sorted).
-    run_begin = begin
-    while run_begin < end:
-        run_end = wp.min(run_begin + run_length, end)
-        for i in range(run_begin + 1, run_end):
-            key = codes[i]
-            if codes[i - 1] > key:
-                val = prim_ids[i]
-                j = i - 1
-                while j >= run_begin and codes[j] > key:
-                    codes[j + 1] = codes[j]
-                    prim_ids[j + 1] = prim_ids[j]
-                    j -= 1
-                codes[j + 1] = key
-                prim_ids[j + 1] = val
-        run_begin = run_end
-
-    width = run_length
-    in_scratch = int(0)
-    while width < end - begin:
-        if in_scratch == 0:
-            merge_pass(codes, prim_ids, scratch_codes, scratch_ids, begin, end, width)
-        else:
-            merge_pass(scratch_codes, scratch_ids, codes, prim_ids, begin, end, width)
-        in_scratch = 1 - in_scratch
-        width *= 2
-    if in_scratch == 1:
-        for i in range(begin, end):
-            codes[i] = scratch_codes[i]
-            prim_ids[i] = scratch_ids[i]
-    return 0
-
-
-@wp.func
 def insertion_sort_bounded(
     codes: wp.array(dtype=wp.int32),
     prim_ids: wp.array(dtype=wp.int32),
@@ -194,6 +150,42 @@ def insertion_sort_bounded(
                 return 0
         i += 1
     return 1
+
+
+@wp.func
+def sort_range(
+    codes: wp.array(dtype=wp.int32),
+    prim_ids: wp.array(dtype=wp.int32),
+    scratch_codes: wp.array(dtype=wp.int32),
+    scratch_ids: wp.array(dtype=wp.int32),
+    begin: int,
+    end: int,
+    run_length: int,
+):
+    # Stable insertion sort of runs of `run_length`, then bottom-up merges ping-ponging with
+    # scratch (a range no longer than one run is just insertion-sorted).
+    run_begin = begin
+    while run_begin < end:
+        run_end = wp.min(run_begin + run_length, end)
+        # No budget: a run of k moves at most k(k - 1) / 2 elements.
+        k = run_end - run_begin
+        insertion_sort_bounded(codes, prim_ids, run_begin, run_begin + 1, run_end, k * k)
+        run_begin = run_end
+
+    width = run_length
+    in_scratch = int(0)
+    while width < end - begin:
+        if in_scratch == 0:
+            merge_pass(codes, prim_ids, scratch_codes, scratch_ids, begin, end, width)
+        else:
+            merge_pass(scratch_codes, scratch_ids, codes, prim_ids, begin, end, width)
+        in_scratch = 1 - in_scratch
+        width *= 2
+    if in_scratch == 1:
+        for i in range(begin, end):
+            codes[i] = scratch_codes[i]
+            prim_ids[i] = scratch_ids[i]
+    return 0
 
 
 @wp.kernel
