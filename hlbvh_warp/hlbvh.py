@@ -163,6 +163,11 @@ class HlbvhPipeline:
         else:
             self.prim_lowers = memory.empty(n, dtype=wp.vec3, device=device)
             self.prim_uppers = memory.empty(n, dtype=wp.vec3, device=device)
+        # The depth-first emission reads the primitive boxes in tree order (`emit_depth_first`).
+        if self.emission == "depth_first":
+            self.leaf_lowers = memory.empty(n, dtype=wp.vec3, device=device)
+            self.leaf_uppers = memory.empty(n, dtype=wp.vec3, device=device)
+        self._leaf_box_parts = None
         self.node_lowers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_uppers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_left = ints(num_node_slots)
@@ -513,8 +518,9 @@ class HlbvhPipeline:
             else:
                 seed_starts, seed_count = self.root_seed_start, self.root_seed_count
                 self.node_count.fill_(1)
+        self.gather_leaf_boxes(threads)
         shared = [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
-                  self.sorted_prim_ids, self.prim_lowers, self.prim_uppers]
+                  self.leaf_lowers, self.leaf_uppers]
         tail = [self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
                 self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
                 wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost]
@@ -538,6 +544,23 @@ class HlbvhPipeline:
         self.node_count.fill_(first_free + 2 * (n - int(starts[0])) - 2 * num_seeds)
         if root_split:
             self._launch(treelets.finish_root_kernel, 1, [self.node_parent, self.node_lowers, self.node_uppers])
+
+    def gather_leaf_boxes(self, threads: int):
+        """The primitive boxes in tree order (`leaf_lowers`/`leaf_uppers`) for the depth-first
+        walk, which then reads them in order (see `bounds.gather_boxes_kernel` for the measure)."""
+        n = self.num_prims
+        args = [self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.leaf_lowers, self.leaf_uppers]
+        if threads > 1 and n >= PARALLEL_MIN_PRIMS:
+            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, threads)
+            if self._leaf_box_parts is None or self._leaf_box_parts[0] != key:
+                cuts = threads_module.split_bounds(n, threads)
+                parts = [(hi - lo, [self.sorted_prim_ids[lo:hi], self.prim_lowers, self.prim_uppers,
+                                    self.leaf_lowers[lo:hi], self.leaf_uppers[lo:hi]])
+                         for lo, hi in zip(cuts, cuts[1:])]
+                self._leaf_box_parts = (key, parts)
+            threads_module.launch_parts(bounds.gather_boxes_kernel, self.device, self._leaf_box_parts[1], threads)
+            return
+        self._launch(bounds.gather_boxes_kernel, n, args)
 
     def compute_node_bounds(self):
         compute_bounds(

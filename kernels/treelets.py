@@ -22,7 +22,7 @@ primitives, touch only the few segments left. Each head also records where its s
 
 import warp as wp
 
-from .bounds import leaf_box
+from .bounds import leaf_box_in_order
 from .metrics import interior_cost
 
 # Forward-only kernels: no adjoints to compile.
@@ -448,9 +448,8 @@ def emit_depth_first_kernel(
     first_seed_node: int,
     max_leaf_size: int,
     codes: wp.array(dtype=wp.int32),
-    prim_order: wp.array(dtype=wp.int32),
-    prim_lowers: wp.array(dtype=wp.vec3),
-    prim_uppers: wp.array(dtype=wp.vec3),
+    leaf_lowers: wp.array(dtype=wp.vec3),
+    leaf_uppers: wp.array(dtype=wp.vec3),
     node_count: wp.array(dtype=wp.int32),
     node_left: wp.array(dtype=wp.int32),
     node_right: wp.array(dtype=wp.int32),
@@ -471,6 +470,9 @@ def emit_depth_first_kernel(
     Topology equals the treelet passes' (a top-down radix split at the highest differing bit,
     index medians for equal codes, leaves at `max_leaf_size`), only the node numbering differs:
     children are allocated in pairs when their parent is popped, so they follow it.
+
+    The primitive boxes come in tree order (`bounds.gather_boxes_kernel`): position k's box is
+    ``leaf_lowers[k]``.
 
     Boxes are written in the same walk, bottom-up: the left subtree is finished before the right
     one starts, so when a leaf that is a right child is done, its parent's two children are
@@ -509,7 +511,7 @@ def emit_depth_first_kernel(
         if b - a <= max_leaf_size:
             node_left[node] = -1
             node_right[node] = -1
-            leaf_box(node, node_begin, node_end, prim_order, prim_lowers, prim_uppers, node_lowers, node_uppers)
+            leaf_box_in_order(node, node_begin, node_end, leaf_lowers, leaf_uppers, node_lowers, node_uppers)
             if with_cost != 0:
                 node_cost[node] = t_intersect * wp.float64(b - a)
             child = node
