@@ -182,9 +182,10 @@ class HlbvhPipeline:
         self.root_seed_count = wp.full(1, 1, dtype=wp.int32, device=device)
         # Stands in for the node costs of an emission that does not compute them.
         self.empty_cost = wp.empty(1, dtype=wp.float64, device=device)
-        # The parallel depth-first emission: the root's two halves as seeds, a counter per run.
-        self.root_seeds = wp.zeros(2, dtype=wp.int32, device=device)
-        self.root_seed_pair = wp.zeros(1, dtype=wp.int32, device=device)
+        # The parallel depth-first emission: the top of the tree cut into seeds, a counter per run.
+        self.top_seed_starts = wp.zeros(treelets.MAX_TOP_SEEDS, dtype=wp.int32, device=device)
+        self.top_seed_ends = wp.zeros(treelets.MAX_TOP_SEEDS, dtype=wp.int32, device=device)
+        self.top_seed_count = wp.zeros(1, dtype=wp.int32, device=device)
         self.emit_counters = wp.zeros(64, dtype=wp.int32, device=device)
         self.emit_counter_views = [self.emit_counters[j : j + 1] for j in range(self.emit_counters.shape[0])]
         self.sync_free = False
@@ -500,24 +501,29 @@ class HlbvhPipeline:
         On a multi-core CPU (``BuildConfig.cpu_threads``) with one primitive per leaf, the seeds
         are cut into runs of about equal primitive counts emitted side by side: a seed of k
         primitives has exactly 2k - 2 nodes below its root, so every run's node ids are known
-        before it starts and no counter is shared. The root alone is split first, so that its two
-        halves are the seeds."""
+        before it starts and no counter is shared. The top of the tree is split first into seeds of
+        at most N / (4 threads) primitives (`treelets.split_top_kernel`): the root's two halves
+        alone can be far from equal (65% / 35% on the bunny)."""
         n = self.num_prims
         cfg = self.config
         threads = min(threads_module.resolved_threads(cfg, self.device), self.emit_counters.shape[0])
         parallel = threads > 1 and cfg.max_leaf_size == 1 and n >= PARALLEL_MIN_PRIMS
-        root_split = False
+        top_split = False
         if seed_starts is None:
+            seed_starts, seed_count, first_seed_node, num_seeds = self.root_seed_start, self.root_seed_count, 0, 1
             if parallel:
-                self._launch(treelets.split_root_kernel, 1,
-                             [n, self.sorted_codes, self.node_left, self.node_right, self.node_begin, self.node_end,
-                              self.root_seeds, self.root_seed_pair])
-                seed_starts, seed_count, first_seed_node, num_seeds = self.root_seeds, self.root_seed_pair, 1, 2
-                self.node_count.fill_(3)
-                root_split = True
-            else:
-                seed_starts, seed_count = self.root_seed_start, self.root_seed_count
-                self.node_count.fill_(1)
+                # Seeds of at most an eighth of the primitives per two threads: runs of whole seeds
+                # then come within about that of an equal share.
+                self._launch(treelets.split_top_kernel, 1,
+                             [n, max(n // (4 * threads), 1), self.sorted_codes, self.node_left, self.node_right,
+                              self.node_parent, self.node_begin, self.node_end, self.top_seed_starts,
+                              self.top_seed_ends, self.top_seed_count])
+                top_seeds = int(self.top_seed_count.numpy()[0])
+                if top_seeds > 1:
+                    seed_starts, seed_count, num_seeds = self.top_seed_starts, self.top_seed_count, top_seeds
+                    first_seed_node = top_seeds - 1
+                    top_split = True
+            self.node_count.fill_(first_seed_node + num_seeds)
         self.gather_leaf_boxes(threads)
         shared = [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
                   self.leaf_lowers, self.leaf_uppers]
@@ -542,8 +548,10 @@ class HlbvhPipeline:
                 treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0]))
         threads_module.run(jobs, threads)
         self.node_count.fill_(first_free + 2 * (n - int(starts[0])) - 2 * num_seeds)
-        if root_split:
-            self._launch(treelets.finish_root_kernel, 1, [self.node_parent, self.node_lowers, self.node_uppers])
+        if top_split:
+            self._launch(treelets.finish_top_kernel, 1,
+                         [self.top_seed_count, self.node_left, self.node_right, self.node_parent, self.node_lowers,
+                          self.node_uppers])
 
     def gather_leaf_boxes(self, threads: int):
         """The primitive boxes in tree order (`leaf_lowers`/`leaf_uppers`) for the depth-first

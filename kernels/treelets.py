@@ -550,37 +550,143 @@ def emit_depth_first_kernel(
         top += 2
 
 
+@wp.func
+def find_seed(seed_starts: wp.array(dtype=wp.int32), seed_ends: wp.array(dtype=wp.int32), count: int, begin: int,
+              end: int):
+    # The seed whose range is exactly [begin, end), or -1 (at most MAX_TOP_SEEDS to look at).
+    for s in range(count):
+        if seed_starts[s] == begin and seed_ends[s] == end:
+            return s
+    return -1
+
+
+#: Most seeds `split_top_kernel` cuts the top of the tree into.
+MAX_TOP_SEEDS = 64
+
+
 @wp.kernel
-def split_root_kernel(
+def split_top_kernel(
     num_prims: int,
+    max_seed_size: int,
     codes: wp.array(dtype=wp.int32),
     node_left: wp.array(dtype=wp.int32),
     node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
     seed_starts: wp.array(dtype=wp.int32),
+    seed_ends: wp.array(dtype=wp.int32),
     seed_count: wp.array(dtype=wp.int32),
 ):
-    # The root's radix split, so that its two subtrees become seeds emitted side by side.
-    split = radix_split(codes, 0, num_prims)
+    """The top of the tree, split until no seed holds more than `max_seed_size` primitives (or
+    there are MAX_TOP_SEEDS), so that the depth-first walks of the seeds can be dealt out to
+    threads in runs of about equal size. Splitting the root alone left the bunny's halves at
+    65% / 35% of its primitives, so two threads waited on the larger.
+
+    The splits are `radix_split`'s, as the walk's, so the tree is the one a single walk emits;
+    only the numbering differs. With S seeds (one thread, dim 1):
+      1. split the largest seed until done, keeping the seeds in order of their starts;
+      2. walk the splits again from the root: the S - 1 interior nodes above the seeds get ids
+         0 .. S - 2 in the order they are reached (a child after its parent), seed s gets
+         S - 1 + s, the walk's ``first_seed_node``. `finish_top_kernel` boxes them afterwards.
+    """
+    seed_starts[0] = 0
+    seed_ends[0] = num_prims
+    count = int(1)
+    while count < MAX_TOP_SEEDS:
+        largest = int(0)
+        for t in range(1, count):
+            if seed_ends[t] - seed_starts[t] > seed_ends[largest] - seed_starts[largest]:
+                largest = t
+        a = seed_starts[largest]
+        b = seed_ends[largest]
+        if b - a <= max_seed_size or b - a < 2:
+            break
+        split = radix_split(codes, a, b)
+        # The right half goes right after the left one; later seeds shift up by one.
+        t = count
+        while t > largest + 1:
+            seed_starts[t] = seed_starts[t - 1]
+            seed_ends[t] = seed_ends[t - 1]
+            t -= 1
+        seed_ends[largest] = split
+        seed_starts[largest + 1] = split
+        seed_ends[largest + 1] = b
+        count += 1
+    seed_count[0] = count
+    if count == 1:
+        # Nothing to split: the walk emits the root as the only seed.
+        return
+
+    stack_begin = vec64i()
+    stack_end = vec64i()
+    stack_node = vec64i()
+    stack_begin[0] = 0
+    stack_end[0] = num_prims
+    stack_node[0] = 0
+    node_parent[0] = -1
     node_begin[0] = 0
     node_end[0] = num_prims
-    node_left[0] = 1
-    node_right[0] = 2
-    seed_starts[0] = 0
-    seed_starts[1] = split
-    seed_count[0] = 2
+    next_interior = int(1)
+    first_seed = count - 1
+    top = int(1)
+    while top > 0:
+        top -= 1
+        a = stack_begin[top]
+        b = stack_end[top]
+        node = stack_node[top]
+        split = radix_split(codes, a, b)
+        # Each child is seed s when its range is exactly that seed's, else a new interior node.
+        left = find_seed(seed_starts, seed_ends, count, a, split)
+        if left < 0:
+            left = next_interior
+            next_interior += 1
+        else:
+            left += first_seed
+        right = find_seed(seed_starts, seed_ends, count, split, b)
+        if right < 0:
+            right = next_interior
+            next_interior += 1
+        else:
+            right += first_seed
+        node_left[node] = left
+        node_right[node] = right
+        node_parent[left] = node
+        node_parent[right] = node
+        node_begin[left] = a
+        node_end[left] = split
+        node_begin[right] = split
+        node_end[right] = b
+        if right < first_seed:
+            stack_begin[top] = split
+            stack_end[top] = b
+            stack_node[top] = right
+            top += 1
+        if left < first_seed:
+            stack_begin[top] = a
+            stack_end[top] = split
+            stack_node[top] = left
+            top += 1
 
 
 @wp.kernel
-def finish_root_kernel(
+def finish_top_kernel(
+    seed_count: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
     node_parent: wp.array(dtype=wp.int32),
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
-    # Link the two seeded subtrees under the root and box it.
-    node_parent[0] = -1
-    node_parent[1] = 0
-    node_parent[2] = 0
-    node_lowers[0] = wp.min(node_lowers[1], node_lowers[2])
-    node_uppers[0] = wp.max(node_uppers[1], node_uppers[2])
+    # Link and box the interior nodes above the seeds (`split_top_kernel`; the walk left every
+    # seed root parentless), children first: a child's id is always above its parent's, so
+    # counting down from S - 2 finishes both children first.
+    node = seed_count[0] - 2
+    while node >= 0:
+        left = node_left[node]
+        right = node_right[node]
+        node_parent[left] = node
+        node_parent[right] = node
+        node_lowers[node] = wp.min(node_lowers[left], node_lowers[right])
+        node_uppers[node] = wp.max(node_uppers[left], node_uppers[right])
+        node -= 1

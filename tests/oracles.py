@@ -76,6 +76,13 @@ def check_tree_invariants(tree: dict, num_prims: int, max_leaf_size: int = 1, ex
     assert (end[left[interior]] == begin[right[interior]]).all()
     assert (end[right[interior]] == end[interior]).all()
     assert (end > begin).all(), "an empty node"
+    # The Bvh layout: children numbered after their parent, and parents linked back.
+    assert (left[interior] > interior).all() and (right[interior] > interior).all(), "a child before its parent"
+    if "node_parent" in tree:
+        parent = tree["node_parent"]
+        assert parent[0] == -1, "the root has a parent"
+        assert (parent[left[interior]] == interior).all() and (parent[right[interior]] == interior).all(), \
+            "a child's parent link does not name its parent"
     # Leaves partition [0, N).
     lb = np.sort(begin[leaves])
     le = np.sort(end[leaves])

@@ -34,6 +34,40 @@ def test_threaded_builds_equal_one_thread(device, rng, method):
         assert np.array_equal(canonical(tree), canonical(trees[0]))
 
 
+
+@pytest.mark.parametrize("threads_count", [2, 3])
+def test_top_split_balances_a_lopsided_tree(device, rng, threads_count):
+    # 90% of the triangles in one corner: the root's radix split leaves one half with about 90%
+    # of them, so splitting the root alone would hand one thread nine tenths of the walk. The
+    # top split must cut seeds of at most N / (4 threads), and the tree must be one thread's.
+    if device != "cpu":
+        pytest.skip("threads split only the CPU device's serial walks")
+    from hlbvh_warp.builder import Builder
+
+    n = 16_000
+    v, f = random_soup(rng, n)
+    v[: 3 * (9 * n // 10)] *= 0.05
+    trees = []
+    for count in (1, threads_count):
+        builder = Builder(n, hw.BuildConfig(cpu_threads=count), device=device, resort=False)
+        tree = builder.build(v, f).to_numpy()
+        check_tree_invariants(tree, n, 1, exact_node_count=2 * n - 1)
+        trees.append(tree)
+    pipe = builder.pipeline
+    seeds = int(pipe.top_seed_count.numpy()[0])
+    starts = pipe.top_seed_starts.numpy()[:seeds]
+    sizes = np.diff(np.append(starts, n))
+    assert seeds > 2 and starts[0] == 0 and (sizes >= 1).all()
+    assert sizes.max() <= n // (4 * threads_count), sizes
+    # The seeds are the subtrees of nodes seeds - 1 .. 2 seeds - 2, each under the top nodes.
+    tree = trees[1]
+    roots = np.arange(seeds - 1, 2 * seeds - 1)
+    np.testing.assert_array_equal(tree["node_begin"][roots], starts)
+    assert ((tree["node_parent"][roots] >= 0) & (tree["node_parent"][roots] < seeds - 1)).all()
+    np.testing.assert_array_equal(trees[1]["prim_order"], trees[0]["prim_order"])
+    np.testing.assert_array_equal(canonical(trees[1]), canonical(trees[0]))
+
+
 def test_threaded_leaf_size_falls_back(device, rng):
     # With several primitives per leaf node counts are not known in advance: one thread, same tree.
     v, f = random_soup(rng, 10_000)
