@@ -698,10 +698,10 @@ def compute_bounds(device, node_count, node_left, node_right, node_parent, node_
                    prim_lowers, prim_uppers, node_visits, node_lowers, node_uppers, strategy: str | None = None,
                    priced: tuple | None = None):
     """Node boxes bottom-up. `strategy`: ``"climb"`` (one thread per leaf climbing with atomic visit
-    counters, Karras 2012: parallel, for CUDA) or ``"sweep"`` (leaf boxes in parallel, then one
-    reverse sweep over the interior nodes: the CPU device runs threads in sequence, and there the
-    sweep does the same work without atomics or random parent hops, about 2x faster on a
-    100k-triangle mesh). ``None`` picks by device. ``priced=(t_traversal, t_intersect, cost_sum)``
+    counters, Karras 2012: parallel, for CUDA) or ``"sweep"`` (one reverse sweep over the nodes, leaves
+    boxed as it reaches them: the CPU device runs threads in sequence, and there the sweep does
+    the same work without atomics or random parent hops, about 2x faster on a 100k-triangle
+    mesh). ``None`` picks by device. ``priced=(t_traversal, t_intersect, cost_sum)``
     (the sweep only) also writes to ``cost_sum[0]`` the sum of every node's SAH term x area, which
     `metrics.cost_from_sum` turns into the tree's SAH cost."""
     device = wp.get_device(device)
@@ -709,13 +709,11 @@ def compute_bounds(device, node_count, node_left, node_right, node_parent, node_
         strategy = "sweep" if device.is_cpu else "climb"
     dim = node_left.shape[0]
     if strategy == "sweep":
-        wp.launch(bounds.leaf_bounds_kernel, dim=dim, device=device,
-                  inputs=[node_count, node_left, node_begin, node_end, prim_order, prim_lowers, prim_uppers,
-                          node_lowers, node_uppers])
         t_traversal, t_intersect, cost_sum = priced if priced is not None else (0.0, 0.0, None)
-        wp.launch(bounds.interior_bounds_sweep_kernel, dim=1, device=device,
-                  inputs=[node_count, node_left, node_right, node_begin, node_end, int(priced is not None),
-                          wp.float64(t_traversal), wp.float64(t_intersect), node_lowers, node_uppers, cost_sum])
+        wp.launch(bounds.bounds_sweep_kernel, dim=1, device=device,
+                  inputs=[node_count, node_left, node_right, node_begin, node_end, prim_order, prim_lowers,
+                          prim_uppers, int(priced is not None), wp.float64(t_traversal), wp.float64(t_intersect),
+                          node_lowers, node_uppers, cost_sum])
         return
     if strategy != "climb":
         raise ValueError(f"unknown bounds strategy {strategy!r}")
