@@ -21,6 +21,7 @@ Orders are stored flat: ``order[axis * num_items + position]``.
 import warp as wp
 
 from .metrics import box_area64
+from .treelets import link_children
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -414,14 +415,7 @@ def emit_children_kernel(
     left = node_count[0] + 2 * split_offset[s]
     right = left + 1
     pos = split_pos[s]
-    node_left[node] = left
-    node_right[node] = right
-    node_parent[left] = node
-    node_parent[right] = node
-    node_begin[left] = b
-    node_end[left] = pos
-    node_begin[right] = pos
-    node_end[right] = e
+    link_children(node, left, right, b, pos, e, node_left, node_right, node_parent, node_begin, node_end)
     next_level_nodes[2 * split_offset[s]] = left
     next_level_nodes[2 * split_offset[s] + 1] = right
 

@@ -440,6 +440,32 @@ def radix_split(codes: wp.array(dtype=wp.int32), begin: int, end: int):
     return lo
 
 
+@wp.func
+def link_children(
+    node: int,
+    left: int,
+    right: int,
+    begin: int,
+    split: int,
+    end: int,
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+):
+    # Make `left` and `right` the children of `node`, covering [begin, split) and [split, end).
+    node_left[node] = left
+    node_right[node] = right
+    node_parent[left] = node
+    node_parent[right] = node
+    node_begin[left] = begin
+    node_end[left] = split
+    node_begin[right] = split
+    node_end[right] = end
+    return 0
+
+
 @wp.kernel
 def emit_depth_first_kernel(
     num_prims: int,
@@ -532,14 +558,7 @@ def emit_depth_first_kernel(
         split = radix_split(codes, a, b)
         left = wp.atomic_add(node_count, 0, 2)
         right = left + 1
-        node_left[node] = left
-        node_right[node] = right
-        node_parent[left] = node
-        node_parent[right] = node
-        node_begin[left] = a
-        node_end[left] = split
-        node_begin[right] = split
-        node_end[right] = b
+        link_children(node, left, right, a, split, b, node_left, node_right, node_parent, node_begin, node_end)
         # Right below left: the left subtree is emitted first, right after its parent.
         stack_begin[top] = split
         stack_end[top] = b
@@ -649,14 +668,7 @@ def split_top_kernel(
             next_interior += 1
         else:
             right += first_seed
-        node_left[node] = left
-        node_right[node] = right
-        node_parent[left] = node
-        node_parent[right] = node
-        node_begin[left] = a
-        node_end[left] = split
-        node_begin[right] = split
-        node_end[right] = b
+        link_children(node, left, right, a, split, b, node_left, node_right, node_parent, node_begin, node_end)
         if right < first_seed:
             stack_begin[top] = split
             stack_end[top] = b
