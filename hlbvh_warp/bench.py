@@ -43,11 +43,17 @@ PEERS = ("wp.Bvh:sah", "wp.Bvh:median", "wp.Bvh:lbvh", "wp.Mesh")
 #: The quality reference every SAH ratio is taken against (at the same leaf size).
 REFERENCE = "sweep_sah"
 
-ROW_FORMAT = "{mesh:>12s} {tris:>9d} {builder:>14s} {setting:>12s} {median:>10.2f} {min:>9.2f} {max:>9.2f} " \
+ROW_FORMAT = "{mesh:>{mesh_width}s} {tris:>9d} {builder:>14s} {setting:>12s} {median:>10.2f} {min:>9.2f} {max:>9.2f} " \
              "{rebuild:>10s} {sah:>9s} {ratio:>7s} {nodes:>9s} {bytes:>8s} {rays:>6s}"
-HEADER = "{:>12s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>10s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}".format(
-    "mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "rebuild ms", "SAH", "ratio", "nodes",
+HEADER_FORMAT = "{:>{w}s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>10s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}"
+HEADER_FIELDS = ("mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "rebuild ms", "SAH", "ratio", "nodes",
     "B/tri", "rays")
+#: The mesh column is at least this wide, and as wide as the longest mesh name (never cut).
+MESH_WIDTH = 12
+
+
+def header(mesh_width: int = MESH_WIDTH) -> str:
+    return HEADER_FORMAT.format(*HEADER_FIELDS, w=mesh_width)
 
 
 def generated_scene(num_tris: int = 60000, seed: int = 7):
@@ -277,15 +283,15 @@ def api_intersect(bvh, origins, directions):
     return intersect(bvh, origins, directions)
 
 
-def format_row(row: dict) -> str:
+def format_row(row: dict, mesh_width: int = MESH_WIDTH) -> str:
     if "error" in row:
-        return f"{row['mesh']:>12s} {'':>9s} {row['builder']:>14s} {row['setting']:>12s}  error: {row['error']}"
+        return f"{row['mesh']:>{mesh_width}s} {'':>9s} {row['builder']:>14s} {row['setting']:>12s}  error: {row['error']}"
 
     def opt(value, fmt):
         return "-" if value is None else format(value, fmt)
 
     return ROW_FORMAT.format(
-        mesh=row["mesh"][:12], tris=row["num_tris"], builder=row["builder"], setting=row["setting"][:12],
+        mesh=row["mesh"], mesh_width=mesh_width, tris=row["num_tris"], builder=row["builder"], setting=row["setting"][:12],
         median=row["time_ms"]["median"], min=row["time_ms"]["min"], max=row["time_ms"]["max"],
         rebuild=opt((row.get("rebuild_ms") or {}).get("median"), ".2f"),
         sah=opt(row["sah"], ".2f"), ratio=opt(row["sah_ratio"], ".3f"), nodes=opt(row["num_nodes"], "d"),
@@ -385,7 +391,8 @@ def main(argv=None) -> int:
         print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
 
     print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}  cpu_threads: {args.cpu_threads or 'all cores'}")
-    print(HEADER)
+    mesh_width = max([MESH_WIDTH] + [len(name) for name, _, _ in meshes])
+    print(header(mesh_width))
     rows = []
     for name, vertices, faces in meshes:
         for row in bench_mesh(name, vertices, faces, args, device, progress):
@@ -393,7 +400,7 @@ def main(argv=None) -> int:
         progress("")
         for row in rows:
             if row["mesh"] == name:
-                print(format_row(row), flush=True)
+                print(format_row(row, mesh_width), flush=True)
     json_path = pathlib.Path(args.json)
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "cpu_threads": args.cpu_threads,

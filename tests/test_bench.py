@@ -34,3 +34,22 @@ def test_bench_rejects_bad_arguments():
         bench.parse_args(["--cpu-threads", "-1"])
     with pytest.raises(SystemExit):
         bench.parse_args(["--builders", "nope"])
+
+
+def test_bench_table_keeps_long_mesh_names(tmp_path, capsys):
+    # Names past the old 12-character column were cut ("armadillo_x16" printed as "armadillo_x1").
+    import trimesh
+
+    path = tmp_path / "a_mesh_with_a_long_name.ply"
+    trimesh.creation.icosphere(subdivisions=2).export(path)
+    code = bench.main(["--mesh", str(path), "--builders", "hlbvh", "--repeats", "1", "--warmup", "0", "--device",
+                       "cpu", "--rays", "8", "--json", str(tmp_path / "b.json")])
+    assert code in (0, None)
+    lines = capsys.readouterr().out.splitlines()
+    header = next(line for line in lines if "builder" in line and "tris" in line)
+    row = next(line for line in lines if line.strip().startswith(path.stem))
+    # The full name, and the columns still line up under the header (right-aligned: same ends).
+    num_tris = len(trimesh.creation.icosphere(subdivisions=2).faces)
+    assert row.split()[:3] == [path.stem, str(num_tris), "hlbvh"]
+    assert header.index("mesh") + len("mesh") == len(path.stem)
+    assert header.index("tris") + len("tris") == row.index(f" {num_tris} ") + 1 + len(str(num_tris))
