@@ -43,28 +43,40 @@ def reset_stats_kernel(stats: wp.array(dtype=wp.float32)):
 def load_and_measure_kernel(
     num_vertices: int,
     chunk: int,
+    first_chunk: int,
     source: wp.array(dtype=wp.vec3),
     dest: wp.array(dtype=wp.vec3),
-    stats: wp.array(dtype=wp.float32),
+    largest_sq: wp.array(dtype=wp.float32),
 ):
-    # One pass that loads a frame's vertices and measures how far they moved: stats[0] = max
-    # |source - dest| (a NaN coordinate counts as infinite), then dest = source. Copying the last
-    # frame aside and comparing afterwards took three passes over the vertices (about 2.6 ms a
-    # frame for the 300k vertices of the exploding armadillo on the CPU). A thread takes a chunk
-    # and does one atomic, not one per vertex.
-    c = wp.tid()
+    # One pass that loads a frame's vertices and measures how far they moved: largest_sq[0] =
+    # max |source - dest|^2 (a NaN coordinate counts as the largest float), then dest = source.
+    # Copying the last frame aside and comparing afterwards took three passes over the vertices
+    # (about 2.6 ms a frame for the 300k vertices of the exploding armadillo on the CPU). A thread
+    # takes a chunk and does one atomic, not one per vertex; squared lengths leave one square root
+    # for `finish_motion_kernel`. Launches from different `first_chunk`s, each with its own
+    # `largest_sq`, run side by side on a multi-core CPU.
+    c = wp.tid() + first_chunk
     begin = c * chunk
     end = wp.min(begin + chunk, num_vertices)
     largest = float(0.0)
     for i in range(begin, end):
         p = source[i]
-        d = wp.length(p - dest[i])
+        d = wp.length_sq(p - dest[i])
         if d != d:
             d = 3.4e38
         largest = wp.max(largest, d)
         dest[i] = p
     if largest > 0.0:
-        wp.atomic_max(stats, 0, largest)
+        wp.atomic_max(largest_sq, 0, largest)
+
+
+@wp.kernel
+def finish_motion_kernel(largest_sq: wp.array(dtype=wp.float32), count: int, stats: wp.array(dtype=wp.float32)):
+    # stats[0]: the largest displacement over the `count` partial maxima of the measure.
+    largest = float(0.0)
+    for j in range(count):
+        largest = wp.max(largest, largest_sq[j])
+    stats[0] = wp.sqrt(largest)
 
 
 @wp.kernel

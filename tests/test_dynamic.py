@@ -9,6 +9,7 @@ import warp as wp
 import hlbvh_warp as hw
 from hlbvh_warp import metrics
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import default_scene
 
@@ -384,3 +385,60 @@ def test_auto_rebuilds_ahead_of_a_refit_on_course_to_exceed_the_limit(device):
             ahead += 1
         growths = [0.0]
     assert ahead > 0
+
+
+def test_auto_backs_off_refit_retries_under_lasting_chaos(device, rng):
+    # Under motion that ruins a fresh tree in one frame (triangles thrown to new random places
+    # every frame), each retried refit costs a refit and its pricing on top of the rebuild. The
+    # waits between retries double (2, 4, 8, then capped at max_refits * MAX_CHAOTIC_BACKOFF) and
+    # return to max_refits once a retried refit holds.
+    from hlbvh_warp.builder import MAX_CHAOTIC_BACKOFF
+
+    num_tris = 2000
+    corners = 0.01 * rng.standard_normal((num_tris, 3, 3))
+    faces = np.arange(3 * num_tris, dtype=np.int32).reshape(-1, 3)
+
+    def thrown():
+        return (rng.uniform(0.0, 1.0, (num_tris, 1, 3)) + corners).reshape(-1, 3).astype(np.float32)
+
+    max_refits = 2
+    builder = Builder(num_tris, device=device, policy="auto", max_refits=max_refits, large_motion=10.0)
+    builder.build(thrown(), faces)
+    tried = []
+    for frame in range(1, 80):
+        report = builder.update(thrown())
+        if "sah_refit" in report:
+            assert report["decision"] == "rebuild", report["reason"]
+            tried.append(frame)
+    gaps = list(np.diff(tried))
+    # A retry comes the frame after its wait ends.
+    expected = [min(max_refits * 2 ** k, max_refits * MAX_CHAOTIC_BACKOFF) + 1 for k in range(len(gaps))]
+    assert len(gaps) >= 5 and gaps == expected, (tried, expected)
+    # Calm again: the next retry holds, and the wait is back to max_refits.
+    calm = thrown()
+    for _ in range(max_refits * MAX_CHAOTIC_BACKOFF + 2):
+        calm = calm + np.float32(1e-6)
+        report = builder.update(calm)
+        if report["decision"] == "refit":
+            break
+    assert report["decision"] == "refit", report["reason"]
+    assert builder.chaotic_wait == max_refits
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_motion_measure_matches_numpy_on_any_core_count(threads, rng):
+    # The auto policy's motion measure runs in slices side by side on a multi-core CPU, each
+    # slice with its own maximum: the largest displacement must be found in whichever slice
+    # holds it (here, the last vertex, the middle one and the first, in turn).
+    num_vertices = 3 * 12000
+    faces = np.arange(num_vertices, dtype=np.int32).reshape(-1, 3)
+    vertices = rng.random((num_vertices, 3)).astype(np.float32)
+    builder = Builder(len(faces), BuildConfig(cpu_threads=threads), device="cpu", policy="auto")
+    builder.build(vertices, faces)
+    for where in (num_vertices - 1, num_vertices // 2, 0):
+        moved = vertices + np.float32(1e-4) * rng.standard_normal(vertices.shape).astype(np.float32)
+        moved[where] += np.float32(0.25)
+        report = builder.update(moved)
+        expected = np.linalg.norm(moved.astype(np.float64) - vertices, axis=1).max()
+        assert report["max_displacement"] == pytest.approx(expected, rel=1e-5), where
+        vertices = moved
