@@ -13,7 +13,6 @@ import time
 import warnings
 
 import numpy as np
-import trimesh
 import warp as wp
 
 from hlbvh_warp.bench import collector_paused
@@ -21,7 +20,7 @@ from hlbvh_warp.builder import Builder
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.kernels import morton
-from hlbvh_warp.scenes import scene
+from hlbvh_warp.scenes import scene, subdivide
 
 #: label -> Builder options; "wp.Bvh <constructor>" entries are Warp's own BVH, rebuilt per frame.
 MODES = {
@@ -76,14 +75,8 @@ def sequence_bounds(anim, param, num_frames):
 
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
-                 headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide=0):
-        vertices, faces = scene(mesh, num_tris)
-        for _ in range(int(subdivide)):
-            # Every triangle split into four (its four in a row, so the face order stays as coherent
-            # as the file's): the shared armadillo is decimated to 100k triangles, the paper's has 345k.
-            vertices, faces = trimesh.remesh.subdivide(vertices, faces)
-        vertices = np.ascontiguousarray(vertices, dtype=np.float32)
-        faces = np.ascontiguousarray(faces, dtype=np.int32)
+                 headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide_times=0):
+        vertices, faces = subdivide(*scene(mesh, num_tris), subdivide_times)
         if face_order == "shuffled":
             # Scanned meshes list their faces in scan order, already about as coherent as a Morton
             # order, which leaves resorting little to gain; many meshes (merged, decimated or
@@ -220,7 +213,7 @@ if __name__ == "__main__":
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, args.num_frames, args.sequences.split(","),
                           args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads,
-                          fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide=args.subdivide)
+                          fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide_times=args.subdivide)
         for _ in range(args.num_frames):
             example.step()
             example.render()

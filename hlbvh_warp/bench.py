@@ -31,7 +31,7 @@ import warnings
 import numpy as np
 import warp as wp
 
-from . import api, inputs, reference
+from . import api, inputs, reference, scenes
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .metrics import sah_cost
@@ -74,13 +74,6 @@ def generated_scene(num_tris: int = 60000, seed: int = 7):
         budget -= len(sphere.faces)
     scene = trimesh.util.concatenate(parts)
     return np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32)
-
-
-def load_mesh(path: str):
-    import trimesh
-
-    mesh = trimesh.load(path, process=False, force="mesh")
-    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
 
 
 def sweep_settings(builders) -> list[tuple[str, str, dict]]:
@@ -352,6 +345,8 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[],
                         help="mesh file (repeatable); default: a generated scene")
+    parser.add_argument("--subdivide", type=int, default=0,
+                        help="split every triangle of each mesh into four this many times (the paper's sizes)")
     parser.add_argument("--scene-tris", type=int, default=60000, help="triangles of the generated scene")
     parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
                         help="comma-separated builders and peers (default: all)")
@@ -373,6 +368,8 @@ def parse_args(argv):
         parser.error(f"unknown builders {unknown}; choose from {sorted(api.BUILDERS) + list(PEERS)}")
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
+    if args.subdivide < 0:
+        parser.error("--subdivide must be >= 0")
     if args.cpu_threads < 0:
         parser.error("--cpu-threads must be >= 0")
     return args
@@ -383,7 +380,8 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
-    meshes = [(pathlib.Path(p).stem, *load_mesh(p)) for p in args.mesh]
+    meshes = [(pathlib.Path(p).stem + (f"_sub{args.subdivide}" if args.subdivide else ""),
+               *scenes.subdivide(*scenes.load_mesh(p), args.subdivide)) for p in args.mesh]
     if not meshes:
         meshes = [("generated", *generated_scene(args.scene_tris, args.seed))]
 

@@ -34,6 +34,8 @@ def test_bench_rejects_bad_arguments():
         bench.parse_args(["--cpu-threads", "-1"])
     with pytest.raises(SystemExit):
         bench.parse_args(["--builders", "nope"])
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--subdivide", "-1"])
 
 
 def test_bench_table_keeps_long_mesh_names(tmp_path, capsys):
@@ -42,14 +44,16 @@ def test_bench_table_keeps_long_mesh_names(tmp_path, capsys):
 
     path = tmp_path / "a_mesh_with_a_long_name.ply"
     trimesh.creation.icosphere(subdivisions=2).export(path)
-    code = bench.main(["--mesh", str(path), "--builders", "hlbvh", "--repeats", "1", "--warmup", "0", "--device",
-                       "cpu", "--rays", "8", "--json", str(tmp_path / "b.json")])
+    # --subdivide 1: every triangle split into four, and the name says so.
+    code = bench.main(["--mesh", str(path), "--subdivide", "1", "--builders", "hlbvh", "--repeats", "1", "--warmup",
+                       "0", "--device", "cpu", "--rays", "8", "--json", str(tmp_path / "b.json")])
     assert code in (0, None)
     lines = capsys.readouterr().out.splitlines()
     header = next(line for line in lines if "builder" in line and "tris" in line)
-    row = next(line for line in lines if line.strip().startswith(path.stem))
+    name = path.stem + "_sub1"
+    row = next(line for line in lines if line.strip().startswith(name))
     # The full name, and the columns still line up under the header (right-aligned: same ends).
-    num_tris = len(trimesh.creation.icosphere(subdivisions=2).faces)
-    assert row.split()[:3] == [path.stem, str(num_tris), "hlbvh"]
-    assert header.index("mesh") + len("mesh") == len(path.stem)
+    num_tris = 4 * len(trimesh.creation.icosphere(subdivisions=2).faces)
+    assert row.split()[:3] == [name, str(num_tris), "hlbvh"]
+    assert header.index("mesh") + len("mesh") == len(name)
     assert header.index("tris") + len("tris") == row.index(f" {num_tris} ") + 1 + len(str(num_tris))

@@ -56,7 +56,8 @@ def test_frame_timing(device, tmp_path):
     with wp.ScopedDevice(device):
         modes = ["hlbvh scratch", "hlbvh auto", "hlbvh_sah scratch", "hlbvh_sah resorted", "wp.Bvh sah"]
         # One subdivision: the 1000-triangle scene becomes 4000 triangles (the paper-size option).
-        example = module.Example(num_tris=1000, num_frames=3, modes=modes, headless=True, subdivide=1)
+        example = module.Example(num_tris=1000, num_frames=3, modes=modes, headless=True,
+                                 subdivide_times=1)
         scratch = next(iter(example.sequences.values()))["runners"]["hlbvh scratch"]
         assert scratch.num_prims == 4 * len(module.scene(None, 1000)[1])
         for _ in range(3):

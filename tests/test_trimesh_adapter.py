@@ -98,3 +98,28 @@ def test_rebuilds_after_mesh_change(device):
     mesh.apply_translation((0.0, 0.0, 1.0))
     after = ours.intersects_location(o, d)[0][0, 2]
     assert np.isclose(after - before, 1.0, atol=1e-5)
+
+
+def test_subdivide_keeps_the_surface_and_quadruples_the_faces():
+    # `scenes.subdivide` scales a mesh up to the paper's sizes: same surface (bounds and area, in
+    # float64), four times the triangles per pass, and bad counts refused.
+    import numpy as np
+
+    from hlbvh_warp import scenes
+
+    vertices, faces = scenes.default_scene(200)
+
+    def area(v, f):
+        tri = v.astype(np.float64)[f]
+        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+
+    v2, f2 = scenes.subdivide(vertices, faces, 2)
+    assert v2.dtype == np.float32 and f2.dtype == np.int32
+    assert len(f2) == 16 * len(faces)
+    np.testing.assert_allclose(v2.min(axis=0), vertices.min(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(v2.max(axis=0), vertices.max(axis=0), rtol=1e-6)
+    assert area(v2, f2) == pytest.approx(area(vertices, faces), rel=1e-5)
+    v0, f0 = scenes.subdivide(vertices, faces, 0)
+    np.testing.assert_array_equal(f0, faces)
+    with pytest.raises(ValueError, match="times"):
+        scenes.subdivide(vertices, faces, -1)
