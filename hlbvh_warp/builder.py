@@ -112,7 +112,8 @@ class Builder:
         # Frames left during which `auto` rebuilds without trying a refit (chaotic motion), and
         # how long the next such wait lasts.
         self.chaotic_frames = 0
-        self.chaotic_wait = max(self.max_refits, 1)
+        self.first_chaotic_wait = max(self.max_refits, 1)
+        self.chaotic_wait = self.first_chaotic_wait
         self.timings = bool(timings)
         if method == "hlbvh_sah":
             self.pipeline = pipe = HlbvhSahPipeline(n, config, device)
@@ -286,7 +287,7 @@ class Builder:
                        node_count=pipe.node_count, vertices=self.vertices, faces=self.faces)
         self.frame = 0
         self.reports.clear()
-        self.chaotic_frames, self.chaotic_wait = 0, max(self.max_refits, 1)
+        self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
@@ -486,14 +487,14 @@ class Builder:
                     # rebuild: 3 of 24 frames of the exploding 400k-triangle armadillo at a
                     # fixed wait of 8).
                     self.chaotic_frames = self.chaotic_wait
-                    self.chaotic_wait = min(2 * self.chaotic_wait, MAX_CHAOTIC_BACKOFF * max(self.max_refits, 1))
+                    self.chaotic_wait = min(2 * self.chaotic_wait, MAX_CHAOTIC_BACKOFF * self.first_chaotic_wait)
                 self._rebuild(timer)
             else:
                 decision = "refit"
                 reason = (f"small motion ({relative:.2%} of the diagonal); SAH cost {growth:+.1%} over its best "
                           f"since the last rebuild (limit {self.sah_growth_limit:.0%})")
                 skipped = ["rebuild"]
-                self.chaotic_wait = max(self.max_refits, 1)
+                self.chaotic_wait = self.first_chaotic_wait
                 self.sah_reference = min(self.sah_reference, sah)
                 self.previous_growth, self.last_growth = self.last_growth, growth
         if decision == "refit":
