@@ -525,13 +525,14 @@ class HlbvhPipeline:
                     top_split = True
             self.node_count.fill_(first_seed_node + num_seeds)
         self.gather_leaf_boxes(threads)
+        serial = int(self.device.is_cpu)
         shared = [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
                   self.leaf_lowers, self.leaf_uppers]
         tail = [self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
                 self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
                 wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost]
         if not parallel or num_seeds < 2:
-            self._launch(treelets.emit_depth_first_kernel, num_seeds, shared + [self.node_count] + tail + [0])
+            self._launch(treelets.emit_depth_first_kernel, num_seeds, shared + [self.node_count] + tail + [0, serial])
             return
         # Runs of seeds with about n / threads primitives each; run j allocates from its own counter.
         first_free = int(self.node_count.numpy()[0])
@@ -545,7 +546,7 @@ class HlbvhPipeline:
             counters[j] = first_free + 2 * int(starts[s0]) - 2 * int(s0)
             counter = self.emit_counter_views[j]
             jobs.append(lambda s0=int(s0), s1=int(s1), counter=counter: self._launch(
-                treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0]))
+                treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0, serial]))
         threads_module.run(jobs, threads)
         self.node_count.fill_(first_free + 2 * (n - int(starts[0])) - 2 * num_seeds)
         if top_split:
