@@ -120,6 +120,7 @@ class HlbvhPipeline:
         self.run_starts = ints(n)
         self.run_count = ints(1)
         self.out_of_order = ints(1)
+        self.prim_count = wp.full(1, n, dtype=wp.int32, device=device)
         self.sorted_run_lengths = ints(n)
         self.sorted_run_offsets = ints(n)
         self.sorted_codes = ints(2 * n)
@@ -283,12 +284,23 @@ class HlbvhPipeline:
 
     def runs_in_order(self, num_runs: int) -> bool:
         """True when the run codes already ascend (resorted input): the top-level sort has no work."""
+        return self._ascending(self.run_count, self.run_codes, num_runs)
+
+    def codes_in_order(self) -> bool:
+        """True when the Morton codes already ascend in input order: a resorted frame whose
+        primitives kept their order (nothing moved, or a translation, which moves the centroid
+        grid with the scene), the paper's "resorting" row of its Table 1. Then the sort has no
+        work at all. A moving scene's codes descend within the first few (the CPU's check stops
+        there, so it costs nothing)."""
+        return self._ascending(self.prim_count, self.morton_codes, self.num_prims)
+
+    def _ascending(self, count: wp.array, codes: wp.array, bound: int) -> bool:
         if self.device.is_cpu:
             # Threads run in sequence there: one scan that stops at the first descent.
-            self._launch(compress.find_descent_kernel, 1, [self.run_count, self.run_codes, self.out_of_order])
+            self._launch(compress.find_descent_kernel, 1, [count, codes, self.out_of_order])
         else:
             self.out_of_order.zero_()
-            self._launch(compress.count_descents_kernel, num_runs, [self.run_count, self.run_codes, self.out_of_order])
+            self._launch(compress.count_descents_kernel, bound, [count, codes, self.out_of_order])
         return int(self.out_of_order.numpy()[0]) == 0
 
     def top_level_sort(self, num_runs: int, sort: bool = True):
@@ -363,15 +375,18 @@ class HlbvhPipeline:
         """Whether the last voxel sort had any block to sort (read on the host)."""
         return int(self.blocks_sorted.numpy().sum()) > 0
 
-    def global_sort(self):
-        """LBVH baseline (the paper's Table 1): one radix sort over all 3n bits."""
+    def global_sort(self, sort: bool = True):
+        """LBVH baseline (the paper's Table 1): one radix sort over all 3n bits; without `sort`,
+        the codes and ids copied as they are (input already in order)."""
         n = self.num_prims
         wp.copy(self.sorted_codes, self.morton_codes, count=n)
         if self.input_ids.shape[0] > 0:
             wp.copy(self.sorted_prim_ids, self.input_ids, count=n)
         else:
             self._launch(compress.iota_kernel, n, [self.sorted_prim_ids])
-        wp.utils.radix_sort_pairs(self.sorted_codes, self.sorted_prim_ids, n, end_bit=3 * self.config.bits_per_axis)
+        if sort:
+            wp.utils.radix_sort_pairs(self.sorted_codes, self.sorted_prim_ids, n,
+                                      end_bit=3 * self.config.bits_per_axis)
 
     def _host_count(self, count: wp.array, bound: int) -> int:
         """Launch size for a per-segment stage: the exact count where reading it is free (the CPU
@@ -603,8 +618,19 @@ class HlbvhPipeline:
     def sort_codes(self, timer: StageTimer, sync_free: bool = False, need_voxels: bool = False) -> int:
         """HLBVH's primitive sort (paper 2.1-2.2): run-length encoding by the high 3m bits,
         compress-sort-decompress, the voxel sort; skips the sorts whose work is already done.
-        Returns M, the run count (its bound N with `sync_free`). `need_voxels`: the caller reads
+        Returns M, the run count (its bound N with `sync_free`, or when the codes were already in
+        order and nothing was encoded). `need_voxels`: the caller reads
         the voxel segments (`voxel_starts`, the SAH-optimized build's clusters)."""
+        sort_stages = ("run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort")
+        if not sync_free and not need_voxels:
+            # Codes already in order (a resorted frame in which nothing changed order): no sort,
+            # the input is the sorted order. The check reads the codes up to their first descent.
+            timer.stage("order_check")
+            if self.codes_in_order():
+                self.global_sort(sort=False)
+                for stage in sort_stages:
+                    timer.skipped(stage)
+                return self.num_prims
         # Run-length encode the codes by their high 3m bits: M runs of one coarse voxel each.
         timer.stage("run_length_encode")
         num_runs = self.run_length_encode(sync_free)
@@ -615,7 +641,7 @@ class HlbvhPipeline:
             # order: both are stable sorts of the full codes.
             timer.stage("global_sort")
             self.global_sort()
-            for stage in ("top_level_sort", "run_length_decode", "voxel_sort"):
+            for stage in sort_stages[1:]:
                 timer.skipped(stage)
             return num_runs
         # Compress-sort-decompress: sort the M run codes, then expand the runs in order.

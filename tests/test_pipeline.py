@@ -307,6 +307,46 @@ def test_global_sort_when_runs_do_not_compress(device, rng, clusters):
     assert (runs > len(lo) // 2) != clusters
 
 
+@pytest.mark.parametrize("case", ["sorted", "last_pair_swapped", "first_pair_swapped"])
+def test_codes_already_in_order_skip_every_sort(device, rng, case):
+    """Input whose codes already ascend (a resorted frame in which nothing changed order) skips
+    the run-length encoding, both sorts and the decode, and its order is the input's. One pair
+    out of order anywhere, the first or the last, and the paper's stages run as before. Either
+    way the order is NumPy's stable argsort of the codes and the tree the radix tree over them."""
+    lo, hi = soup_bounds(rng, 3000, clusters=True)
+    ascending = np.argsort(morton_reference(lo, hi, 10), kind="stable")
+    lo, hi = lo[ascending], hi[ascending]
+    codes = morton_reference(lo, hi, 10)
+    distinct = np.flatnonzero(np.diff(codes) != 0)
+    if case != "sorted":
+        # Swap the first (or last) two neighbours whose codes differ: one descent, at that end.
+        i = int(distinct[0] if case == "first_pair_swapped" else distinct[-1])
+        swap = np.arange(len(lo))
+        swap[[i, i + 1]] = swap[[i + 1, i]]
+        lo, hi = lo[swap], hi[swap]
+        codes = codes[swap]
+    # The paper's sort for every build that sorts (no global-sort shortcut).
+    pipe = make_pipeline(lo, hi, device, global_sort_runs=1.0)
+    timer = StageTimer(pipe.device, True)
+    pipe.build("hlbvh", timer)
+    skipped = set(timer.timings.get("skipped", []))
+    sort_stages = {"run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort"}
+    if case == "sorted":
+        assert sort_stages <= skipped, skipped
+    else:
+        # The paper's stages run; the swap is undone by one of the two sorts (the top-level one
+        # when it crosses voxels, the voxel sort when it does not).
+        assert not ({"run_length_encode", "run_length_decode"} & skipped), skipped
+        assert not {"top_level_sort", "voxel_sort"} <= skipped, skipped
+    order = pipe.sorted_prim_ids.numpy()[: len(lo)]
+    np.testing.assert_array_equal(order, np.argsort(codes, kind="stable"))
+    tree = hb.build_from_bounds(lo, hi, device=device).to_numpy()
+    check_tree_invariants(tree, len(lo))
+    leaves = tree["node_left"] < 0
+    spans = {(int(b), int(e), bool(l)) for b, e, l in zip(tree["node_begin"], tree["node_end"], leaves)}
+    assert spans == radix_tree_reference(codes[tree["prim_order"]])
+
+
 def test_sync_free_build_matches(device, rng):
     lo, hi = soup_bounds(rng, 3000, clusters=True)
     pipe = make_pipeline(lo, hi, device)
