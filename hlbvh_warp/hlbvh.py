@@ -622,9 +622,11 @@ class HlbvhPipeline:
         order and nothing was encoded). `need_voxels`: the caller reads
         the voxel segments (`voxel_starts`, the SAH-optimized build's clusters)."""
         sort_stages = ("run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort")
-        if not sync_free and not need_voxels:
+        if self.device.is_cpu and not sync_free and not need_voxels:
             # Codes already in order (a resorted frame in which nothing changed order): no sort,
-            # the input is the sorted order. The check reads the codes up to their first descent.
+            # the input is the sorted order. On the CPU the check reads the codes up to their
+            # first descent. On CUDA it would be a pass over N and a wait for the host in every
+            # one-shot build (a CUDA Builder's rebuilds keep their counts on the device anyway).
             timer.stage("order_check")
             if self.codes_in_order():
                 self.global_sort(sort=False)

@@ -310,7 +310,7 @@ def test_global_sort_when_runs_do_not_compress(device, rng, clusters):
 @pytest.mark.parametrize("case", ["sorted", "last_pair_swapped", "first_pair_swapped"])
 def test_codes_already_in_order_skip_every_sort(device, rng, case):
     """Input whose codes already ascend (a resorted frame in which nothing changed order) skips
-    the run-length encoding, both sorts and the decode, and its order is the input's. One pair
+    the run-length encoding, both sorts and the decode on the CPU, and its order is the input's. One pair
     out of order anywhere, the first or the last, and the paper's stages run as before. Either
     way the order is NumPy's stable argsort of the codes and the tree the radix tree over them."""
     lo, hi = soup_bounds(rng, 3000, clusters=True)
@@ -332,7 +332,9 @@ def test_codes_already_in_order_skip_every_sort(device, rng, case):
     skipped = set(timer.timings.get("skipped", []))
     sort_stages = {"run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort"}
     if case == "sorted":
-        assert sort_stages <= skipped, skipped
+        # On CUDA the check is left out (a pass and a host read per build); the older skips fire.
+        expected = sort_stages if pipe.device.is_cpu else {"top_level_sort", "voxel_sort"}
+        assert expected <= skipped, skipped
     else:
         # The paper's stages run; the swap is undone by one of the two sorts (the top-level one
         # when it crosses voxels, the voxel sort when it does not).
