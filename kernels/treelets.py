@@ -203,6 +203,32 @@ def open_segment(
 
 
 @wp.func
+def link_children(
+    node: int,
+    left: int,
+    right: int,
+    begin: int,
+    split: int,
+    end: int,
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_parent: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+):
+    # Make `left` and `right` the children of `node`, covering [begin, split) and [split, end).
+    node_left[node] = left
+    node_right[node] = right
+    node_parent[left] = node
+    node_parent[right] = node
+    node_begin[left] = begin
+    node_end[left] = split
+    node_begin[right] = split
+    node_end[right] = end
+    return 0
+
+
+@wp.func
 def walk_treelet(
     emit: int,
     s: int,
@@ -269,14 +295,8 @@ def walk_treelet(
                 left_hi = sp
                 right_lo = sp
                 if emit != 0:
-                    node_left[node] = left_owner
-                    node_right[node] = right_owner
-                    node_parent[left_owner] = node
-                    node_parent[right_owner] = node
-                    node_begin[left_owner] = a
-                    node_end[left_owner] = sp
-                    node_begin[right_owner] = sp
-                    node_end[right_owner] = b
+                    link_children(node, left_owner, right_owner, a, sp, b, node_left, node_right, node_parent,
+                                  node_begin, node_end)
             else:
                 # No split here: the whole range goes to the side its bit of this level says.
                 level = highest_bit(j + 1)
@@ -438,32 +458,6 @@ def radix_split(codes: wp.array(dtype=wp.int32), begin: int, end: int):
         else:
             lo = mid + 1
     return lo
-
-
-@wp.func
-def link_children(
-    node: int,
-    left: int,
-    right: int,
-    begin: int,
-    split: int,
-    end: int,
-    node_left: wp.array(dtype=wp.int32),
-    node_right: wp.array(dtype=wp.int32),
-    node_parent: wp.array(dtype=wp.int32),
-    node_begin: wp.array(dtype=wp.int32),
-    node_end: wp.array(dtype=wp.int32),
-):
-    # Make `left` and `right` the children of `node`, covering [begin, split) and [split, end).
-    node_left[node] = left
-    node_right[node] = right
-    node_parent[left] = node
-    node_parent[right] = node
-    node_begin[left] = begin
-    node_end[left] = split
-    node_begin[right] = split
-    node_end[right] = end
-    return 0
 
 
 @wp.kernel
