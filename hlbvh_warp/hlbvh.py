@@ -300,7 +300,7 @@ class HlbvhPipeline:
             self._launch(compress.find_descent_kernel, 1, [count, codes, self.out_of_order])
         else:
             self.out_of_order.zero_()
-            self._launch(compress.count_descents_kernel, bound, [count, codes, self.out_of_order])
+            self._launch(compress.flag_descents_kernel, bound, [count, codes, self.out_of_order])
         return int(self.out_of_order.numpy()[0]) == 0
 
     def top_level_sort(self, num_runs: int, sort: bool = True):

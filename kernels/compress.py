@@ -19,16 +19,19 @@ def iota_kernel(values: wp.array(dtype=wp.int32)):
 
 
 @wp.kernel
-def count_descents_kernel(
+def flag_descents_kernel(
     run_count: wp.array(dtype=wp.int32),
     run_codes: wp.array(dtype=wp.int32),
     descents: wp.array(dtype=wp.int32),
 ):
+    # descents[0] (zeroed by the caller) becomes 1 if any code descends. Only "any descent?" is
+    # asked, so every thread that finds one stores the same 1: no atomic, where counting with an
+    # atomic add on one address would serialize the thousands of descents of a moving frame.
     r = wp.tid()
     if r == 0 or r >= run_count[0]:
         return
     if run_codes[r - 1] > run_codes[r]:
-        wp.atomic_add(descents, 0, 1)
+        descents[0] = 1
 
 
 @wp.kernel
@@ -37,7 +40,7 @@ def find_descent_kernel(
     run_codes: wp.array(dtype=wp.int32),
     descents: wp.array(dtype=wp.int32),
 ):
-    # The CPU device's form of count_descents_kernel: one thread scans the runs and stops at the
+    # The CPU device's form of flag_descents_kernel: one thread scans the runs and stops at the
     # first descent. Only "any descent?" is asked, and a moving scene's runs are out of order
     # within the first few (the check then costs nothing); in-order runs cost one read each.
     m = run_count[0]
