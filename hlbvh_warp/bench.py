@@ -90,6 +90,10 @@ def sweep_settings(builders) -> list[tuple[str, str, dict]]:
             out += [(b, f"cluster>={k}", {"cluster_min_prims": k}) for k in (0.0, 3.0, 12.0, 24.0)]
         if b == "hlbvh":
             out += [(b, f"p={p}", {"planes_per_pass": p}) for p in (1, 2, 4)]
+            # The same tree by either sort: the paper's compress-sort-decompress on every input,
+            # or one radix sort of the full codes on every input (the default picks by the
+            # run-length encoding's compression, `BuildConfig.global_sort_runs`).
+            out += [(b, "csd", {"global_sort_runs": 1.0}), (b, "global sort", {"global_sort_runs": 0.0})]
         if b == "binned_sah":
             out += [(b, f"bins={k}", {"sah_bins": k}) for k in (4, 8, 32, 64)]
         if b in ("hlbvh", "sweep_sah", "binned_sah", "median", "hlbvh_sah"):

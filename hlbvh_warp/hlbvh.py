@@ -87,7 +87,8 @@ class HlbvhPipeline:
         """Keep this pipeline's scratch for the next `one_shot` build; its outputs now belong to a
         `Bvh` and are replaced before the pipeline builds again."""
         self.prim_lowers = self.prim_uppers = None
-        self._morton_parts = None
+        # Views over the boxes and over the tree's ids, which now belong to the caller.
+        self._morton_parts = self._leaf_box_parts = None
         memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self)
 
     def renew_outputs(self):
@@ -575,7 +576,10 @@ class HlbvhPipeline:
         n = self.num_prims
         args = [self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.leaf_lowers, self.leaf_uppers]
         if threads > 1 and n >= PARALLEL_MIN_PRIMS:
-            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, threads)
+            # The ids are an output, renewed for every one-shot build, and the caller may refill
+            # the same box arrays between builds: views kept over an older id array would gather
+            # the boxes in that build's order.
+            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, self.sorted_prim_ids.ptr, threads)
             if self._leaf_box_parts is None or self._leaf_box_parts[0] != key:
                 cuts = threads_module.split_bounds(n, threads)
                 parts = [(hi - lo, [self.sorted_prim_ids[lo:hi], self.prim_lowers, self.prim_uppers,

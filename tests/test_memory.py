@@ -10,7 +10,8 @@ import pytest
 import warp as wp
 
 import hlbvh_warp as hw
-from hlbvh_warp import memory
+from hlbvh_warp import api, memory
+from hlbvh_warp.hlbvh import PARALLEL_MIN_PRIMS, StageTimer
 from oracles import random_soup
 
 
@@ -97,3 +98,33 @@ def test_one_shot_builds_reuse_the_pipeline_but_never_its_outputs(pool, device, 
         assert np.array_equal(second.to_numpy()[key], value), key
     memory.clear_host_cache()
     assert not memory._SCRATCH._entries
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah"])
+def test_one_shot_build_over_refilled_box_arrays(pool, device, rng, method):
+    """A caller may refill the same box arrays between one-shot builds, which share a kept
+    pipeline: the second tree must be the one a build with nothing kept gives. (The leaf-box
+    gather once kept its views over the first build's ids, keyed by the boxes' addresses only,
+    and gathered the second build's boxes in the first build's order.)"""
+    # Enough primitives, and two threads, for the CPU's sliced launches.
+    n = 3 * PARALLEL_MIN_PRIMS
+    config = hw.BuildConfig(cpu_threads=2)
+    timer = StageTimer(device, False)
+    centers = rng.random((2, n, 3)).astype(np.float32)
+    sizes = (0.01 * rng.random((2, n, 3))).astype(np.float32)
+    lowers = wp.array(centers[0] - sizes[0], dtype=wp.vec3, device=device)
+    uppers = wp.array(centers[0] + sizes[0], dtype=wp.vec3, device=device)
+    api.BUILDERS[method](lowers, uppers, config, device, timer)
+    lowers.assign(centers[1] - sizes[1])
+    uppers.assign(centers[1] + sizes[1])
+    second = api.BUILDERS[method](lowers, uppers, config, device, timer).to_numpy()
+
+    memory.set_host_cache_limit(0)
+    expected = hw.build_from_bounds(centers[1] - sizes[1], centers[1] + sizes[1], method=method, device=device,
+                                    config=config).to_numpy()
+    for key in ("prim_order", "node_left", "node_right", "node_lowers", "node_uppers"):
+        np.testing.assert_array_equal(second[key], expected[key], err_msg=key)
+    # And against the boxes themselves: every leaf's box is its primitive's.
+    leaves = np.flatnonzero(second["node_end"] - second["node_begin"] == 1)
+    prims = second["prim_order"][second["node_begin"][leaves]]
+    np.testing.assert_array_equal(second["node_lowers"][leaves], centers[1][prims] - sizes[1][prims])
