@@ -20,6 +20,7 @@ from __future__ import annotations
 import warp as wp
 
 from . import api, memory
+from .memory import array_bytes
 from . import threads as threads_module
 from .bvh import Bvh
 from .config import BuildConfig
@@ -41,18 +42,6 @@ PARALLEL_MIN_ITEMS = 4096
 
 #: Split rule of each top-down method (kernels/sah.py).
 TOP_DOWN_MODES = {"sweep_sah": sah.MODE_SWEEP, "binned_sah": sah.MODE_BINNED, "median": sah.MODE_MEDIAN}
-
-
-def array_bytes(*holders) -> int:
-    """Bytes of every Warp array held as an attribute of `holders` (what a build allocates)."""
-    seen = set()
-    total = 0
-    for holder in holders:
-        for value in vars(holder).values():
-            if isinstance(value, wp.array) and id(value) not in seen:
-                seen.add(id(value))
-                total += value.capacity
-    return total
 
 
 class TopDownBuilder:
@@ -358,6 +347,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
     #: sorted_prim_ids stays scratch here: the tree's order is `prim_order`, written by the join.
     OUTPUTS = HlbvhPipeline.OUTPUTS[:-1] + ("prim_order",)
 
+    def held_bytes(self) -> int:
+        return super().held_bytes() + (self.top.nbytes() if self.top is not None else 0)
+
     def max_clusters(self) -> int:
         """The most clusters a build of this pipeline can have: no more than the primitives or the
         voxels of the 3m-bit grid, and, where m is automatic, no more than one per
@@ -602,7 +594,7 @@ def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
         node_count=pipe.node_count,
         timings=timings,
     )
-    bvh.buffer_bytes = array_bytes(pipe) + pipe.top.nbytes()
+    bvh.buffer_bytes = pipe.held_bytes()
     pipe.give_back()
     return bvh
 

@@ -89,7 +89,12 @@ class HlbvhPipeline:
         self.prim_lowers = self.prim_uppers = None
         # Views over the boxes and over the tree's ids, which now belong to the caller.
         self._morton_parts = self._leaf_box_parts = None
-        memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self)
+        memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self,
+                                 self.held_bytes())
+
+    def held_bytes(self) -> int:
+        """Bytes of the arrays this pipeline holds (its outputs included)."""
+        return memory.array_bytes(self)
 
     def renew_outputs(self):
         for name in self.OUTPUTS:

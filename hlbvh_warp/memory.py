@@ -94,33 +94,59 @@ class ScratchCache:
     The pool above saves the page faults of fresh memory, but a pipeline still wraps about sixty
     buffers in Warp arrays, about 1.5 ms of Python per build of the 100k-triangle armadillo
     (7% of an ``hlbvh_sah`` build). A program that calls `build` in a loop gets the previous
-    build's pipeline back instead, its outputs renewed (the last `Bvh` keeps the old ones). At
-    most `max_entries` sets are kept, the least recently used dropped first; the pool's limit
-    of 0 turns this off too, and `clear_host_cache` empties it.
+    build's pipeline of the same size, config and device back instead, its outputs renewed (the
+    last `Bvh` keeps the old ones).
+
+    Sets are kept while their bytes (`array_bytes`, the outputs they still point at included)
+    fit the pool's limit, and at most `max_entries` of them, the least recently used dropped
+    first. A scene of several meshes, each built one-shot every frame, needs one set per mesh:
+    with room for only two, four meshes built in turn each paid for a new pipeline and took
+    1.5-1.7x as long (see the README). The pool's limit of 0 turns this off too, and
+    `clear_host_cache` empties it.
     """
 
-    def __init__(self, max_entries: int = 2):
+    def __init__(self, max_entries: int = 16):
         self.max_entries = max_entries
+        self.held_bytes = 0
         self._entries: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
 
     def take(self, key):
         """The kept set for `key` (now owned by the caller), or None."""
         with self._lock:
-            return self._entries.pop(key, None)
+            entry = self._entries.pop(key, None)
+            if entry is None:
+                return None
+            self.held_bytes -= entry[1]
+            return entry[0]
 
-    def give_back(self, key, scratch):
-        if _POOL.limit <= 0:
+    def give_back(self, key, scratch, nbytes: int = 0):
+        """Keep `scratch` (holding `nbytes`) under `key`, dropping the oldest sets past the limits."""
+        nbytes = int(nbytes)
+        if _POOL.limit <= 0 or nbytes > _POOL.limit:
             return
         with self._lock:
-            self._entries[key] = scratch
-            self._entries.move_to_end(key)
-            while len(self._entries) > self.max_entries:
-                self._entries.popitem(last=False)
+            old = self._entries.pop(key, None)
+            if old is not None:
+                self.held_bytes -= old[1]
+            self._entries[key] = (scratch, nbytes)
+            self.held_bytes += nbytes
+            self._trim(_POOL.limit)
+
+    def _trim(self, limit_bytes: int):
+        while self._entries and (len(self._entries) > self.max_entries or self.held_bytes > limit_bytes):
+            _, (_, dropped) = self._entries.popitem(last=False)
+            self.held_bytes -= dropped
+
+    def trim(self, limit_bytes: int):
+        """Drop the oldest sets until the rest hold at most `limit_bytes`."""
+        with self._lock:
+            self._trim(limit_bytes)
 
     def clear(self):
         with self._lock:
             self._entries.clear()
+            self.held_bytes = 0
 
 
 _SCRATCH = ScratchCache()
@@ -131,9 +157,22 @@ def take_scratch(key):
     return _SCRATCH.take(key)
 
 
-def give_back_scratch(key, scratch):
-    """Keep `scratch` for the next one-shot build under `key` (see `ScratchCache`)."""
-    _SCRATCH.give_back(key, scratch)
+def give_back_scratch(key, scratch, nbytes: int = 0):
+    """Keep `scratch`, which holds `nbytes` of arrays, for the next one-shot build under `key`
+    (see `ScratchCache`)."""
+    _SCRATCH.give_back(key, scratch, nbytes)
+
+
+def array_bytes(*holders) -> int:
+    """Bytes of every Warp array held as an attribute of `holders` (what a build allocates)."""
+    seen = set()
+    total = 0
+    for holder in holders:
+        for value in vars(holder).values():
+            if isinstance(value, wp.array) and id(value) not in seen:
+                seen.add(id(value))
+                total += value.capacity
+    return total
 
 
 def empty(shape, dtype, device) -> wp.array:
@@ -148,6 +187,8 @@ def set_host_cache_limit(limit_bytes: int):
         _POOL.clear()
     if _POOL.limit <= 0:
         _SCRATCH.clear()
+    else:
+        _SCRATCH.trim(_POOL.limit)
 
 
 def clear_host_cache():

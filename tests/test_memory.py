@@ -87,9 +87,9 @@ def test_one_shot_builds_reuse_the_pipeline_but_never_its_outputs(pool, device, 
     memory.set_host_cache_limit(1 << 30)
     first = hw.build(v, f, method=method, device=device)
     first_arrays = first.to_numpy()
-    (kept,) = memory._SCRATCH._entries.values()
+    ((kept, _),) = memory._SCRATCH._entries.values()
     second = hw.build(other_v, other_f, method=method, device=device)
-    assert next(iter(memory._SCRATCH._entries.values())) is kept, "the second build did not reuse the first's pipeline"
+    assert next(iter(memory._SCRATCH._entries.values()))[0] is kept, "the second build did not reuse the first's pipeline"
     for name in ("node_left", "node_lowers", "prim_order"):
         assert getattr(first, name).ptr != getattr(second, name).ptr, name
     for key, value in first_arrays.items():
@@ -128,3 +128,44 @@ def test_one_shot_build_over_refilled_box_arrays(pool, device, rng, method):
     leaves = np.flatnonzero(second["node_end"] - second["node_begin"] == 1)
     prims = second["prim_order"][second["node_begin"][leaves]]
     np.testing.assert_array_equal(second["node_lowers"][leaves], centers[1][prims] - sizes[1][prims])
+
+
+def _kept_by_size():
+    return {key[1]: scratch for key, (scratch, _) in memory._SCRATCH._entries.items()}
+
+
+def test_one_shot_builds_of_several_meshes_each_keep_their_pipeline(pool, device, rng):
+    """A scene of several meshes built one-shot in turn gets every mesh's pipeline back (with
+    room for only two sets, the third mesh evicted the first every time)."""
+    meshes = [random_soup(rng, n) for n in (3000, 4000, 5000, 6000)]
+    for v, f in meshes:
+        hw.build(v, f, device=device)
+    first = _kept_by_size()
+    assert sorted(first) == [3000, 4000, 5000, 6000]
+    for v, f in meshes:
+        hw.build(v, f, device=device)
+    again = _kept_by_size()
+    for n, scratch in first.items():
+        assert again[n] is scratch, f"the {n}-triangle mesh got a new pipeline"
+    assert memory._SCRATCH.held_bytes == sum(nbytes for _, nbytes in memory._SCRATCH._entries.values())
+
+
+def test_scratch_cache_keeps_to_the_byte_limit(pool, device, rng):
+    """The kept sets never hold more than the pool's limit; the oldest go first, and lowering
+    the limit drops sets at once."""
+    v, f = random_soup(rng, 5000)
+    hw.build(v, f, device=device)
+    ((_, one_set),) = memory._SCRATCH._entries.values()
+    assert one_set > 0
+    # Room for one set of this size: a second mesh's set replaces the first.
+    memory.set_host_cache_limit(one_set + one_set // 2)
+    hw.build(v, f, device=device)
+    other_v, other_f = random_soup(rng, 5001)
+    hw.build(other_v, other_f, device=device)
+    assert sorted(_kept_by_size()) == [5001]
+    assert memory._SCRATCH.held_bytes <= one_set + one_set // 2
+    memory.set_host_cache_limit(one_set // 2)
+    assert not memory._SCRATCH._entries and memory._SCRATCH.held_bytes == 0
+    # A set larger than the limit is not kept at all.
+    hw.build(v, f, device=device)
+    assert not memory._SCRATCH._entries
