@@ -191,6 +191,16 @@ def set_host_cache_limit(limit_bytes: int):
         _SCRATCH.trim(_POOL.limit)
 
 
+def set_scratch_cache_sets(count: int):
+    """Keep at most `count` one-shot pipeline scratch sets (default 16; 0 keeps none, while the
+    pool still recycles blocks). One per mesh a program builds one-shot in turn is enough."""
+    count = int(count)
+    if count < 0:
+        raise ValueError(f"count must be >= 0, got {count}")
+    _SCRATCH.max_entries = count
+    _SCRATCH.trim(_POOL.limit)
+
+
 def clear_host_cache():
     """Release every idle block, and every kept scratch set, to the system."""
     _SCRATCH.clear()

@@ -169,3 +169,21 @@ def test_scratch_cache_keeps_to_the_byte_limit(pool, device, rng):
     # A set larger than the limit is not kept at all.
     hw.build(v, f, device=device)
     assert not memory._SCRATCH._entries
+
+
+def test_scratch_cache_sets_setting(pool, device, rng):
+    """`set_scratch_cache_sets` caps the kept sets at once; 0 keeps none; a negative count is an error."""
+    old = memory._SCRATCH.max_entries
+    try:
+        for n in (3000, 4000, 5000):
+            hw.build(*random_soup(rng, n), device=device)
+        assert len(memory._SCRATCH._entries) == 3
+        memory.set_scratch_cache_sets(1)
+        assert sorted(_kept_by_size()) == [5000]
+        memory.set_scratch_cache_sets(0)
+        hw.build(*random_soup(rng, 3000), device=device)
+        assert not memory._SCRATCH._entries and memory._SCRATCH.held_bytes == 0
+        with pytest.raises(ValueError, match="count"):
+            memory.set_scratch_cache_sets(-1)
+    finally:
+        memory.set_scratch_cache_sets(old)
