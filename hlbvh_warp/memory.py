@@ -101,7 +101,7 @@ class ScratchCache:
     fit the pool's limit, and at most `max_entries` of them, the least recently used dropped
     first. A scene of several meshes, each built one-shot every frame, needs one set per mesh:
     with room for only two, four meshes built in turn each paid for a new pipeline and took
-    1.5-1.7x as long (see the README). The pool's limit of 0 turns this off too, and
+    1.3-1.7x as long (see the README). The pool's limit of 0 turns this off too, and
     `clear_host_cache` empties it.
     """
 
