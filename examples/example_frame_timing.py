@@ -12,16 +12,14 @@
 import argparse
 import os
 import time
-import warnings
 
 import numpy as np
 import warp as wp
 
-from hlbvh_warp.bench import collector_paused
+from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
-from hlbvh_warp.kernels import morton
 from hlbvh_warp.scenes import scene, subdivide
 
 #: label -> Builder options; "wp.Bvh <constructor>" entries are Warp's own BVH, rebuilt per frame.
@@ -37,30 +35,6 @@ MODES = {
     "wp.Bvh sah": "sah",
     "wp.Bvh lbvh": "lbvh",
 }
-
-
-class WarpBvhPeer:
-    """wp.Bvh over the triangle boxes, constructed from scratch every frame."""
-
-    def __init__(self, num_prims, constructor, device):
-        self.constructor = constructor
-        self.device = wp.get_device(device)
-        self.lowers = wp.empty(num_prims, dtype=wp.vec3, device=self.device)
-        self.uppers = wp.empty(num_prims, dtype=wp.vec3, device=self.device)
-        self.faces = None
-        self.bvh = None
-
-    def build(self, vertices, faces):
-        self.faces = wp.array(np.asarray(faces, dtype=np.int32), dtype=wp.int32, device=self.device)
-        self.update(vertices)
-
-    def update(self, vertices):
-        wp.launch(morton.triangle_bounds_kernel, dim=self.lowers.shape[0],
-                  inputs=[vertices, self.faces, self.lowers, self.uppers], device=self.device)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # wp.Bvh on the CPU falls back from "lbvh" to "sah"
-            self.bvh = wp.Bvh(self.lowers, self.uppers, constructor=self.constructor)
-        return {"decision": "rebuild"}
 
 
 def sequence_bounds(anim, param, num_frames):

@@ -11,17 +11,15 @@
 #       [--scratch-sets N]
 
 import argparse
-import gc
 import time
-import warnings
 
 import numpy as np
 import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import memory
+from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.kernels import morton
 from hlbvh_warp.scenes import scene
 
 MODES = ("hlbvh_warp.build", "Builder", "wp.Bvh sah")
@@ -52,12 +50,11 @@ class Example:
             rest = wp.array(vertices, dtype=wp.vec3, device=device)
             center = wp.vec3(*((vertices.min(axis=0) + vertices.max(axis=0)) * 0.5))
             obj = {"rest": rest, "center": center, "vertices": wp.empty_like(rest), "faces_np": faces,
-                   "faces": wp.array(faces, dtype=wp.int32, device=device),
-                   "lowers": wp.empty(len(faces), dtype=wp.vec3, device=device),
-                   "uppers": wp.empty(len(faces), dtype=wp.vec3, device=device),
-                   "builder": Builder(len(faces), device=device, resort=True)}
+                   "builder": Builder(len(faces), device=device, resort=True),
+                   "peer": WarpBvhPeer(len(faces), "sah", device)}
             self._move(obj, 0.0)
             obj["builder"].build(obj["vertices"], faces)
+            obj["peer"].build(obj["vertices"], faces)
             self.objects.append(obj)
         self.ms = {mode: [] for mode in MODES}
         self.bvhs = {}
@@ -75,13 +72,7 @@ class Example:
             elif mode == "Builder":
                 obj["builder"].rebuild(obj["vertices"])
             else:
-                wp.launch(morton.triangle_bounds_kernel, dim=obj["lowers"].shape[0],
-                          inputs=[obj["vertices"], obj["faces"], obj["lowers"], obj["uppers"]],
-                          device=obj["lowers"].device)
-                with warnings.catch_warnings():
-                    # wp.Bvh warns that "lbvh" falls back to "sah" on the CPU; "sah" is asked here.
-                    warnings.simplefilter("ignore")
-                    obj["peer"] = wp.Bvh(obj["lowers"], obj["uppers"], constructor="sah")
+                obj["peer"].update(obj["vertices"])
 
     def _run_frame(self, record=True):
         angle = 0.25 * (self.frame + 1)
@@ -89,10 +80,7 @@ class Example:
             self._move(obj, angle)
         # The modes take turns going first, as in the frame-timing example.
         order = MODES[self.frame % len(MODES):] + MODES[: self.frame % len(MODES)]
-        collect_after = gc.isenabled()
-        gc.collect()
-        gc.disable()
-        try:
+        with collector_paused():
             for mode in order:
                 wp.synchronize()
                 start = time.perf_counter()
@@ -100,9 +88,6 @@ class Example:
                 wp.synchronize()
                 if record:
                     self.ms[mode].append((time.perf_counter() - start) * 1e3)
-        finally:
-            if collect_after:
-                gc.enable()
 
     def step(self):
         self._run_frame()

@@ -34,6 +34,7 @@ import warp as wp
 from . import api, inputs, reference, scenes
 from .config import BuildConfig
 from .hlbvh import StageTimer
+from .kernels import morton
 from .metrics import sah_cost
 
 #: Our builders, in the order the table lists them.
@@ -134,6 +135,31 @@ def _time_interleaved(fns, device, repeats: int, warmup: int) -> list[list[float
                 wp.synchronize_device(device)
                 out.append((time.perf_counter() - start) * 1e3)
     return times
+
+
+class WarpBvhPeer:
+    """The per-frame peer of the examples: `wp.Bvh` over the triangle boxes, constructed from
+    scratch every frame (`build` once with the faces, then `update` with new vertices)."""
+
+    def __init__(self, num_prims, constructor, device):
+        self.constructor = constructor
+        self.device = wp.get_device(device)
+        self.lowers = wp.empty(num_prims, dtype=wp.vec3, device=self.device)
+        self.uppers = wp.empty(num_prims, dtype=wp.vec3, device=self.device)
+        self.faces = None
+        self.bvh = None
+
+    def build(self, vertices, faces):
+        self.faces = wp.array(np.asarray(faces, dtype=np.int32), dtype=wp.int32, device=self.device)
+        self.update(vertices)
+
+    def update(self, vertices):
+        wp.launch(morton.triangle_bounds_kernel, dim=self.lowers.shape[0],
+                  inputs=[vertices, self.faces, self.lowers, self.uppers], device=self.device)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # wp.Bvh on the CPU falls back from "lbvh" to "sah"
+            self.bvh = wp.Bvh(self.lowers, self.uppers, constructor=self.constructor)
+        return {"decision": "rebuild"}
 
 
 def _summary(times: list[float]) -> dict:
