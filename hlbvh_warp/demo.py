@@ -12,41 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
-
-def _brute_force():
-    try:
-        from .reference import brute_force_closest_hit
-
-        return brute_force_closest_hit
-    except ImportError:
-        return brute_force_closest_hit
-
-
-def brute_force_closest_hit(vertices, faces, origins, directions, chunk=64):
-    """Closest hit of every ray against every triangle, Moller-Trumbore in float64: (t, prim)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    e1, e2 = b - a, c - a
-    o_all, d_all = np.asarray(origins, dtype=np.float64), np.asarray(directions, dtype=np.float64)
-    t_out, p_out = np.full(len(o_all), np.inf), np.full(len(o_all), -1, dtype=np.int64)
-    with np.errstate(all="ignore"):
-        for s in range(0, len(o_all), chunk):
-            o, d = o_all[s:s + chunk, None, :], d_all[s:s + chunk, None, :]
-            p = np.cross(d, e2[None])
-            inv = 1.0 / np.einsum("rfk,fk->rf", p, e1)
-            tv = o - a[None]
-            u = np.einsum("rfk,rfk->rf", tv, p) * inv
-            q = np.cross(tv, e1[None])
-            w = np.einsum("rk,rfk->rf", d[:, 0], q) * inv
-            t = np.einsum("rfk,fk->rf", q, e2) * inv
-            ok = np.isfinite(t) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
-            t = np.where(ok, t, np.inf)
-            idx = np.argmin(t, axis=1)
-            best = t[np.arange(len(idx)), idx]
-            t_out[s:s + chunk] = best
-            p_out[s:s + chunk] = np.where(np.isfinite(best), idx, -1)
-    return t_out, p_out
+from .reference import brute_force_closest_hit
 
 
 def check_rays(bvh, vertices, faces, origins, directions, reference, rtol=1e-4) -> int:
@@ -105,7 +71,7 @@ def main(argv=None) -> int:
         api._load_optional_builders()
         methods = args.methods.split(",") if args.methods else list(api.BUILDERS)
         origins, directions = rays_at(vertices, args.rays)
-        reference = _brute_force()(vertices, faces, origins, directions)
+        reference = brute_force_closest_hit(vertices, faces, origins, directions)
         for method in methods:
             api.build(vertices, faces, method=method)  # first build compiles the kernels: not timed
             start = time.perf_counter()

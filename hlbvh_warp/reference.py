@@ -1,7 +1,9 @@
-"""Brute-force references for checking builds from package code (benchmarks, demos).
+"""Brute-force references for checking builds from package code (benchmarks, demos, the stress
+report).
 
 Float64 NumPy and nothing of the BVH: a benchmark checks a batch of rays against this before it
-reports a time (the tests keep their own copy in tests/oracles.py, independent of the package).
+reports a time (the tests keep their own plain copy in tests/oracles.py, independent of the
+package, and check this one against it).
 """
 
 from __future__ import annotations
@@ -11,40 +13,130 @@ import numpy as np
 #: Barycentric slack of the float64 reference, far below float32 traversal error.
 BARYCENTRIC_EPS = 1e-12
 
+#: Ray-group or ray-triangle pairs held at once: about 16 MB per float64 temporary.
+PAIR_BUDGET = 1 << 21
 
-def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, chunk=64):
+
+def _spread_bits(x):
+    # 10 bits -> every third bit of 30, to order the triangles along a Morton curve.
+    x = x.astype(np.int64) & 0x3FF
+    x = (x | (x << 16)) & 0x30000FF
+    x = (x | (x << 8)) & 0x300F00F
+    x = (x | (x << 4)) & 0x30C30C3
+    return (x | (x << 2)) & 0x9249249
+
+
+def _curve_order(centroids):
+    lo, hi = centroids.min(axis=0), centroids.max(axis=0)
+    cells = (centroids - lo) / np.where(hi > lo, hi - lo, 1.0) * 1023.0
+    q = np.clip(cells, 0, 1023).astype(np.int64)
+    key = (_spread_bits(q[:, 0]) << 2) | (_spread_bits(q[:, 1]) << 1) | _spread_bits(q[:, 2])
+    return np.argsort(key, kind="stable")
+
+
+def _boxes_met(lower, upper, origins, directions):
+    """(rays, boxes) mask: the ray's half-line meets the closed box, touching included (a flat
+    box, or a ray along a face, must pass). A direction component below 1e-300 is parallel to
+    its slabs: the ray is in a slab for every t or for none, by where its origin lies (the
+    reciprocal would give 0 * inf = NaN, or a zero bound, on a slab boundary)."""
+    parallel = np.abs(directions) < 1e-300
+    inv = 1.0 / np.where(parallel, 1.0, directions)
+    o = origins[:, None, :]
+    with np.errstate(over="ignore"):
+        t1 = (lower[None] - o) * inv[:, None, :]
+        t2 = (upper[None] - o) * inv[:, None, :]
+    enter, leave = np.minimum(t1, t2), np.maximum(t1, t2)
+    if parallel.any():
+        inside = (lower[None] <= o) & (o <= upper[None])
+        along = parallel[:, None, :]
+        enter = np.where(along, np.where(inside, -np.inf, np.inf), enter)
+        leave = np.where(along, np.where(inside, np.inf, -np.inf), leave)
+    near, far = enter.max(axis=2), leave.min(axis=2)
+    return (near <= far) & (far >= 0)
+
+
+def _moller_trumbore(o, d, a, e1, e2, t_max, eps):
+    """Row-wise ray/triangle test in float64; t where accepted, inf elsewhere."""
+    p = np.cross(d, e2)
+    det = np.einsum("pk,pk->p", p, e1)
+    inv = 1.0 / det
+    tv = o - a
+    u = np.einsum("pk,pk->p", tv, p) * inv
+    q = np.cross(tv, e1)
+    w = np.einsum("pk,pk->p", d, q) * inv
+    t = np.einsum("pk,pk->p", q, e2) * inv
+    ok = (det != 0) & (u >= -eps) & (w >= -eps) & (u + w <= 1 + eps) & (t > 0) & (t < t_max) & np.isfinite(t)
+    return np.where(ok, t, np.inf)
+
+
+def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, eps=BARYCENTRIC_EPS,
+                            group_size=None, pair_budget=PAIR_BUDGET):
     """Closest hit of every ray against every triangle (Moller-Trumbore, float64).
 
-    Returns ``(t, prim)``; a miss is ``(inf, -1)``. Rays are processed ``chunk`` at a time, so
-    memory stays at chunk * F.
+    Returns ``(t, prim)``; a miss is ``(inf, -1)``; of triangles hit at the same least t, the
+    lowest face id. ``eps`` is the barycentric slack of the accept test.
+
+    Exact, like testing every pair, but not as slow: the triangles are grouped ``group_size`` at
+    a time (default about 2 F^(1/3), which balances the box tests, F / group_size per ray,
+    against the triangle tests in the groups a ray crosses) along a Morton curve of their
+    centroids, and a group's triangles are tested only
+    against the rays that meet the group's box, grown by more than the accept test's slack and
+    float64 rounding can carry a hit outside it. A group's box can only cost time, never a hit,
+    so the grouping needs no care beyond being a partition. Memory stays at ``pair_budget``
+    pairs whatever the mesh: testing 64 rays against every triangle at once took 17 GB and
+    12 minutes at 1.6M triangles and 2,000 rays.
     """
     v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    e1, e2 = b - a, c - a
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     o_all = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d_all = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    t_out = np.full(len(o_all), np.inf)
-    p_out = np.full(len(o_all), -1, dtype=np.int64)
+    num_rays, num_faces = len(o_all), len(f)
+    t_out = np.full(num_rays, np.inf)
+    p_out = np.full(num_rays, -1, dtype=np.int64)
+    if num_rays == 0 or num_faces == 0:
+        return t_out, p_out
+    if group_size is None:
+        group_size = int(np.clip(2.0 * num_faces ** (1.0 / 3.0), 16, 512))
+    group_size = max(1, int(group_size))
+    corners = v[f]  # (F, 3, 3)
+    order = _curve_order(corners.mean(axis=1))
+    num_groups = -(-num_faces // group_size)
+    # Pad to whole groups by repeating the last triangle: a duplicate changes no closest hit.
+    order = np.concatenate([order, np.full(num_groups * group_size - num_faces, order[-1])])
+    grouped = corners[order].reshape(num_groups, group_size * 3, 3)
+    g_lo, g_hi = grouped.min(axis=1), grouped.max(axis=1)
+    # The accept test takes points up to ~eps * (edge lengths) outside a triangle; rounding, about
+    # 1e-16 of the coordinates' magnitude. Grow every box well past both.
+    scale = max(np.abs(v).max(), np.abs(o_all).max(), 1e-300)
+    pad = (8.0 * eps * np.linalg.norm(g_hi - g_lo, axis=1) + 1e-9 * scale)[:, None]
+    g_lo, g_hi = g_lo - pad, g_hi + pad
+    a_all = v[f[:, 0]]
+    e1_all, e2_all = v[f[:, 1]] - a_all, v[f[:, 2]] - a_all
+    rays_per_chunk = max(1, pair_budget // num_groups)
+    pairs_per_piece = max(1, pair_budget // group_size)
+    lane = np.arange(group_size)
     with np.errstate(all="ignore"):
-        for s in range(0, len(o_all), chunk):
-            o = o_all[s : s + chunk, None, :]
-            d = d_all[s : s + chunk, None, :]
-            p = np.cross(d, e2[None])
-            det = np.einsum("rfk,fk->rf", p, e1)
-            inv = 1.0 / det
-            tv = o - a[None]
-            u = np.einsum("rfk,rfk->rf", tv, p) * inv
-            q = np.cross(tv, e1[None])
-            w = np.einsum("rk,rfk->rf", d[:, 0], q) * inv
-            t = np.einsum("rfk,fk->rf", q, e2) * inv
-            eps = BARYCENTRIC_EPS
-            ok = (det != 0) & (u >= -eps) & (w >= -eps) & (u + w <= 1 + eps) & (t > 0) & (t < t_max) & np.isfinite(t)
-            t = np.where(ok, t, np.inf)
-            idx = np.argmin(t, axis=1)
-            best = t[np.arange(len(idx)), idx]
-            t_out[s : s + chunk] = best
-            p_out[s : s + chunk] = np.where(np.isfinite(best), idx, -1)
+        for s in range(0, num_rays, rays_per_chunk):
+            met = _boxes_met(g_lo, g_hi, o_all[s : s + rays_per_chunk], d_all[s : s + rays_per_chunk])
+            ray_idx, group_idx = np.nonzero(met)
+            ray_idx += s
+            for k in range(0, len(ray_idx), pairs_per_piece):
+                r = np.repeat(ray_idx[k : k + pairs_per_piece], group_size)
+                faces_hit = order[(group_idx[k : k + pairs_per_piece, None] * group_size + lane).reshape(-1)]
+                t = _moller_trumbore(o_all[r], d_all[r], a_all[faces_hit], e1_all[faces_hit], e2_all[faces_hit],
+                                     t_max, eps)
+                hit = np.isfinite(t)
+                r, t, faces_hit = r[hit], t[hit], faces_hit[hit]
+                if len(r) == 0:
+                    continue
+                # Per ray: least t, then lowest face id; then against what earlier pieces found.
+                first = np.lexsort((faces_hit, t, r))
+                r, t, faces_hit = r[first], t[first], faces_hit[first]
+                heads = np.r_[True, r[1:] != r[:-1]]
+                r, t, faces_hit = r[heads], t[heads], faces_hit[heads]
+                better = (t < t_out[r]) | ((t == t_out[r]) & (faces_hit < p_out[r]))
+                t_out[r[better]] = t[better]
+                p_out[r[better]] = faces_hit[better]
     return t_out, p_out
 
 

@@ -26,6 +26,8 @@ import argparse
 
 import numpy as np
 
+from .reference import brute_force_closest_hit
+
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
 NEAR_TIE_TOL = 1e-5
 #: Hits at distances equal to this relative tolerance are the same hit (ties between triangles).
@@ -174,35 +176,6 @@ def ray_families(rng, vertices, faces, num_rays: int = 120) -> dict:
     return {name: (o.astype(np.float32), d.astype(np.float32)) for name, (o, d) in out.items()}
 
 
-# ------------------------------------------------------------------ float64 reference
-def reference_closest_hit(vertices, faces, origins, directions, chunk: int = 64):
-    """Closest hit by brute force, Moller-Trumbore in float64: ``(t, prim)``, ``(inf, -1)`` on a miss."""
-    v = np.asarray(vertices, dtype=np.float64)
-    a, b, c = (v[faces[:, k]] for k in range(3))
-    e1, e2 = b - a, c - a
-    o_all = np.asarray(origins, dtype=np.float64)
-    d_all = np.asarray(directions, dtype=np.float64)
-    t_out = np.full(len(o_all), np.inf)
-    p_out = np.full(len(o_all), -1, dtype=np.int64)
-    with np.errstate(all="ignore"):
-        for s in range(0, len(o_all), chunk):
-            o, d = o_all[s : s + chunk, None], d_all[s : s + chunk, None]
-            p = np.cross(d, e2[None])
-            det = np.einsum("rfk,fk->rf", p, e1)
-            tv = o - a[None]
-            u = np.einsum("rfk,rfk->rf", tv, p) / det
-            q = np.cross(tv, e1[None])
-            w = np.einsum("rk,rfk->rf", d[:, 0], q) / det
-            t = np.einsum("rfk,fk->rf", q, e2) / det
-            ok = (det != 0) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0) & np.isfinite(t)
-            t = np.where(ok, t, np.inf)
-            idx = np.argmin(t, axis=1)
-            best = t[np.arange(len(idx)), idx]
-            t_out[s : s + chunk] = best
-            p_out[s : s + chunk] = np.where(np.isfinite(best), idx, -1)
-    return t_out, p_out
-
-
 def is_marginal(vertices, faces, prim: int, origin, direction, tol: float = NEAR_TIE_TOL) -> bool:
     """Whether ray vs triangle ``prim`` is decided within rounding (see the module docstring)."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -282,7 +255,7 @@ def run_family(family: str, method: str, device, seed: int = 0, reference_cache:
         if reference_cache is not None and key in reference_cache:
             t_ref, p_ref = reference_cache[key]
         else:
-            t_ref, p_ref = reference_closest_hit(vertices, faces, o, d)
+            t_ref, p_ref = brute_force_closest_hit(vertices, faces, o, d, eps=0.0)
             if reference_cache is not None:
                 reference_cache[key] = (t_ref, p_ref)
         n_bad, n_unexplained = classify(vertices, faces, o, d, t, p, t_ref, p_ref)
