@@ -32,6 +32,42 @@ def resort_gather_kernel(
     morton_codes[i] = user_codes[f]
 
 
+@wp.kernel
+def sample_run_breaks_kernel(
+    prim_order: wp.array(dtype=wp.int32),
+    user_codes: wp.array(dtype=wp.int32),
+    num_prims: int,
+    num_samples: int,
+    shift: int,
+    breaks: wp.array(dtype=wp.int32),
+):
+    # Sample t is one adjacent pair of the previous tree's order, the pairs evenly spaced: a pair
+    # in two coarse voxels starts a run, so breaks[0] / num_samples estimates the run-length
+    # encoding's M / N for that order without gathering it; breaks[1] counts the pairs whose
+    # codes descend (none: the order may be sorted already, which the build then skips).
+    t = wp.tid()
+    i = wp.int32(wp.int64(1) + wp.int64(t) * wp.int64(num_prims - 1) // wp.int64(num_samples))
+    a = user_codes[prim_order[i - 1]]
+    b = user_codes[prim_order[i]]
+    if (a >> shift) != (b >> shift):
+        wp.atomic_add(breaks, 0, 1)
+    if b < a:
+        wp.atomic_add(breaks, 1, 1)
+
+
+@wp.kernel
+def user_order_kernel(
+    user_codes: wp.array(dtype=wp.int32),
+    input_order: wp.array(dtype=wp.int32),
+    morton_codes: wp.array(dtype=wp.int32),
+):
+    # A resorted builder's frame fed in the user's face order after all (resorting would not
+    # pay): input i is face i. Sequential, where the gather reads at random.
+    i = wp.tid()
+    input_order[i] = i
+    morton_codes[i] = user_codes[i]
+
+
 # --------------------------------------------------------- motion and quality
 @wp.kernel
 def reset_stats_kernel(stats: wp.array(dtype=wp.float32)):

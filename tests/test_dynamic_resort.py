@@ -201,3 +201,110 @@ def test_descent_checks_agree_with_numpy(device, rng, case):
     wp.launch(compress.flag_descents_kernel, dim=n, inputs=[run_count, run_codes, flagged], device=device)
     assert int(found.numpy()[0]) == int(expected)
     assert int(flagged.numpy()[0]) == int(expected)
+
+
+def numpy_run_fraction(codes: np.ndarray, order: np.ndarray, shift: int) -> float:
+    """M / N of the run-length encoding of ``codes`` fed in ``order``, over every pair."""
+    coarse = codes[order] >> shift
+    return (1 + np.count_nonzero(coarse[1:] != coarse[:-1])) / len(order)
+
+
+@pytest.mark.parametrize("kind", ["explode", "bend"])
+def test_resorting_is_used_where_it_pays(device, kind):
+    """A rebuild whose previous order would leave more runs than `global_sort_runs` allows takes
+    one radix sort anyway, which costs the same in any order: it is fed in the faces' order and
+    skips the gather. Where the runs compress it resorts. The sampled M / N is checked against
+    the full count in NumPy, and the tree against a build from scratch either way."""
+    v, f = default_scene(20000)
+    mesh, _ = make_scene(kind, v, f, device)
+    # A coarse grid of 16^3 voxels, so that the bent mesh's runs compress at this size.
+    config = BuildConfig(coarse_bits=4)
+    num_prims = mesh.num_tris if kind == "explode" else len(f)
+    builder = Builder(num_prims, config, device=device, resort=True, timings=True)
+    scratch = Builder(num_prims, config, device=device, resort=False)
+    builder.build(mesh.vertices, mesh.faces)
+    scratch.build(mesh.vertices, mesh.faces)
+    shift = 3 * (builder.config.bits_per_axis - builder.pipeline.coarse_bits)
+    # Late in the explosion the fragments are scattered; the bend keeps its neighbourhoods.
+    times = [0.5, 0.75] if kind == "explode" else [0.1, 0.2]
+    for t in times:
+        previous = builder.bvh.prim_order.numpy().copy()
+        vertices = mesh.update(t)
+        builder.rebuild(vertices)
+        scratch.rebuild(vertices)
+        report = builder.last_report
+        if builder.sync_free:
+            # Sync-free CUDA builds always compress-sort-decompress, so they always resort.
+            assert report["input_order"] == "previous tree" and report["sampled_run_fraction"] is None
+            continue
+        exact = numpy_run_fraction(builder.user_codes.numpy(), previous, shift)
+        sampled = report["sampled_run_fraction"]
+        assert abs(sampled - exact) < 0.05, (sampled, exact)
+        pays = exact <= builder.config.global_sort_runs
+        assert pays == (kind == "bend"), exact  # the scenes do what the test means them to
+        if pays:
+            assert report["input_order"] == "previous tree"
+            assert "resort_gather" in report["stages_ms"]
+            np.testing.assert_array_equal(builder.input_order.numpy(), previous)
+        else:
+            assert report["input_order"] == "faces"
+            assert "resort_gather" in report["stages_skipped"] and "user_order" in report["stages_ms"]
+            np.testing.assert_array_equal(builder.input_order.numpy(), np.arange(builder.num_prims))
+        # The scratch build's tree either way: the same codes in tree order, so the same
+        # topology (faces with equal codes may trade places), and every box the union of its
+        # faces' boxes in float64.
+        tree, ref = builder.bvh.to_numpy(), scratch.bvh.to_numpy()
+        codes = builder.user_codes.numpy()
+        np.testing.assert_array_equal(codes[tree["prim_order"]], codes[ref["prim_order"]])
+        for name in TOPOLOGY:
+            np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
+        check_tree_invariants(tree, builder.num_prims)
+        lowers, uppers = numpy_boxes(vertices.numpy(), mesh.faces)
+        node_lo, node_hi = numpy_node_boxes(tree, lowers, uppers)
+        np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
+        np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
+
+
+def test_sorted_previous_order_is_resorted_whatever_its_runs():
+    """A static frame's previous order is sorted: resorting skips every sort even when the runs
+    do not compress (about one per face here), so no sampled descent keeps the gather."""
+    v, f = default_scene(1000)
+    builder = Builder(len(f), device="cpu", resort=True, timings=True)
+    builder.build(v, f)
+    builder.rebuild(v)
+    report = builder.last_report
+    assert report["sampled_run_fraction"] > builder.config.global_sort_runs
+    assert report["input_order"] == "previous tree"
+    assert "run_length_encode" in report["stages_skipped"]
+
+
+@pytest.mark.parametrize("method,kind", [("lbvh", "bend"), ("hlbvh_sah", "explode")])
+def test_resorting_by_method(device, method, kind, small_scene):
+    """lbvh's one radix sort costs the same in any order: never resorted, even where the runs
+    would compress (a bend over a coarse grid). hlbvh_sah always compresses (its clusters are
+    the voxels): always resorted, even where they do not (an explosion). Trees equal scratch
+    builds'."""
+    v, f = small_scene
+    mesh, param = make_scene(kind, v, f, device)
+    config = BuildConfig(coarse_bits=3)
+    num_prims = mesh.num_tris if kind == "explode" else len(f)
+    builder = Builder(num_prims, config, method=method, device=device, resort=True, timings=True)
+    scratch = Builder(num_prims, config, method=method, device=device, resort=False)
+    builder.build(mesh.vertices, mesh.faces)
+    scratch.build(mesh.vertices, mesh.faces)
+    previous = builder.bvh.prim_order.numpy().copy()
+    vertices = mesh.update(param(1 if kind == "bend" else 12))
+    builder.rebuild(vertices)
+    scratch.rebuild(vertices)
+    report = builder.last_report
+    if kind == "bend" and not builder.sync_free:
+        # The runs of the previous order do compress: only the method decides.
+        shift = 3 * (config.bits_per_axis - builder.pipeline.coarse_bits)
+        assert numpy_run_fraction(builder.user_codes.numpy(), previous, shift) < config.global_sort_runs
+    cuda_lbvh = method == "lbvh" and builder.sync_free
+    expected = "previous tree" if method == "hlbvh_sah" or cuda_lbvh else "faces"
+    assert report["input_order"] == expected
+    assert ("resort_gather" in report["stages_ms"]) == (expected == "previous tree")
+    tree, ref = builder.bvh.to_numpy(), scratch.bvh.to_numpy()
+    for name in TOPOLOGY:
+        np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
