@@ -43,8 +43,8 @@ MAX_CHAOTIC_BACKOFF = 8
 MOTION_CHUNK_CPU = 4096
 PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 # Adjacent pairs of the previous tree's order sampled to decide whether resorting pays (the
-# estimate of M / N is within about 0.02 of the whole order's).
-RESORT_SAMPLES = 1024
+# estimate of M / N is within about 0.03 (one standard error) of the whole order's).
+RESORT_SAMPLES = 256
 
 
 class Builder:
@@ -325,9 +325,10 @@ class Builder:
         timer.stage("prim_bounds")
         pipe.compute_triangle_bounds(self.vertices, self.faces)
         if self.resort:
-            timer.stage("morton")
-            pipe.compute_morton_codes(bounds_ready=True, codes=self.user_codes)
             if self._resorting_pays(timer):
+                timer.stage("morton")
+                pipe.compute_morton_codes(bounds_ready=True, codes=self.user_codes)
+                pipe.set_input_ids(self.input_order)
                 # Resorting: the previous tree's order becomes this build's input order.
                 timer.stage("resort_gather")
                 if self.gather_parts is not None:
@@ -338,12 +339,11 @@ class Builder:
                               inputs=[self.prim_order, self.user_codes, self.input_order, pipe.morton_codes],
                               device=device)
             else:
+                # The faces' own order, as from scratch: the pipeline computes the codes in place.
                 timer.skipped("resort_gather")
-                timer.stage("user_order")
-                wp.launch(dynamic.user_order_kernel, dim=n,
-                          inputs=[self.user_codes, self.input_order, pipe.morton_codes], device=device)
+                pipe.set_input_ids(None)
         pipeline_timings = timer.timings
-        ready = "codes" if self.resort else "bounds"
+        ready = "codes" if self.resort and self.last_input["input_order"] == "previous tree" else "bounds"
         if self.method == "hlbvh_sah":
             pipe.build_sah(timer, inputs_ready=ready)
         else:
@@ -361,7 +361,8 @@ class Builder:
         reads its run count on the host, a sample of adjacent pairs of the previous order
         (`dynamic.sample_run_breaks_kernel`) estimates the M / N that order would give; past the
         limit, unless no sampled pair descends (a sorted order skips every sort), the frame is
-        fed in the faces' own order, with a sequential copy. ``lbvh`` always
+        fed in the faces' own order, exactly as from scratch. The sample computes its codes from
+        the boxes, so the choice costs one launch of 256 threads and no pass over all codes. ``lbvh`` always
         takes the radix sort. A sync-free (CUDA) build and ``hlbvh_sah`` (which needs the voxels)
         always compress, so they always resort.
         """
@@ -374,10 +375,11 @@ class Builder:
         timer.stage("resort_check")
         pipe = self.pipeline
         self.run_breaks.zero_()
-        shift = 3 * (self.config.bits_per_axis - pipe.coarse_bits)
+        bits = self.config.bits_per_axis
         wp.launch(dynamic.sample_run_breaks_kernel, dim=self.resort_samples,
-                  inputs=[self.prim_order, self.user_codes, self.num_prims, self.resort_samples, shift,
-                          self.run_breaks], device=self.device)
+                  inputs=[self.prim_order, pipe.prim_lowers, pipe.prim_uppers, pipe.scene_bounds, bits,
+                          self.num_prims, self.resort_samples, 3 * (bits - pipe.coarse_bits), self.run_breaks],
+                  device=self.device)
         breaks, descents = (int(x) for x in self.run_breaks.numpy())
         fraction = breaks / self.resort_samples
         self.last_input["sampled_run_fraction"] = fraction

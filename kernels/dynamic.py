@@ -7,6 +7,8 @@ sorted. The host side (``hlbvh_warp.builder``, ``hlbvh_warp.dynamic``) allocates
 
 import warp as wp
 
+from .morton import morton_code
+
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
@@ -35,7 +37,10 @@ def resort_gather_kernel(
 @wp.kernel
 def sample_run_breaks_kernel(
     prim_order: wp.array(dtype=wp.int32),
-    user_codes: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    scene_bounds: wp.array(dtype=wp.vec3),
+    bits_per_axis: int,
     num_prims: int,
     num_samples: int,
     shift: int,
@@ -43,29 +48,21 @@ def sample_run_breaks_kernel(
 ):
     # Sample t is one adjacent pair of the previous tree's order, the pairs evenly spaced: a pair
     # in two coarse voxels starts a run, so breaks[0] / num_samples estimates the run-length
-    # encoding's M / N for that order without gathering it; breaks[1] counts the pairs whose
-    # codes descend (none: the order may be sorted already, which the build then skips).
+    # encoding's M / N for that order; breaks[1] counts the pairs whose codes descend (none: the
+    # order may be sorted already, which the build then skips). The two codes are computed from
+    # the boxes here, so the decision comes before any pass over all the codes.
     t = wp.tid()
     i = wp.int32(wp.int64(1) + wp.int64(t) * wp.int64(num_prims - 1) // wp.int64(num_samples))
-    a = user_codes[prim_order[i - 1]]
-    b = user_codes[prim_order[i]]
+    f = prim_order[i - 1]
+    g = prim_order[i]
+    lo = scene_bounds[0]
+    hi = scene_bounds[1]
+    a = morton_code(prim_lowers[f], prim_uppers[f], lo, hi, bits_per_axis)
+    b = morton_code(prim_lowers[g], prim_uppers[g], lo, hi, bits_per_axis)
     if (a >> shift) != (b >> shift):
         wp.atomic_add(breaks, 0, 1)
     if b < a:
         wp.atomic_add(breaks, 1, 1)
-
-
-@wp.kernel
-def user_order_kernel(
-    user_codes: wp.array(dtype=wp.int32),
-    input_order: wp.array(dtype=wp.int32),
-    morton_codes: wp.array(dtype=wp.int32),
-):
-    # A resorted builder's frame fed in the user's face order after all (resorting would not
-    # pay): input i is face i. Sequential, where the gather reads at random.
-    i = wp.tid()
-    input_order[i] = i
-    morton_codes[i] = user_codes[i]
 
 
 # --------------------------------------------------------- motion and quality

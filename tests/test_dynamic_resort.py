@@ -203,6 +203,14 @@ def test_descent_checks_agree_with_numpy(device, rng, case):
     assert int(flagged.numpy()[0]) == int(expected)
 
 
+def face_codes(builder) -> np.ndarray:
+    """The latest build's Morton code of every face (the pipeline keeps them in tree order)."""
+    n = builder.num_prims
+    codes = np.empty(n, dtype=np.int64)
+    codes[builder.bvh.prim_order.numpy()] = builder.pipeline.sorted_codes.numpy()[:n]
+    return codes
+
+
 def numpy_run_fraction(codes: np.ndarray, order: np.ndarray, shift: int) -> float:
     """M / N of the run-length encoding of ``codes`` fed in ``order``, over every pair."""
     coarse = codes[order] >> shift
@@ -237,9 +245,9 @@ def test_resorting_is_used_where_it_pays(device, kind):
             # Sync-free CUDA builds always compress-sort-decompress, so they always resort.
             assert report["input_order"] == "previous tree" and report["sampled_run_fraction"] is None
             continue
-        exact = numpy_run_fraction(builder.user_codes.numpy(), previous, shift)
+        exact = numpy_run_fraction(face_codes(scratch), previous, shift)
         sampled = report["sampled_run_fraction"]
-        assert abs(sampled - exact) < 0.05, (sampled, exact)
+        assert abs(sampled - exact) < 0.1, (sampled, exact)  # 256 samples: one standard error 0.03
         pays = exact <= builder.config.global_sort_runs
         assert pays == (kind == "bend"), exact  # the scenes do what the test means them to
         if pays:
@@ -248,13 +256,13 @@ def test_resorting_is_used_where_it_pays(device, kind):
             np.testing.assert_array_equal(builder.input_order.numpy(), previous)
         else:
             assert report["input_order"] == "faces"
-            assert "resort_gather" in report["stages_skipped"] and "user_order" in report["stages_ms"]
-            np.testing.assert_array_equal(builder.input_order.numpy(), np.arange(builder.num_prims))
+            assert "resort_gather" in report["stages_skipped"]
+            assert builder.pipeline.input_ids.shape[0] == 0  # the sort carries positions: face ids
         # The scratch build's tree either way: the same codes in tree order, so the same
         # topology (faces with equal codes may trade places), and every box the union of its
         # faces' boxes in float64.
         tree, ref = builder.bvh.to_numpy(), scratch.bvh.to_numpy()
-        codes = builder.user_codes.numpy()
+        codes = face_codes(scratch)
         np.testing.assert_array_equal(codes[tree["prim_order"]], codes[ref["prim_order"]])
         for name in TOPOLOGY:
             np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
@@ -300,7 +308,7 @@ def test_resorting_by_method(device, method, kind, small_scene):
     if kind == "bend" and not builder.sync_free:
         # The runs of the previous order do compress: only the method decides.
         shift = 3 * (config.bits_per_axis - builder.pipeline.coarse_bits)
-        assert numpy_run_fraction(builder.user_codes.numpy(), previous, shift) < config.global_sort_runs
+        assert numpy_run_fraction(face_codes(scratch), previous, shift) < config.global_sort_runs
     cuda_lbvh = method == "lbvh" and builder.sync_free
     expected = "previous tree" if method == "hlbvh_sah" or cuda_lbvh else "faces"
     assert report["input_order"] == expected
