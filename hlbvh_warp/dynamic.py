@@ -133,6 +133,12 @@ class Animation:
         wp.synchronize_device(device)
         row = {"frame": self.frame, "decision": report["decision"], "ms": (time.perf_counter() - start) * 1e3,
                "reason": report["reason"], "skipped": report["stages_skipped"]}
+        if "input_order" in report:
+            # A resorted builder's rebuild: which order it was fed, and the sample behind that.
+            note = "resorted" if report["input_order"] == "previous tree" else "face order"
+            if report.get("sampled_run_fraction") is not None:
+                note += f" (sampled M/N {report['sampled_run_fraction']:.2f})"
+            row["input"] = note
         if self.reference is not None:
             start = time.perf_counter()
             self.reference.rebuild(vertices)
@@ -162,7 +168,7 @@ class Animation:
             line = f"{r['frame']:>5}  {r['decision']:8}  {r['ms']:8.2f}"
             if compare:
                 line += f"  {r['rebuild_ms']:10.2f}  {r['sah_ratio']:17.3f}"
-            lines.append(line + "  " + r["reason"])
+            lines.append(line + "  " + r["reason"] + (f"; {r['input']}" if "input" in r else ""))
         ms = np.array([r["ms"] for r in self.rows]) if self.rows else np.zeros(1)
         summary = f"{len(self.rows)} frames: average {ms.mean():.2f} ms, worst {ms.max():.2f} ms, total {ms.sum():.1f} ms"
         if compare and self.rows:

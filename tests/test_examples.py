@@ -29,6 +29,12 @@ def test_exploding_mesh(device, headless, tmp_path):
             example.render()
     rows = example.animation.rows
     assert [r["decision"] for r in rows] == ["rebuild"] * 3
+    # Each frame's row says which order the resorted builder fed, as its report does.
+    reports = list(example.animation.builder.reports)[-3:]
+    table = example.animation.table().splitlines()
+    for row, report, line in zip(rows, reports, table[1:]):
+        expected = "resorted" if report["input_order"] == "previous tree" else "face order"
+        assert row["input"].startswith(expected) and line.endswith(row["input"])
     if headless:
         assert example.save(tmp_path) == []
     else:
