@@ -23,14 +23,23 @@ def register_builder(name: str):
 
 
 def _pipeline_builder(method: str):
-    def run(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer) -> Bvh:
+    def run(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer,
+            triangles: tuple | None = None) -> Bvh:
+        """``triangles``: (vertices, faces) on the device, whose boxes are to fill the (empty)
+        ``prim_lowers/uppers``: computed in the pass that reduces the centroid bounds, as a
+        `Builder` frame does, instead of a pass for the boxes and another for the bounds."""
         n = prim_lowers.shape[0]
         pipe = HlbvhPipeline.one_shot(n, config, device, prim_lowers, prim_uppers)
-        pipeline_timings = pipe.build(method, timer)
+        ready = "boxes"
+        if triangles is not None:
+            pipe.compute_triangle_bounds(*triangles)
+            ready = "bounds"
+        pipeline_timings = pipe.build(method, timer, inputs_ready=ready)
         bvh = bvh_from_pipeline(pipe, method, pipeline_timings)
         pipe.give_back()
         return bvh
 
+    run.fuses_triangle_bounds = True
     return run
 
 
@@ -107,10 +116,14 @@ def build(mesh, faces=None, *, method: str = "hlbvh", device=None, config: Build
     n = faces_np.shape[0]
     lowers = memory.empty(n, dtype=wp.vec3, device=device)
     uppers = memory.empty(n, dtype=wp.vec3, device=device)
-    from .kernels import morton
+    builder = BUILDERS[method]
+    if getattr(builder, "fuses_triangle_bounds", False):
+        bvh = builder(lowers, uppers, config, device, timer, triangles=(vertices, face_arr))
+    else:
+        from .kernels import morton
 
-    wp.launch(morton.triangle_bounds_kernel, dim=n, inputs=[vertices, face_arr, lowers, uppers], device=device)
-    bvh = BUILDERS[method](lowers, uppers, config, device, timer)
+        wp.launch(morton.triangle_bounds_kernel, dim=n, inputs=[vertices, face_arr, lowers, uppers], device=device)
+        bvh = builder(lowers, uppers, config, device, timer)
     bvh.vertices = vertices
     bvh.faces = face_arr
     return bvh

@@ -23,12 +23,13 @@ def _check_points(values, name: str) -> np.ndarray:
         arr = arr.reshape(-1, 3)  # a wp.array of vec3 comes back as (n, 3) already; flat floats too
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
-    arr64 = arr.astype(np.float64, copy=False)
-    bad = ~np.isfinite(arr64)
-    if bad.any():
-        row = int(np.argwhere(bad)[0][0])
+    if arr.dtype != np.float32:
+        arr = arr.astype(np.float64, copy=False)
+    if not np.isfinite(arr).all():
+        row = int(np.argwhere(~np.isfinite(arr))[0][0])
         raise ValueError(f"{name} has a NaN or Inf coordinate (first at row {row}: {arr[row].tolist()})")
-    if np.abs(arr64).max(initial=0.0) > np.finfo(np.float32).max:
+    # A finite float32 is in range by definition; wider input must fit before it is narrowed.
+    if arr.dtype != np.float32 and arr.size and np.abs(arr).max() > np.finfo(np.float32).max:
         raise ValueError(f"{name} has a coordinate beyond the float32 range")
     return np.ascontiguousarray(arr, dtype=np.float32)
 

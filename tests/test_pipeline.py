@@ -482,6 +482,7 @@ def test_degenerate_triangles_are_valid(device, rng):
     [
         (np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], np.float32), [[0, 1, 2]], "NaN or Inf"),
         (np.array([[0, 0, 0], [1, 0, 0], [0, np.inf, 0]]), [[0, 1, 2]], "NaN or Inf"),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, 1e39, 0]]), [[0, 1, 2]], "float32 range"),
         (np.eye(3), [[0, 1, 3]], "out of range"),
         (np.eye(3), [[0, -1, 2]], "out of range"),
         (np.eye(3)[:, :2], [[0, 1, 2]], "shape"),
