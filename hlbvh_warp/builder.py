@@ -309,11 +309,13 @@ class Builder:
             raise RuntimeError("call build(vertices, faces) once before rebuild/refit/update")
 
     def _rebuild(self, timer: StageTimer):
-        """The launches of one full build from `self.vertices`; no host reads unless timed.
+        """The launches of one full build from `self.vertices`. A sync-free (CUDA) build reads
+        nothing on the host unless timed; the others read their run counts, and a resorted one
+        its sample of the previous order (`_resorting_pays`).
 
-        Resorted (Pantaleoni & Luebke 2010, 2.2): the boxes and their Morton codes are computed in
-        the user's face order (sequential passes, as from scratch), then only the codes are
-        gathered in the previous tree's order, the build's input. The sort carries each input's
+        Resorted (Pantaleoni & Luebke 2010, 2.2), where that pays: the boxes and their Morton
+        codes are computed in the user's face order (sequential passes, as from scratch), then
+        only the codes are gathered in the previous tree's order, the build's input. The sort carries each input's
         face id, so the tree comes out naming user faces. Gathering the boxes too (for in-order
         reads in the emission) and mapping the ids back afterwards cost about 2 ms more of a
         19 ms frame on the exploding 100k-triangle armadillo on the CPU; gathering the triangles
@@ -362,9 +364,9 @@ class Builder:
         (`dynamic.sample_run_breaks_kernel`) estimates the M / N that order would give; past the
         limit, unless no sampled pair descends (a sorted order skips every sort), the frame is
         fed in the faces' own order, exactly as from scratch. The sample computes its codes from
-        the boxes, so the choice costs one launch of 256 threads and no pass over all codes. ``lbvh`` always
-        takes the radix sort. A sync-free (CUDA) build and ``hlbvh_sah`` (which needs the voxels)
-        always compress, so they always resort.
+        the boxes, so the choice costs one launch of `RESORT_SAMPLES` threads and no pass over
+        all the codes. ``lbvh`` always takes the radix sort. A sync-free (CUDA) build and
+        ``hlbvh_sah`` (which needs the voxels) always compress, so they always resort.
         """
         self.last_input = {"input_order": "previous tree", "sampled_run_fraction": None}
         if self.sync_free or self.method == "hlbvh_sah" or self.resort_samples < 1:
