@@ -67,8 +67,9 @@ class BuildConfig:
             the same order (both are stable sorts of the codes) for less work; its timings list
             ``global_sort`` and the three skipped stages. Default 0.3: on the CPU, with its
             serial radix sort at about 25 ns a key in any order, the paper's stages cost less
-            only below about a third of a run per primitive (bending 70k-400k-triangle meshes,
-            in one process: 0.3 took 2-13% less time a frame than 0.5, scratch or resorted).
+            only below about a third of a run per primitive (bending and exploding 70k-400k-
+            triangle meshes, in one process: 0.3 took up to 13% less time a frame than 0.5,
+            scratch or resorted, and never more than 2% more, within the noise).
             1 keeps the paper's pipeline for every build, resorting included (`Builder`).
             Not for builds that need the voxels (``hlbvh_sah``'s clusters) or keep their counts
             on the device (sync-free CUDA).

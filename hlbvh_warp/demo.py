@@ -85,7 +85,8 @@ def main(argv=None) -> int:
             print(f"  stages (ms): {stages}")
 
         # 2. The exploding mesh, rebuilt every frame (resorted where it pays), rendered with intersect().
-        print(f"\nexploding mesh, {args.num_frames} frames, HLBVH rebuild every frame, resorted where a sample shows it pays:")
+        print(f"\nexploding mesh, {args.num_frames} frames, HLBVH rebuild every frame "
+              "(resorted where a sample shows it pays):")
         mesh = ExplodingMesh(vertices, faces, seed=0)
         builder = Builder(len(faces), method="hlbvh", policy="rebuild", resort=True)
         animation = Animation(mesh, builder, lambda frame: frame / 24.0, Camera.framing(vertices, zoom=0.7),
