@@ -71,8 +71,11 @@ def check_frame(builder: Builder, vertices: np.ndarray, faces: np.ndarray, rng):
     resort=st.booleans(),
     shared=st.booleans(),
     motions=st.lists(st.sampled_from(MOTIONS), min_size=1, max_size=6),
+    # The default, where a resorted frame takes the faces' order when its runs do not compress,
+    # and 1.0, where it always takes the previous tree's order.
+    global_sort_runs=st.sampled_from([hw.BuildConfig().global_sort_runs, 1.0]),
 )
-def test_fuzzed_frame_sequences(device, seed, num_tris, method, policy, resort, shared, motions):
+def test_fuzzed_frame_sequences(device, seed, num_tris, method, policy, resort, shared, motions, global_sort_runs):
     rng = np.random.default_rng(seed)
     vertices, faces = stress_report._soup(rng, num_tris, scale=1.0, offset=0.0)
     vertices = vertices.astype(np.float32)
@@ -80,7 +83,8 @@ def test_fuzzed_frame_sequences(device, seed, num_tris, method, policy, resort, 
         # A mesh whose faces share vertices (and may repeat one within a face: degenerate).
         vertices = vertices[: num_tris // 2 + 3]
         faces = rng.integers(0, len(vertices), size=(num_tris, 3)).astype(np.int32)
-    builder = Builder(num_tris, device=device, method=method, policy=policy, resort=resort, max_refits=2)
+    config = hw.BuildConfig(global_sort_runs=global_sort_runs)
+    builder = Builder(num_tris, config, device=device, method=method, policy=policy, resort=resort, max_refits=2)
     builder.build(vertices, faces)
     check_frame(builder, vertices, faces, rng)
     for motion in motions:
@@ -95,7 +99,7 @@ def test_fuzzed_frame_sequences(device, seed, num_tris, method, policy, resort, 
             assert report["max_displacement"] == 0.0
         tree = check_frame(builder, vertices, faces, rng)
         if report["decision"] == "rebuild" and not resort:
-            one_shot = hw.build(vertices, faces, method=method, device=device).to_numpy()
+            one_shot = hw.build(vertices, faces, method=method, device=device, config=config).to_numpy()
             for name in TOPOLOGY:
                 np.testing.assert_array_equal(tree[name], one_shot[name], err_msg=name)
 
