@@ -94,7 +94,8 @@ class Example:
                 runners[label] = runner
             self.sequences[name] = {"anim": anim, "param": param, "runners": runners,
                                     "ms": {label: [] for label in runners}, "sah": {label: [] for label in runners},
-                                    "decisions": {label: [] for label in runners}}
+                                    "decisions": {label: [] for label in runners},
+                                    "inputs": {label: [] for label in runners}}
 
     def step(self):
         """One frame of every sequence, every mode timed on the same vertices (synchronized)."""
@@ -116,6 +117,8 @@ class Example:
                     wp.synchronize_device()
                     seq["ms"][label].append((time.perf_counter() - start) * 1e3)
                     seq["decisions"][label].append(report["decision"])
+                    # A resorted Builder's rebuild: fed the previous tree's order, or the faces'.
+                    seq["inputs"][label].append(report.get("input_order"))
             for label, runner in seq["runners"].items():
                 # Tree quality, outside the timed region (Builders only).
                 seq["sah"][label].append(runner.sah_cost() if isinstance(runner, Builder) else float("nan"))
@@ -143,6 +146,9 @@ class Example:
                 ratio = np.nanmax(sah / ref_sah) if np.isfinite(sah).any() and np.isfinite(ref_sah).any() else np.nan
                 counts = {d: seq["decisions"][label].count(d) for d in ("rebuild", "refit", "none")}
                 decisions = " ".join(f"{k} {v}" for k, v in counts.items() if v)
+                inputs = seq["inputs"][label]
+                if any(inputs):
+                    decisions += f" (resorted {inputs.count('previous tree')})"
                 lines.append(f"{name:8}  {label:18}  {ms.mean():10.2f}  {ms.max():8.2f}  {ms.min():8.2f}  "
                              f"{ms.mean() / base:10.2f}  {ratio:20.3f}  {decisions}")
         return "\n".join(lines)
