@@ -371,6 +371,8 @@ class Builder:
         self.last_input = {"input_order": "previous tree", "sampled_run_fraction": None}
         if self.sync_free or self.method == "hlbvh_sah" or self.resort_samples < 1:
             return True
+        if self.method == "hlbvh" and self.config.global_sort_runs >= 1.0:
+            return True  # the paper's sort for every build: no M / N is past the limit
         if self.method == "lbvh":
             self.last_input["input_order"] = "faces"
             return False

@@ -163,6 +163,10 @@ def test_resorted_input_is_the_previous_tree_order(small_scene):
     previous = builder.bvh.prim_order.numpy().copy()
     builder.rebuild(mesh.update(param(1)))
     np.testing.assert_array_equal(builder.input_order.numpy(), previous)
+    # With the paper's sort for every build nothing needs sampling: it always resorts.
+    assert builder.last_report["input_order"] == "previous tree"
+    assert builder.last_report["sampled_run_fraction"] is None
+    assert "resort_check" not in builder.last_report["stages_ms"]
     # The same vertices again: the input is the sorted order, so the runs ascend and every block
     # is in order (Pantaleoni & Luebke 2010, 2.2: the resorted input is already sorted).
     builder.rebuild()
