@@ -326,26 +326,26 @@ class Builder:
         # Triangle boxes in the user's face order, and the centroid bounds in the same pass.
         timer.stage("prim_bounds")
         pipe.compute_triangle_bounds(self.vertices, self.faces)
-        if self.resort:
-            if self._resorting_pays(timer):
-                timer.stage("morton")
-                pipe.compute_morton_codes(bounds_ready=True, codes=self.user_codes)
-                pipe.set_input_ids(self.input_order)
-                # Resorting: the previous tree's order becomes this build's input order.
-                timer.stage("resort_gather")
-                if self.gather_parts is not None:
-                    threads_module.launch_parts(dynamic.resort_gather_kernel, device, self.gather_parts,
-                                                len(self.gather_parts))
-                else:
-                    wp.launch(dynamic.resort_gather_kernel, dim=n,
-                              inputs=[self.prim_order, self.user_codes, self.input_order, pipe.morton_codes],
-                              device=device)
+        resorted = self.resort and self._resorting_pays(timer)
+        if resorted:
+            timer.stage("morton")
+            pipe.compute_morton_codes(bounds_ready=True, codes=self.user_codes)
+            pipe.set_input_ids(self.input_order)
+            # Resorting: the previous tree's order becomes this build's input order.
+            timer.stage("resort_gather")
+            if self.gather_parts is not None:
+                threads_module.launch_parts(dynamic.resort_gather_kernel, device, self.gather_parts,
+                                            len(self.gather_parts))
             else:
-                # The faces' own order, as from scratch: the pipeline computes the codes in place.
-                timer.skipped("resort_gather")
-                pipe.set_input_ids(None)
+                wp.launch(dynamic.resort_gather_kernel, dim=n,
+                          inputs=[self.prim_order, self.user_codes, self.input_order, pipe.morton_codes],
+                          device=device)
+        elif self.resort:
+            # The faces' own order, as from scratch: the pipeline computes the codes in place.
+            timer.skipped("resort_gather")
+            pipe.set_input_ids(None)
         pipeline_timings = timer.timings
-        ready = "codes" if self.resort and self.last_input["input_order"] == "previous tree" else "bounds"
+        ready = "codes" if resorted else "bounds"
         if self.method == "hlbvh_sah":
             pipe.build_sah(timer, inputs_ready=ready)
         else:
