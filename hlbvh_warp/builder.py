@@ -13,10 +13,15 @@ per-frame policy finds the full rebuild unnecessary:
   past the limit by the next refit), or too many refits -> full (resorted) rebuild. Each
   decision and its reason land in ``Builder.last_report``.
 
+The primitives are a triangle mesh (`Builder.build(vertices, faces)`, then new vertices each
+frame) or arbitrary primitives given by their boxes (`Builder.build_from_bounds(lowers, uppers)`,
+then new ``bounds=(lowers, uppers)`` each frame: particles, spheres or capsules of a
+simulation's broad phase).
+
 Only ``"auto"`` reads values back to the host (the displacement every frame, the SAH cost of the
 trees a refit may compare with): it has to, to decide. ``rebuild`` and ``refit`` given device
-arrays never synchronize, and on CUDA ``rebuild`` can be captured in a CUDA graph (``wp.ScopedCapture``): there it runs the
-pipeline's ``sync_free`` build.
+arrays never synchronize, and on CUDA ``rebuild`` can be captured in a CUDA graph
+(``wp.ScopedCapture``): there it runs the pipeline's ``sync_free`` build.
 """
 
 from __future__ import annotations
@@ -167,9 +172,14 @@ class Builder:
                                     device=device)
         # Vertex buffers: allocated by the first `build`, when the vertex count is known.
         self.vertices = None
-        # The auto policy's copy of the previous frame, kept only for callers who write new
-        # vertices into `self.vertices` in place (`update()` with no argument).
+        # What the builder was set up with: "triangles" (`build`) or "boxes" (`build_from_bounds`).
+        self.kind: str | None = None
+        # The auto policy's copy of the previous frame, kept only for callers who write a new
+        # frame into the builder's buffers in place (`update()` with no argument); also where
+        # host input is staged. One per buffer (`_buffers`): allocated by the first build of each kind.
         self.previous_vertices = None
+        self.previous_bounds = None
+        self.snapshots: list = []
         self.snapshot_valid = False
         self.bvh: Bvh | None = None
         self.frame = 0
@@ -180,92 +190,132 @@ class Builder:
         self.reports: collections.deque = collections.deque(maxlen=int(keep_reports))
 
     # --------------------------------------------------------------- inputs
-    def _check_vertices(self, vertices) -> int:
+    @staticmethod
+    def _check_points(values, name: str) -> int:
         """Shape and dtype checks only; NaN/Inf checks for NumPy input (already on the host)."""
-        if isinstance(vertices, wp.array):
-            if vertices.dtype == wp.vec3 and vertices.ndim == 1:
-                return vertices.shape[0]
-            if vertices.dtype == wp.float32 and vertices.ndim == 2 and vertices.shape[1] == 3:
-                return vertices.shape[0]
-            raise ValueError(f"vertices must be a wp.array of vec3 or float32 (V, 3), got {vertices.dtype} "
-                             f"with shape {vertices.shape}")
-        arr = np.asarray(vertices)
+        if isinstance(values, wp.array):
+            if values.dtype == wp.vec3 and values.ndim == 1:
+                return values.shape[0]
+            if values.dtype == wp.float32 and values.ndim == 2 and values.shape[1] == 3:
+                return values.shape[0]
+            raise ValueError(f"{name} must be a wp.array of vec3 or float32 (N, 3), got {values.dtype} "
+                             f"with shape {values.shape}")
+        arr = np.asarray(values)
         if arr.dtype.kind != "f" or arr.ndim != 2 or arr.shape[1] != 3:
-            raise ValueError(f"vertices must be floats of shape (V, 3), got {arr.dtype} {arr.shape}")
+            raise ValueError(f"{name} must be floats of shape (N, 3), got {arr.dtype} {arr.shape}")
         if not np.isfinite(arr).all():
             row = int(np.argwhere(~np.isfinite(arr))[0][0])
-            raise ValueError(f"vertices has a NaN or Inf coordinate (first at row {row})")
+            raise ValueError(f"{name} has a NaN or Inf coordinate (first at row {row})")
         return arr.shape[0]
 
-    def _vertex_source(self, vertices) -> wp.array:
-        """A vec3 view of checked `vertices`: on their own device, or on the host for NumPy input."""
-        count = self._check_vertices(vertices)
-        if count != self.vertices.shape[0]:
-            raise ValueError(f"vertices has {count} rows, the builder was set up with {self.vertices.shape[0]}")
-        if isinstance(vertices, wp.array):
-            if vertices.dtype == wp.vec3:
-                return vertices
-            if not vertices.is_contiguous:
-                raise ValueError("float32 (V, 3) vertices must be contiguous")
-            return wp.array(ptr=vertices.ptr, dtype=wp.vec3, shape=count, device=vertices.device)
-        host = np.ascontiguousarray(vertices, dtype=np.float32)
+    def _source(self, values, name: str, rows: int) -> wp.array:
+        """A vec3 view of checked `values`: on their own device, or on the host for NumPy input."""
+        count = self._check_points(values, name)
+        if count != rows:
+            raise ValueError(f"{name} has {count} rows, the builder was set up with {rows}")
+        if isinstance(values, wp.array):
+            if values.dtype == wp.vec3:
+                return values
+            if not values.is_contiguous:
+                raise ValueError(f"float32 (N, 3) {name} must be contiguous")
+            return wp.array(ptr=values.ptr, dtype=wp.vec3, shape=count, device=values.device)
+        host = np.ascontiguousarray(values, dtype=np.float32)
         return wp.array(host, dtype=wp.vec3, device="cpu", copy=False)
 
-    def _load_vertices(self, vertices):
-        """Copy into the preallocated vertex buffer: no device allocation on the per-frame path."""
-        # Whatever the call, the vertices are no longer those of the auto policy's snapshot.
-        self.snapshot_valid = False
-        if vertices is None:
-            return
-        src = self._vertex_source(vertices)
-        if src.ptr != self.vertices.ptr:
-            wp.copy(self.vertices, src)
+    def _buffers(self) -> list:
+        """The builder's own copies of a frame's input: the vertices, or the boxes (which are the
+        pipeline's input boxes and the BVH's `prim_lowers`/`prim_uppers`)."""
+        return [self.vertices] if self.kind == "triangles" else [self.prim_lowers, self.prim_uppers]
 
-    def _load_and_measure(self, vertices) -> bool:
-        """Load the frame's vertices and put the largest vertex displacement since the previous
-        frame in ``stats[0]``, in one pass (`dynamic.load_and_measure_kernel`). Returns False when
-        there is nothing to measure against: the vertices were changed in place (``vertices`` is
-        None or the builder's own buffer) and the previous frame left no snapshot."""
+    def _frame_sources(self, vertices, bounds) -> list | None:
+        """Check one frame's input against what `build` / `build_from_bounds` set up, before any
+        state changes. Returns the arrays to load, one per buffer, or None when the frame was
+        written into the builder's own buffers in place (nothing given, or those buffers)."""
+        if self.kind == "triangles":
+            if bounds is not None:
+                raise ValueError("this Builder was set up with triangles (build): pass the frame's vertices, "
+                                 "not bounds")
+            if vertices is None:
+                return None
+            sources = [self._source(vertices, "vertices", self.vertices.shape[0])]
+        else:
+            if vertices is not None:
+                raise ValueError("this Builder was set up with boxes (build_from_bounds): pass the frame's "
+                                 "bounds=(lowers, uppers), not vertices")
+            if bounds is None:
+                return None
+            if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
+                raise ValueError("bounds must be a pair (lowers, uppers)")
+            lowers, uppers = bounds
+            if not isinstance(lowers, wp.array) and not isinstance(uppers, wp.array):
+                # On the host the boxes are checked whole, as `build_from_bounds` does.
+                inputs.bounds_arrays(lowers, uppers)
+            sources = [self._source(lowers, "lowers", self.num_prims), self._source(uppers, "uppers", self.num_prims)]
+        if all(src.ptr == buf.ptr for src, buf in zip(sources, self._buffers())):
+            return None
+        return sources
+
+    def _load(self, sources: list | None):
+        """Copy into the preallocated buffers: no device allocation on the per-frame path."""
+        # Whatever the call, the buffers no longer hold the auto policy's snapshot.
+        self.snapshot_valid = False
+        if sources is None:
+            return
+        for src, buf in zip(sources, self._buffers()):
+            if src.ptr != buf.ptr:
+                wp.copy(buf, src)
+
+    def _load_and_measure(self, sources: list | None) -> bool:
+        """Load the frame and put the largest displacement since the previous frame (of a vertex,
+        or of a box corner) in ``stats[0]``, in one pass (`dynamic.load_and_measure_kernel`).
+        Returns False when there is nothing to measure against: the frame was written in place
+        and the previous frame left no snapshot."""
         wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats], device=self.device)
-        in_place = vertices is None or (isinstance(vertices, wp.array) and vertices.ptr == self.vertices.ptr)
-        if in_place:
-            # Written into `self.vertices` by the caller: compare with the snapshot of the previous
-            # frame, refreshing it in the same pass. Only callers who write in place pay for one.
+        buffers, snapshots = self._buffers(), self.snapshots
+        if sources is None:
+            # Written into the builder's buffers by the caller: compare with the snapshot of the
+            # previous frame, refreshing it in the same pass. Only callers who write in place pay for one.
             measured = self.snapshot_valid
             if measured:
-                self._measure(self.vertices, self.previous_vertices)
+                self._measure(list(zip(buffers, snapshots)))
             else:
-                wp.copy(self.previous_vertices, self.vertices)
+                for buf, snap in zip(buffers, snapshots):
+                    wp.copy(snap, buf)
             self.snapshot_valid = True
             return measured
-        src = self._vertex_source(vertices)
-        if src.device != self.device:
-            # NumPy input or another device: stage it on this device first.
-            wp.copy(self.previous_vertices, src)
-            src = self.previous_vertices
-        self._measure(src, self.vertices)
+        pairs = []
+        for src, buf, snap in zip(sources, buffers, snapshots):
+            if src.device != self.device:
+                # NumPy input or another device: stage it on this device first.
+                wp.copy(snap, src)
+                src = snap
+            pairs.append((src, buf))
+        self._measure(pairs)
         self.snapshot_valid = False
         return True
 
-    def _measure(self, source: wp.array, dest: wp.array):
-        count = dest.shape[0]
-        chunk = MOTION_CHUNK_CPU if self.device.is_cpu else 1
-        num_chunks = (count + chunk - 1) // chunk
+    def _measure(self, pairs: list):
+        """stats[0] = the largest |source - dest| over every pair of arrays, then dest = source."""
         self.largest_sq.zero_()
-        threads = min(self.motion_threads, num_chunks)
-        if threads > 1 and count >= PARALLEL_MIN_PRIMS:
-            # Slices of chunks side by side on a multi-core CPU, each with its own maximum (atomics
-            # on the CPU device are not atomic across threads): 1.7 ms on two cores for 1.2M
-            # vertices against 3.2 ms on one (the plain copy every policy makes: 0.8 ms).
-            cuts = threads_module.split_bounds(num_chunks, threads)
-            parts = [(hi - lo, [count, chunk, lo, source, dest, self.largest_sq_views[j]])
-                     for j, (lo, hi) in enumerate(zip(cuts, cuts[1:]))]
-            threads_module.launch_parts(dynamic.load_and_measure_kernel, self.device, parts, threads)
-        else:
-            threads = 1
-            wp.launch(dynamic.load_and_measure_kernel, dim=num_chunks,
-                      inputs=[count, chunk, 0, source, dest, self.largest_sq], device=self.device)
-        wp.launch(dynamic.finish_motion_kernel, dim=1, inputs=[self.largest_sq, threads, self.stats],
+        used = 1
+        for source, dest in pairs:
+            count = dest.shape[0]
+            chunk = MOTION_CHUNK_CPU if self.device.is_cpu else 1
+            num_chunks = (count + chunk - 1) // chunk
+            threads = min(self.motion_threads, num_chunks)
+            if threads > 1 and count >= PARALLEL_MIN_PRIMS:
+                # Slices of chunks side by side on a multi-core CPU, each with its own maximum (atomics
+                # on the CPU device are not atomic across threads): 1.7 ms on two cores for 1.2M
+                # vertices against 3.2 ms on one (the plain copy every policy makes: 0.8 ms).
+                cuts = threads_module.split_bounds(num_chunks, threads)
+                parts = [(hi - lo, [count, chunk, lo, source, dest, self.largest_sq_views[j]])
+                         for j, (lo, hi) in enumerate(zip(cuts, cuts[1:]))]
+                threads_module.launch_parts(dynamic.load_and_measure_kernel, self.device, parts, threads)
+                used = max(used, threads)
+            else:
+                wp.launch(dynamic.load_and_measure_kernel, dim=num_chunks,
+                          inputs=[count, chunk, 0, source, dest, self.largest_sq], device=self.device)
+        wp.launch(dynamic.finish_motion_kernel, dim=1, inputs=[self.largest_sq, used, self.stats],
                   device=self.device)
 
     # ---------------------------------------------------------------- build
@@ -282,8 +332,30 @@ class Builder:
             self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
             self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
         self.vertices.assign(verts_np)
-        self.snapshot_valid = False
         self.faces.assign(faces_np)
+        self.kind, self.snapshots = "triangles", [self.previous_vertices]
+        return self._first_build(vertices=self.vertices, faces=self.faces)
+
+    def build_from_bounds(self, lowers, uppers) -> Bvh:
+        """Set up the builder for arbitrary primitives given by their boxes, ``(N, 3)`` lowers and
+        uppers (particles, spheres, capsules: a simulation's broad phase), and build their BVH.
+
+        Later frames pass ``bounds=(lowers, uppers)`` to `update`, `rebuild` or `refit`, or
+        write the boxes into ``prim_lowers`` / ``prim_uppers`` in place and pass nothing. Every
+        policy works as for triangles; `auto` measures how far a box corner moved.
+        """
+        lo, hi = inputs.bounds_arrays(lowers, uppers)
+        if lo.shape[0] != self.num_prims:
+            raise ValueError(f"lowers has {lo.shape[0]} rows, the builder was set up for {self.num_prims}")
+        if self.previous_bounds is None:
+            self.previous_bounds = [wp.empty(self.num_prims, dtype=wp.vec3, device=self.device) for _ in range(2)]
+        self.prim_lowers.assign(lo)
+        self.prim_uppers.assign(hi)
+        self.kind, self.snapshots = "boxes", list(self.previous_bounds)
+        return self._first_build(vertices=None, faces=None)
+
+    def _first_build(self, vertices, faces) -> Bvh:
+        self.snapshot_valid = False
         if self.resort:
             wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
         pipe = self.pipeline
@@ -291,7 +363,7 @@ class Builder:
                        prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,
                        node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
                        node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
-                       node_count=pipe.node_count, vertices=self.vertices, faces=self.faces)
+                       node_count=pipe.node_count, vertices=vertices, faces=faces)
         self.frame = 0
         self.reports.clear()
         self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait
@@ -306,7 +378,8 @@ class Builder:
 
     def _require_built(self):
         if self.bvh is None:
-            raise RuntimeError("call build(vertices, faces) once before rebuild/refit/update")
+            raise RuntimeError("call build(vertices, faces) or build_from_bounds(lowers, uppers) once before "
+                               "rebuild/refit/update")
 
     def _rebuild(self, timer: StageTimer):
         """The launches of one full build from `self.vertices`. A sync-free (CUDA) build reads
@@ -323,9 +396,13 @@ class Builder:
         computes the triangle boxes.
         """
         n, device, pipe = self.num_prims, self.device, self.pipeline
-        # Triangle boxes in the user's face order, and the centroid bounds in the same pass.
+        # Triangle boxes in the user's face order, and the centroid bounds in the same pass (for
+        # boxes given as such, the centroid bounds only).
         timer.stage("prim_bounds")
-        pipe.compute_triangle_bounds(self.vertices, self.faces)
+        if self.kind == "triangles":
+            pipe.compute_triangle_bounds(self.vertices, self.faces)
+        else:
+            pipe.compute_centroid_bounds()
         resorted = self.resort and self._resorting_pays(timer)
         if resorted:
             timer.stage("morton")
@@ -396,9 +473,10 @@ class Builder:
 
     def _refit(self, timer: StageTimer, price: bool = False) -> float | None:
         """Refit every box; with `price`, also return the refit tree's SAH cost (`sah_cost`)."""
-        timer.stage("prim_bounds")
-        wp.launch(morton.triangle_bounds_kernel, dim=self.num_prims,
-                  inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=self.device)
+        if self.kind == "triangles":
+            timer.stage("prim_bounds")
+            wp.launch(morton.triangle_bounds_kernel, dim=self.num_prims,
+                      inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=self.device)
         timer.stage("refit")
         bvh, pipe, cfg = self.bvh, self.pipeline, self.config
         costs = (cfg.sah_traversal_cost, cfg.sah_intersection_cost)
@@ -421,18 +499,21 @@ class Builder:
         timings = timer.finish()
         return dict(timings)
 
-    def rebuild(self, vertices=None) -> Bvh:
-        """Full build over new vertices (or the current contents of ``self.vertices``).
+    def rebuild(self, vertices=None, *, bounds=None) -> Bvh:
+        """Full build over new vertices (or the current contents of ``self.vertices``); for a
+        builder set up with `build_from_bounds`, over new ``bounds=(lowers, uppers)`` (or the
+        current contents of ``prim_lowers`` / ``prim_uppers``).
 
-        Resorted when the builder was made with ``resort=True``. Given a device array (or None)
+        Resorted when the builder was made with ``resort=True``. Given device arrays (or None)
         it launches work only: no host synchronization, no allocation.
         """
         self._require_built()
+        sources = self._frame_sources(vertices, bounds)
         if not self.sync_free and self.device.is_cuda and self.device.is_capturing:
             raise RuntimeError(f"a {self.method!r} rebuild reads counts on the host and cannot be captured in a "
                                "CUDA graph; capture a Builder with method='hlbvh' or 'lbvh'")
         start = time.perf_counter()
-        self._load_vertices(vertices)
+        self._load(sources)
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
         stages = self._finish(timer)
@@ -440,26 +521,29 @@ class Builder:
         self._report("rebuild", "rebuild requested", start, stages)
         return self.bvh
 
-    def refit(self, vertices=None) -> Bvh:
-        """Recompute every box for new vertices, keeping the topology."""
+    def refit(self, vertices=None, *, bounds=None) -> Bvh:
+        """Recompute every box for new vertices (or boxes, ``bounds=(lowers, uppers)``), keeping
+        the topology."""
         self._require_built()
+        sources = self._frame_sources(vertices, bounds)
         start = time.perf_counter()
-        self._load_vertices(vertices)
+        self._load(sources)
         timer = StageTimer(self.device, self.timings)
         self._refit(timer)
         stages = self._finish(timer)
         self._report("refit", "refit requested", start, stages)
         return self.bvh
 
-    def update(self, vertices=None) -> dict:
-        """One frame under the builder's policy; returns the frame report (also `last_report`)."""
+    def update(self, vertices=None, *, bounds=None) -> dict:
+        """One frame under the builder's policy, over new vertices (or boxes, ``bounds=(lowers,
+        uppers)``); returns the frame report (also `last_report`)."""
         self._require_built()
         if self.policy == "rebuild":
-            self.rebuild(vertices)
+            self.rebuild(vertices, bounds=bounds)
         elif self.policy == "refit":
-            self.refit(vertices)
+            self.refit(vertices, bounds=bounds)
         else:
-            self._auto(vertices)
+            self._auto(self._frame_sources(vertices, bounds))
         return self.last_report
 
     # ----------------------------------------------------------------- auto
@@ -478,12 +562,12 @@ class Builder:
             return 0.0
         return self.last_growth + max(self.last_growth - self.previous_growth, self.last_growth / k)
 
-    def _auto(self, vertices):
+    def _auto(self, sources: list | None):
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
         timer.stage("motion")
         # Load the vertices and measure the largest displacement on the device, in one pass.
-        measured = self._load_and_measure(vertices)
+        measured = self._load_and_measure(sources)
         wp.launch(dynamic.root_diagonal_kernel, dim=1,
                   inputs=[self.bvh.node_lowers, self.bvh.node_uppers, self.stats], device=self.device)
         moved, diagonal = (float(x) for x in self.stats.numpy())
@@ -493,10 +577,11 @@ class Builder:
         large = False
         if not measured:
             decision = "rebuild"
-            reason = "vertices changed in place, with no snapshot of the previous frame to measure against"
+            reason = "frame written in place, with no snapshot of the previous frame to measure against"
             self._rebuild(timer)
         elif moved == 0.0:
-            decision, reason = "none", "no vertex moved since the previous frame"
+            what = "vertex" if self.kind == "triangles" else "box"
+            decision, reason = "none", f"no {what} moved since the previous frame"
             skipped = ["prim_bounds", "refit", "rebuild"]
         elif relative > self.large_motion:
             decision = "rebuild"

@@ -216,6 +216,15 @@ class HlbvhPipeline:
             return
         self._reduce_centroid_bounds(morton.triangle_bounds_centroids_kernel, [vertices, faces, lowers, uppers])
 
+    def compute_centroid_bounds(self):
+        """The scene's centroid bounds from `prim_lowers` / `prim_uppers` (or the fixed grid of
+        ``BuildConfig.morton_bounds``), which `compute_morton_codes(bounds_ready=True)` then uses:
+        boxes given as such, where `compute_triangle_bounds` reduces them while computing the boxes."""
+        if self.config.morton_bounds is not None:
+            self._set_fixed_bounds()
+        else:
+            self._reduce_centroid_bounds(morton.centroid_bounds_kernel, [self.prim_lowers, self.prim_uppers])
+
     def _reduce_centroid_bounds(self, kernel, inputs: list):
         """Reset `scene_bounds`, then launch a chunked centroid reduction `kernel(n, chunk, *inputs,
         scene_bounds)`: chunks of CPU_REDUCTION_CHUNK primitives on the CPU, one per thread on CUDA."""
@@ -246,10 +255,7 @@ class HlbvhPipeline:
         n = self.num_prims
         codes = self.morton_codes if codes is None else codes
         if not bounds_ready:
-            if self.config.morton_bounds is not None:
-                self._set_fixed_bounds()
-            else:
-                self._reduce_centroid_bounds(morton.centroid_bounds_kernel, [self.prim_lowers, self.prim_uppers])
+            self.compute_centroid_bounds()
         threads = threads_module.resolved_threads(self.config, self.device)
         if threads > 1 and n >= PARALLEL_MIN_PRIMS:
             # Slices side by side on a multi-core CPU; the views are made once per set of boxes.
