@@ -116,3 +116,64 @@ def test_auto_never_skips_a_frame_that_moved(device, policy, rng):
     report = builder.update(moved)
     assert report["decision"] != "none"
     check_frame(builder, moved, faces, rng)
+
+
+def check_box_frame(builder: Builder, lowers: np.ndarray, uppers: np.ndarray, rng):
+    tree = builder.bvh.to_numpy()
+    check_tree_invariants(tree, len(lowers), builder.config.max_leaf_size)
+    order = tree["prim_order"]
+    node_lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
+    node_hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
+    np.testing.assert_array_equal(tree["node_lowers"], node_lo)
+    np.testing.assert_array_equal(tree["node_uppers"], node_hi)
+    # Query boxes around some of the boxes (touching counts) and random ones.
+    picks = rng.integers(0, len(lowers), size=8)
+    q_lo = np.concatenate([lowers[picks], rng.random((8, 3)).astype(np.float32) * 4.0 - 2.0])
+    q_hi = np.concatenate([lowers[picks], q_lo[8:] + np.float32(0.5)])
+    counts, pairs = hw.query_aabb(builder.bvh, q_lo, q_hi, return_pairs=True)
+    expected = ((lowers[None] <= q_hi[:, None]) & (uppers[None] >= q_lo[:, None])).all(-1)
+    np.testing.assert_array_equal(counts, expected.sum(1))
+    np.testing.assert_array_equal(pairs, np.argwhere(expected))
+    return tree
+
+
+@settings(max_examples=30, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    num_boxes=st.integers(1, 80),
+    method=st.sampled_from(PIPELINE_METHODS),
+    policy=st.sampled_from(POLICIES),
+    resort=st.booleans(),
+    motions=st.lists(st.sampled_from(MOTIONS), min_size=1, max_size=6),
+)
+def test_fuzzed_box_frame_sequences(device, seed, num_boxes, method, policy, resort, motions):
+    # The same motions for a builder over bare boxes (`build_from_bounds`): each box spans two
+    # moving points, so boxes collapse, flatten to points and blow up with them.
+    rng = np.random.default_rng(seed)
+    points = (rng.random((2 * num_boxes, 3)) * 4.0 - 2.0).astype(np.float32)
+
+    def boxes(p):
+        return np.minimum(p[0::2], p[1::2]), np.maximum(p[0::2], p[1::2])
+
+    builder = Builder(num_boxes, device=device, method=method, policy=policy, resort=resort, max_refits=2)
+    lowers, uppers = boxes(points)
+    builder.build_from_bounds(lowers, uppers)
+    check_box_frame(builder, lowers, uppers, rng)
+    for motion in motions:
+        points = next_vertices(rng, motion, points)
+        lowers, uppers = boxes(points)
+        if motion == "in_place":
+            builder.prim_lowers.assign(lowers)
+            builder.prim_uppers.assign(uppers)
+            report = builder.update()
+        else:
+            report = builder.update(bounds=(lowers, uppers))
+        assert report["decision"] in ("rebuild", "refit", "none")
+        if policy == "auto" and motion == "rest" and report["decision"] == "none":
+            assert report["max_displacement"] == 0.0
+        tree = check_box_frame(builder, lowers, uppers, rng)
+        if report["decision"] == "rebuild" and not resort:
+            one_shot = hw.build_from_bounds(lowers, uppers, method=method, device=device).to_numpy()
+            for name in TOPOLOGY:
+                np.testing.assert_array_equal(tree[name], one_shot[name], err_msg=name)
