@@ -114,3 +114,18 @@ def random_rays(rng, vertices, num_rays):
     targets = lo + rng.random((num_rays, 3)) * (hi - lo)
     d = targets - origins
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
+def numpy_node_boxes(tree: dict, lowers: np.ndarray, uppers: np.ndarray):
+    """Every node's box as the union of the boxes of the primitives in its range (min and max are
+    exact, so a float32 tree's boxes must equal these of the same floats)."""
+    order = tree["prim_order"]
+    ranges = list(zip(tree["node_begin"], tree["node_end"]))
+    lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in ranges])
+    hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in ranges])
+    return lo, hi
+
+
+def brute_overlaps(lowers, uppers, q_lo, q_hi):
+    """(Q, N) closed-box overlap of every query box with every box: touching counts."""
+    return ((lowers[None] <= q_hi[:, None]) & (uppers[None] >= q_lo[:, None])).all(-1)

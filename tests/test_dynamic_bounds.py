@@ -12,13 +12,9 @@ from hlbvh_warp import metrics, query
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.scenes import default_scene
 
-from oracles import check_tree_invariants
+from oracles import brute_overlaps, check_tree_invariants, numpy_node_boxes
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
-
-
-def brute_overlaps(lo, hi, q_lo, q_hi):
-    return ((lo[None] <= q_hi[:, None]) & (hi[None] >= q_lo[:, None])).all(-1)
 
 
 class Particles:
@@ -42,13 +38,6 @@ class Particles:
 
     def bounds(self):
         return ((self.centers - self.radii).astype(np.float32), (self.centers + self.radii).astype(np.float32))
-
-
-def numpy_node_boxes(tree: dict, lowers: np.ndarray, uppers: np.ndarray):
-    order = tree["prim_order"]
-    lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
-    hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
-    return lo, hi
 
 
 def check_frame(builder: Builder, lowers: np.ndarray, uppers: np.ndarray, rng, exact_boxes: bool = True):

@@ -19,7 +19,7 @@ import hlbvh_warp as hw
 from hlbvh_warp import stress_report
 from hlbvh_warp.builder import PIPELINE_METHODS, POLICIES, Builder
 
-from oracles import brute_force_closest_hit, check_tree_invariants
+from oracles import brute_force_closest_hit, brute_overlaps, check_tree_invariants, numpy_node_boxes
 
 MOTIONS = ("rest", "jitter", "jump", "collapse", "huge", "tiny", "in_place")
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end", "prim_order")
@@ -46,10 +46,7 @@ def check_frame(builder: Builder, vertices: np.ndarray, faces: np.ndarray, rng):
     tree = builder.bvh.to_numpy()
     check_tree_invariants(tree, len(faces), builder.config.max_leaf_size)
     corners = vertices.astype(np.float64)[faces]
-    lowers, uppers = corners.min(axis=1), corners.max(axis=1)
-    order = tree["prim_order"]
-    node_lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
-    node_hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
+    node_lo, node_hi = numpy_node_boxes(tree, corners.min(axis=1), corners.max(axis=1))
     np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
     np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
     for origins, directions in stress_report.ray_families(rng, vertices, faces, num_rays=24).values():
@@ -121,9 +118,7 @@ def test_auto_never_skips_a_frame_that_moved(device, policy, rng):
 def check_box_frame(builder: Builder, lowers: np.ndarray, uppers: np.ndarray, rng):
     tree = builder.bvh.to_numpy()
     check_tree_invariants(tree, len(lowers), builder.config.max_leaf_size)
-    order = tree["prim_order"]
-    node_lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
-    node_hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
+    node_lo, node_hi = numpy_node_boxes(tree, lowers, uppers)
     np.testing.assert_array_equal(tree["node_lowers"], node_lo)
     np.testing.assert_array_equal(tree["node_uppers"], node_hi)
     # Query boxes around some of the boxes (touching counts) and random ones.
@@ -131,7 +126,7 @@ def check_box_frame(builder: Builder, lowers: np.ndarray, uppers: np.ndarray, rn
     q_lo = np.concatenate([lowers[picks], rng.random((8, 3)).astype(np.float32) * 4.0 - 2.0])
     q_hi = np.concatenate([lowers[picks], q_lo[8:] + np.float32(0.5)])
     counts, pairs = hw.query_aabb(builder.bvh, q_lo, q_hi, return_pairs=True)
-    expected = ((lowers[None] <= q_hi[:, None]) & (uppers[None] >= q_lo[:, None])).all(-1)
+    expected = brute_overlaps(lowers, uppers, q_lo, q_hi)
     np.testing.assert_array_equal(counts, expected.sum(1))
     np.testing.assert_array_equal(pairs, np.argwhere(expected))
     return tree

@@ -20,7 +20,7 @@ from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.kernels import compress
 from hlbvh_warp.scenes import default_scene
 
-from oracles import check_tree_invariants
+from oracles import brute_overlaps, check_tree_invariants, numpy_node_boxes
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
 
@@ -34,18 +34,6 @@ def numpy_boxes(vertices: np.ndarray, faces: np.ndarray):
     """Per-face boxes in float64 (min and max are exact, so float32 results must equal them)."""
     corners = vertices.astype(np.float64)[faces]
     return corners.min(axis=1), corners.max(axis=1)
-
-
-def numpy_node_boxes(tree: dict, lowers: np.ndarray, uppers: np.ndarray):
-    """Every node's box as the union of the boxes of the primitives in its range, in float64."""
-    order = tree["prim_order"]
-    lo = np.array([lowers[order[b:e]].min(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
-    hi = np.array([uppers[order[b:e]].max(axis=0) for b, e in zip(tree["node_begin"], tree["node_end"])])
-    return lo, hi
-
-
-def brute_overlaps(lo, hi, q_lo, q_hi):
-    return ((lo[None] <= q_hi[:, None]) & (hi[None] >= q_lo[:, None])).all(-1)
 
 
 def make_scene(kind, v, f, device):

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 import warp as wp
 from conftest import REPO_ROOT
-from oracles import assert_hits_match, brute_force_closest_hit, random_rays
+from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, random_rays
 
 import hlbvh_warp
 from hlbvh_warp import query
@@ -108,10 +108,6 @@ def test_intersect_all_lists_every_crossing(device, rng, scene):
         assert (np.diff(t[sel]) >= 0).all()
 
 
-def _brute_overlaps(lo, hi, q_lo, q_hi):
-    return ((lo[None] <= q_hi[:, None]) & (hi[None] >= q_lo[:, None])).all(-1)
-
-
 @pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
 def test_query_aabb_on_boxes_and_meshes(device, rng, method):
     lo = rng.random((2000, 3)).astype(np.float32)
@@ -122,7 +118,7 @@ def test_query_aabb_on_boxes_and_meshes(device, rng, method):
     q_hi[0] = q_lo[0] - 1.0  # inverted: overlaps nothing
     q_lo[1], q_hi[1] = -np.inf, np.inf  # everything
     counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
-    ref = _brute_overlaps(lo, hi, q_lo, q_hi)
+    ref = brute_overlaps(lo, hi, q_lo, q_hi)
     assert np.array_equal(counts, ref.sum(1))
     assert np.array_equal(pairs, np.argwhere(ref))
     assert counts[0] == 0 and counts[1] == 2000
