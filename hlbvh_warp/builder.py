@@ -272,6 +272,13 @@ class Builder:
         and the previous frame left no snapshot."""
         wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats], device=self.device)
         buffers, snapshots = self._buffers(), self.snapshots
+        if sources is not None and any(src.ptr == buf.ptr for src, buf in zip(sources, buffers)):
+            # Part of the frame (the lowers, say) was written in place: a buffer compared with
+            # itself would hide its motion. Load the rest, then measure the frame as written in place.
+            for src, buf in zip(sources, buffers):
+                if src.ptr != buf.ptr:
+                    wp.copy(buf, src)
+            sources = None
         if sources is None:
             # Written into the builder's buffers by the caller: compare with the snapshot of the
             # previous frame, refreshing it in the same pass. Only callers who write in place pay for one.
@@ -382,7 +389,8 @@ class Builder:
                                "rebuild/refit/update")
 
     def _rebuild(self, timer: StageTimer):
-        """The launches of one full build from `self.vertices`. A sync-free (CUDA) build reads
+        """The launches of one full build from `self.vertices` (or the boxes in `prim_lowers` /
+        `prim_uppers`, for a builder set up with `build_from_bounds`). A sync-free (CUDA) build reads
         nothing on the host unless timed; the others read their run counts, and a resorted one
         its sample of the previous order (`_resorting_pays`).
 

@@ -140,8 +140,17 @@ def test_auto_policy_on_boxes(device, rng):
     builder.prim_lowers.assign(lowers + np.float32(0.25))
     builder.prim_uppers.assign(uppers + np.float32(0.25))
     assert "in place" in builder.update()["reason"]
-    check_frame(builder, lowers + np.float32(0.25), uppers + np.float32(0.25), rng)
+    lowers, uppers = lowers + np.float32(0.25), uppers + np.float32(0.25)
+    check_frame(builder, lowers, uppers, rng)
     assert builder.update()["decision"] == "none"
+    # Half in place: only the lowers moved, written into the builder's own array, and the uppers
+    # passed as they were. The motion is still seen, against the snapshot of the previous frame.
+    lowers = lowers - np.float32(0.125)
+    builder.prim_lowers.assign(lowers)
+    report = builder.update(bounds=(builder.prim_lowers, uppers.copy()))
+    assert report["decision"] != "none", report
+    assert report["max_displacement"] == pytest.approx(0.125 * np.sqrt(3.0), rel=1e-4)
+    check_frame(builder, lowers, uppers, rng)
 
 
 def test_box_builder_rejects_bad_frames_and_keeps_its_tree(device, rng):
