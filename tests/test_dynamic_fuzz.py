@@ -57,20 +57,30 @@ def check_frame(builder: Builder, vertices: np.ndarray, faces: np.ndarray, rng):
     return tree
 
 
-# Derandomized: CI runs the same examples every time.
-@settings(max_examples=60, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(
+def fuzz_settings(max_examples: int):
+    # Derandomized: CI runs the same examples every time.
+    return settings(max_examples=max_examples, deadline=None, derandomize=True,
+                    suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+#: What every fuzzed sequence draws: the builder's setup and the frames' motions.
+SEQUENCES = dict(
     seed=st.integers(0, 2**32 - 1),
-    num_tris=st.integers(1, 80),
     method=st.sampled_from(PIPELINE_METHODS),
     policy=st.sampled_from(POLICIES),
     resort=st.booleans(),
-    shared=st.booleans(),
     motions=st.lists(st.sampled_from(MOTIONS), min_size=1, max_size=6),
+)
+
+
+@fuzz_settings(60)
+@given(
+    num_tris=st.integers(1, 80),
+    shared=st.booleans(),
     # The default, where a resorted frame takes the faces' order when its runs do not compress,
     # and 1.0, where it always takes the previous tree's order.
     global_sort_runs=st.sampled_from([hw.BuildConfig().global_sort_runs, 1.0]),
+    **SEQUENCES,
 )
 def test_fuzzed_frame_sequences(device, seed, num_tris, method, policy, resort, shared, motions, global_sort_runs):
     rng = np.random.default_rng(seed)
@@ -132,16 +142,8 @@ def check_box_frame(builder: Builder, lowers: np.ndarray, uppers: np.ndarray, rn
     return tree
 
 
-@settings(max_examples=30, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(
-    seed=st.integers(0, 2**32 - 1),
-    num_boxes=st.integers(1, 80),
-    method=st.sampled_from(PIPELINE_METHODS),
-    policy=st.sampled_from(POLICIES),
-    resort=st.booleans(),
-    motions=st.lists(st.sampled_from(MOTIONS), min_size=1, max_size=6),
-)
+@fuzz_settings(30)
+@given(num_boxes=st.integers(1, 80), **SEQUENCES)
 def test_fuzzed_box_frame_sequences(device, seed, num_boxes, method, policy, resort, motions):
     # The same motions for a builder over bare boxes (`build_from_bounds`): each box spans two
     # moving points, so boxes collapse, flatten to points and blow up with them.
