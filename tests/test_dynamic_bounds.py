@@ -231,3 +231,25 @@ def test_box_rebuild_is_graph_capturable_on_cuda(rng):
         check_frame(builder, lowers, uppers, rng)
         one_shot = hw.build_from_bounds(lowers, uppers, device=device)
         assert metrics.sah_cost(builder.bvh) == pytest.approx(metrics.sah_cost(one_shot), rel=1e-5)
+
+
+@pytest.mark.parametrize("policy", ["rebuild", "auto", "refit"])
+def test_non_finite_device_boxes_neither_crash_nor_stick(device, rng, policy):
+    # Device arrays are not read back to be checked (that would cost a synchronization every
+    # frame), so a simulation that blows up hands the builder NaN and Inf boxes. The frame must
+    # still complete, and the next finite frame must give a right tree again.
+    particles = Particles(rng, 3000)
+    builder = Builder(3000, device=device, policy=policy)
+    lowers, uppers = particles.bounds()
+    builder.build_from_bounds(lowers, uppers)
+    bad_lowers, bad_uppers = lowers.copy(), uppers.copy()
+    bad_lowers[::7] = np.nan
+    bad_uppers[3] = np.inf
+    report = builder.update(bounds=(wp.array(bad_lowers, dtype=wp.vec3, device=device),
+                                    wp.array(bad_uppers, dtype=wp.vec3, device=device)))
+    assert report["decision"] in ("rebuild", "refit")
+    lowers, uppers = particles.step()
+    builder.update(bounds=(wp.array(lowers, dtype=wp.vec3, device=device),
+                           wp.array(uppers, dtype=wp.vec3, device=device)))
+    # Under `refit` the topology is still the first frame's; every box is recomputed exactly.
+    check_frame(builder, lowers, uppers, rng)
