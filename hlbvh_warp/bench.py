@@ -35,6 +35,7 @@ from . import api, inputs, reference, scenes
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
+from .launches import RecordedLaunches
 from .metrics import sah_cost
 
 #: Our builders, in the order the table lists them.
@@ -185,6 +186,7 @@ def _rebuild_runner(builder, lowers, uppers, config, device):
             pipe.build_sah(StageTimer(device, False))
     else:
         return None
+    pipe.launches = RecordedLaunches(device)  # as a Builder records its per-frame launches
     wp.copy(pipe.prim_lowers, lowers)
     wp.copy(pipe.prim_uppers, uppers)
     return run

@@ -38,6 +38,7 @@ from .builders import HlbvhSahPipeline
 from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import PARALLEL_MIN_PRIMS, HlbvhPipeline, StageTimer, compute_bounds
+from .launches import RecordedLaunches
 from .kernels import compress, dynamic, morton
 
 POLICIES = ("rebuild", "refit", "auto")
@@ -132,6 +133,8 @@ class Builder:
         else:
             self.pipeline = pipe = HlbvhPipeline(n, config, device)
             self.prim_order = pipe.sorted_prim_ids[:n]
+        # Every frame launches the same kernels on the same buffers: record them once.
+        pipe.launches = RecordedLaunches(device)
         # A CUDA rebuild keeps every count on the device, so it never waits and can be captured
         # (not hlbvh_sah's, which reads its cluster count).
         self.sync_free = device.is_cuda and method != "hlbvh_sah"
@@ -270,7 +273,7 @@ class Builder:
         or of a box corner) in ``stats[0]``, in one pass (`dynamic.load_and_measure_kernel`).
         Returns False when there is nothing to measure against: the frame was written in place
         and the previous frame left no snapshot."""
-        wp.launch(dynamic.reset_stats_kernel, dim=1, inputs=[self.stats], device=self.device)
+        self.pipeline._launch(dynamic.reset_stats_kernel, 1, [self.stats])
         buffers, snapshots = self._buffers(), self.snapshots
         if sources is not None and any(src.ptr == buf.ptr for src, buf in zip(sources, buffers)):
             # Part of the frame (the lowers, say) was written in place: a buffer compared with
@@ -320,10 +323,9 @@ class Builder:
                 threads_module.launch_parts(dynamic.load_and_measure_kernel, self.device, parts, threads)
                 used = max(used, threads)
             else:
-                wp.launch(dynamic.load_and_measure_kernel, dim=num_chunks,
-                          inputs=[count, chunk, 0, source, dest, self.largest_sq], device=self.device)
-        wp.launch(dynamic.finish_motion_kernel, dim=1, inputs=[self.largest_sq, used, self.stats],
-                  device=self.device)
+                self.pipeline._launch(dynamic.load_and_measure_kernel, num_chunks,
+                                      [count, chunk, 0, source, dest, self.largest_sq])
+        self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_sq, used, self.stats])
 
     # ---------------------------------------------------------------- build
     def build(self, vertices, faces) -> Bvh:
@@ -422,9 +424,8 @@ class Builder:
                 threads_module.launch_parts(dynamic.resort_gather_kernel, device, self.gather_parts,
                                             len(self.gather_parts))
             else:
-                wp.launch(dynamic.resort_gather_kernel, dim=n,
-                          inputs=[self.prim_order, self.user_codes, self.input_order, pipe.morton_codes],
-                          device=device)
+                pipe._launch(dynamic.resort_gather_kernel, n,
+                             [self.prim_order, self.user_codes, self.input_order, pipe.morton_codes])
         elif self.resort:
             # The faces' own order, as from scratch: the pipeline computes the codes in place.
             timer.skipped("resort_gather")
@@ -465,10 +466,9 @@ class Builder:
         pipe = self.pipeline
         self.run_breaks.zero_()
         bits = self.config.bits_per_axis
-        wp.launch(dynamic.sample_run_breaks_kernel, dim=self.resort_samples,
-                  inputs=[self.prim_order, pipe.prim_lowers, pipe.prim_uppers, pipe.scene_bounds, bits,
-                          self.num_prims, self.resort_samples, 3 * (bits - pipe.coarse_bits), self.run_breaks],
-                  device=self.device)
+        pipe._launch(dynamic.sample_run_breaks_kernel, self.resort_samples,
+                     [self.prim_order, pipe.prim_lowers, pipe.prim_uppers, pipe.scene_bounds, bits,
+                      self.num_prims, self.resort_samples, 3 * (bits - pipe.coarse_bits), self.run_breaks])
         breaks, descents = (int(x) for x in self.run_breaks.numpy())
         fraction = breaks / self.resort_samples
         self.last_input["sampled_run_fraction"] = fraction
@@ -483,8 +483,8 @@ class Builder:
         """Refit every box; with `price`, also return the refit tree's SAH cost (`sah_cost`)."""
         if self.kind == "triangles":
             timer.stage("prim_bounds")
-            wp.launch(morton.triangle_bounds_kernel, dim=self.num_prims,
-                      inputs=[self.vertices, self.faces, self.prim_lowers, self.prim_uppers], device=self.device)
+            self.pipeline._launch(morton.triangle_bounds_kernel, self.num_prims,
+                                  [self.vertices, self.faces, self.prim_lowers, self.prim_uppers])
         timer.stage("refit")
         bvh, pipe, cfg = self.bvh, self.pipeline, self.config
         costs = (cfg.sah_traversal_cost, cfg.sah_intersection_cost)
@@ -576,8 +576,7 @@ class Builder:
         timer.stage("motion")
         # Load the vertices and measure the largest displacement on the device, in one pass.
         measured = self._load_and_measure(sources)
-        wp.launch(dynamic.root_diagonal_kernel, dim=1,
-                  inputs=[self.bvh.node_lowers, self.bvh.node_uppers, self.stats], device=self.device)
+        self.pipeline._launch(dynamic.root_diagonal_kernel, 1, [self.bvh.node_lowers, self.bvh.node_uppers, self.stats])
         moved, diagonal = (float(x) for x in self.stats.numpy())
         relative = moved / diagonal if diagonal > 0.0 else (0.0 if moved == 0.0 else float("inf"))
         extra = {"max_displacement": moved, "relative_motion": relative} if measured else {}

@@ -110,6 +110,8 @@ class HlbvhPipeline:
         self.device = device = wp.get_device(device)
         self.coarse_bits = config.resolved_coarse_bits(n)
         self.emission = config.resolved_emission(device)
+        # Recorded launches (`hlbvh_warp.launches`), set by a per-frame `Builder`; None: plain ones.
+        self.launches = None
         num_node_slots = 2 * n - 1
         stride = (1 << config.planes_per_pass) - 1
 
@@ -201,7 +203,10 @@ class HlbvhPipeline:
 
     # ------------------------------------------------------------------ stages
     def _launch(self, kernel, dim, inputs):
-        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+        if self.launches is not None:
+            self.launches.launch(kernel, dim, inputs)
+        else:
+            wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
     def compute_triangle_bounds(self, vertices: wp.array, faces: wp.array, lowers: wp.array | None = None,
                                 uppers: wp.array | None = None):

@@ -1,0 +1,92 @@
+"""Recorded launches (`hlbvh_warp.launches`): a replay does what `wp.launch` does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from hlbvh_warp import launches
+from hlbvh_warp.builder import Builder
+from hlbvh_warp.dynamic import ExplodingMesh
+from hlbvh_warp.launches import RecordedLaunches
+from hlbvh_warp.scenes import default_scene
+
+
+@wp.kernel
+def _axpy_kernel(a: float, x: wp.array(dtype=wp.vec3), shift: wp.vec3, scale: wp.float64, offset: int,
+                 y: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    y[i] = a * x[i] + shift * float(scale) + wp.vec3(float(offset), 0.0, 0.0)
+
+
+def test_replays_match_plain_launches(device, rng):
+    # Same arguments: replayed, and the arrays' current contents are read; another launch size:
+    # the replay covers it; other arrays or scalar values: recorded anew. Every result against NumPy.
+    rec = RecordedLaunches(device)
+    x = wp.array(rng.random((64, 3)), dtype=wp.vec3, device=device)
+    y = wp.zeros(64, dtype=wp.vec3, device=device)
+    other = wp.zeros(64, dtype=wp.vec3, device=device)
+
+    def expected(a, xs, shift, scale, offset, count):
+        out = a * xs[:count] + np.asarray(shift) * scale
+        out[:, 0] += offset
+        return out
+
+    calls = [
+        (2.0, x, wp.vec3(1.0, 2.0, 3.0), wp.float64(0.5), 0, y, 64),
+        (2.0, x, wp.vec3(1.0, 2.0, 3.0), wp.float64(0.5), 0, y, 64),   # a replay
+        (2.0, x, wp.vec3(1.0, 2.0, 3.0), wp.float64(0.5), 0, y, 10),   # a replay, smaller
+        (3.0, x, wp.vec3(1.0, 2.0, 3.0), wp.float64(0.5), 0, y, 64),   # another scalar
+        (3.0, x, wp.vec3(0.0, 2.0, 3.0), wp.float64(0.25), np.int32(7), y, 64),  # vector, float64, NumPy int
+        (3.0, x, wp.vec3(0.0, 2.0, 3.0), wp.float64(0.25), np.int32(7), other, 64),  # another array
+    ]
+    for k, (a, xs, shift, scale, offset, out, count) in enumerate(calls):
+        out.zero_()
+        if k == 1:
+            x.assign(rng.random((64, 3)))  # new contents, same array: the replay must read them
+        rec.launch(_axpy_kernel, count, [a, xs, shift, scale, offset, out])
+        got = out.numpy()
+        want = expected(a, xs.numpy().astype(np.float64), tuple(shift), float(scale.value), int(offset), count)
+        np.testing.assert_allclose(got[:count], want, rtol=1e-6, atol=1e-6)
+        assert not got[count:].any()
+    assert len(rec.records) == 4
+    rec.launch(_axpy_kernel, 0, [1.0, x, wp.vec3(), wp.float64(1.0), 0, y])  # nothing to launch
+    assert len(rec.records) == 4
+
+
+def test_record_starts_over_past_its_limit(device, monkeypatch):
+    monkeypatch.setattr(launches, "MAX_RECORDED", 3)
+    rec = RecordedLaunches(device)
+    x = wp.ones(4, dtype=wp.vec3, device=device)
+    y = wp.zeros(4, dtype=wp.vec3, device=device)
+    for a in range(5):
+        rec.launch(_axpy_kernel, 4, [float(a), x, wp.vec3(), wp.float64(0.0), 0, y])
+        np.testing.assert_allclose(y.numpy(), np.full((4, 3), float(a)))
+        assert len(rec.records) <= 3
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah"])
+def test_builder_frames_equal_plain_launches(device, method):
+    # A Builder records its launches; one made to launch plainly must give the same trees,
+    # frame after frame, under a policy that rebuilds, refits and measures.
+    v, f = default_scene(3000)
+    mesh = ExplodingMesh(v, f, device=device, seed=4)
+    recorded = Builder(len(mesh.faces), device=device, method=method, policy="auto", max_refits=2)
+    plain = Builder(len(mesh.faces), device=device, method=method, policy="auto", max_refits=2)
+    plain.pipeline.launches = None
+    for b in (recorded, plain):
+        b.build(mesh.vertices, mesh.faces)
+    assert recorded.pipeline.launches is not None
+    decisions = set()
+    for frame in range(1, 7):
+        vertices = mesh.update(frame / 240.0 if frame < 4 else frame / 12.0)
+        reports = [b.update(vertices) for b in (recorded, plain)]
+        assert reports[0]["decision"] == reports[1]["decision"]
+        decisions.add(reports[0]["decision"])
+        a, b = recorded.bvh.to_numpy(), plain.bvh.to_numpy()
+        for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order", "node_lowers",
+                     "node_uppers"):
+            np.testing.assert_array_equal(a[name], b[name], err_msg=f"frame {frame}: {name}")
+    assert {"refit", "rebuild"} <= decisions, decisions
+    assert len(recorded.pipeline.launches.records) > 0
