@@ -1,7 +1,9 @@
 # A scene of several meshes, each moved and built again every frame: one-shot
 # `hlbvh_warp.build` per mesh, a reusable `Builder` per mesh (allocated once, the per-frame path),
 # and `wp.Bvh(..., "sah")` per mesh constructed in the same process as the peer. Prints ms per
-# frame (average / worst) and the ratio to the peer.
+# frame (average / worst) and the ratio to the peer. "Builder, plain launches" is the same
+# `Builder` packing every launch's arguments anew each frame (`wp.launch`), where a `Builder`
+# replays the launches it recorded on the first frame (`hlbvh_warp.launches`).
 #
 # One-shot builds of meshes of different sizes each get their pipeline's scratch back from
 # `hlbvh_warp.memory` (one set per mesh); `--scratch-sets 2` limits that cache to two sets, so
@@ -22,7 +24,7 @@ from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.scenes import scene
 
-MODES = ("hlbvh_warp.build", "Builder", "wp.Bvh sah")
+MODES = ("hlbvh_warp.build", "Builder", "Builder, plain launches", "wp.Bvh sah")
 
 
 @wp.kernel
@@ -51,9 +53,12 @@ class Example:
             center = wp.vec3(*((vertices.min(axis=0) + vertices.max(axis=0)) * 0.5))
             obj = {"rest": rest, "center": center, "vertices": wp.empty_like(rest), "faces_np": faces,
                    "builder": Builder(len(faces), device=device, resort=True),
+                   "plain": Builder(len(faces), device=device, resort=True),
                    "peer": WarpBvhPeer(len(faces), "sah", device)}
+            obj["plain"].pipeline.launches = None
             self._move(obj, 0.0)
             obj["builder"].build(obj["vertices"], faces)
+            obj["plain"].build(obj["vertices"], faces)
             obj["peer"].build(obj["vertices"], faces)
             self.objects.append(obj)
         self.ms = {mode: [] for mode in MODES}
@@ -71,6 +76,8 @@ class Example:
                 self.bvhs[id(obj)] = hlbvh_warp.build(obj["vertices"], obj["faces_np"], method="hlbvh")
             elif mode == "Builder":
                 obj["builder"].rebuild(obj["vertices"])
+            elif mode == "Builder, plain launches":
+                obj["plain"].rebuild(obj["vertices"])
             else:
                 obj["peer"].update(obj["vertices"])
 

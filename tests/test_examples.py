@@ -116,7 +116,7 @@ def test_scene_builds(device):
     assert all(mode in example.table() for mode in module.MODES)
     for obj in example.objects:
         verts = obj["vertices"].numpy()[obj["faces_np"]]
-        for bvh in (example.bvhs[id(obj)], obj["builder"].bvh):
+        for bvh in (example.bvhs[id(obj)], obj["builder"].bvh, obj["plain"].bvh):
             arrays = bvh.to_numpy()
             leaves = np.flatnonzero(arrays["node_end"] - arrays["node_begin"] == 1)
             prims = arrays["prim_order"][arrays["node_begin"][leaves]]
