@@ -53,9 +53,8 @@ class Example:
             center = wp.vec3(*((vertices.min(axis=0) + vertices.max(axis=0)) * 0.5))
             obj = {"rest": rest, "center": center, "vertices": wp.empty_like(rest), "faces_np": faces,
                    "builder": Builder(len(faces), device=device, resort=True),
-                   "plain": Builder(len(faces), device=device, resort=True),
+                   "plain": Builder(len(faces), device=device, resort=True, record_launches=False),
                    "peer": WarpBvhPeer(len(faces), "sah", device)}
-            obj["plain"].pipeline.launches = None
             self._move(obj, 0.0)
             obj["builder"].build(obj["vertices"], faces)
             obj["plain"].build(obj["vertices"], faces)

@@ -79,6 +79,9 @@ class Builder:
         timings: synchronize around every stage and record ms per stage in the reports.
         keep_reports: how many of the latest frame reports `reports` keeps (a long animation
             would otherwise grow the list by one dict per frame for as long as it runs).
+        record_launches: pack each kernel launch's arguments once and replay the launch every
+            frame (`hlbvh_warp.launches`). Turn it off for builders driven from several Python
+            threads at once: Warp 1.19's recorded CPU launches are not safe side by side.
 
     Example::
 
@@ -90,7 +93,8 @@ class Builder:
 
     def __init__(self, num_prims: int, config: BuildConfig | None = None, device=None, method: str = "hlbvh", *,
                  resort: bool = True, policy: str = "rebuild", sah_growth_limit: float = 0.10,
-                 large_motion: float = 0.05, max_refits: int = 8, timings: bool = False, keep_reports: int = 1024):
+                 large_motion: float = 0.05, max_refits: int = 8, timings: bool = False, keep_reports: int = 1024,
+                 record_launches: bool = True):
         if config is None:
             config = BuildConfig()
         if not isinstance(config, BuildConfig):
@@ -134,7 +138,7 @@ class Builder:
             self.pipeline = pipe = HlbvhPipeline(n, config, device)
             self.prim_order = pipe.sorted_prim_ids[:n]
         # Every frame launches the same kernels on the same buffers: record them once.
-        pipe.launches = RecordedLaunches(device)
+        pipe.launches = RecordedLaunches(device) if record_launches else None
         # A CUDA rebuild keeps every count on the device, so it never waits and can be captured
         # (not hlbvh_sah's, which reads its cluster count).
         self.sync_free = device.is_cuda and method != "hlbvh_sah"
@@ -251,9 +255,15 @@ class Builder:
                 raise ValueError("bounds must be a pair (lowers, uppers)")
             lowers, uppers = bounds
             if not isinstance(lowers, wp.array) and not isinstance(uppers, wp.array):
-                # On the host the boxes are checked whole, as `build_from_bounds` does.
-                inputs.bounds_arrays(lowers, uppers)
-            sources = [self._source(lowers, "lowers", self.num_prims), self._source(uppers, "uppers", self.num_prims)]
+                # On the host the boxes are checked whole, as `build_from_bounds` does, and come
+                # back as contiguous float32: loaded from there with no second pass.
+                lo, hi = inputs.bounds_arrays(lowers, uppers)
+                if lo.shape[0] != self.num_prims:
+                    raise ValueError(f"lowers has {lo.shape[0]} rows, the builder was set up with {self.num_prims}")
+                sources = [wp.array(x, dtype=wp.vec3, device="cpu", copy=False) for x in (lo, hi)]
+            else:
+                sources = [self._source(lowers, "lowers", self.num_prims),
+                           self._source(uppers, "uppers", self.num_prims)]
         if all(src.ptr == buf.ptr for src, buf in zip(sources, self._buffers())):
             return None
         return sources

@@ -7,7 +7,11 @@ time and replays it after, changing only the launch size when a count changed. B
 thousand primitives those launches are most of a frame.
 
 One-shot builds do not record: their pipelines read the caller's boxes, and a recorded launch
-keeps its arguments alive.
+keeps its arguments alive. Launches made while the CPU runs kernels side by side
+(`hlbvh_warp.threads.side_by_side`) go through `wp.launch`: recorded launches made or replayed
+there crashed the process (a segmentation fault in Warp 1.19's CPU `invoke`, with `hlbvh_sah`
+on two cores). Those are the launches whose arguments change every frame anyway (each run's
+first seed), so nothing is lost.
 """
 
 from __future__ import annotations
@@ -15,9 +19,15 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from . import threads
+
 #: Recorded launches kept per builder; past this the record starts over (a frame launches about
 #: twenty distinct ones, so only changing arguments, e.g. new arrays every frame, reach it).
 MAX_RECORDED = 256
+#: Distinct argument sets recorded per kernel. Some launches change an argument every frame (the
+#: SAH-optimized build's cluster counts, the seeds of the CPU emission's parallel runs): a
+#: record of those is never replayed, so past this many a kernel's new ones launch plainly.
+MAX_RECORDS_PER_KERNEL = 8
 
 
 def _arg_key(value):
@@ -47,15 +57,25 @@ class RecordedLaunches:
     def __init__(self, device):
         self.device = wp.get_device(device)
         self.records: dict = {}
+        # Records made per kernel since the record last started over.
+        self.made: dict = {}
 
     def launch(self, kernel, dim, inputs: list):
         if dim == 0:
             return
+        if threads.side_by_side():
+            wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+            return
         key = (kernel, *map(_arg_key, inputs))
         entry = self.records.get(key)
         if entry is None:
+            if self.made.get(kernel, 0) >= MAX_RECORDS_PER_KERNEL:
+                wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+                return
             if len(self.records) >= MAX_RECORDED:
                 self.records.clear()
+                self.made.clear()
+            self.made[kernel] = self.made.get(kernel, 0) + 1
             cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
             entry = self.records[key] = [cmd, dim]
         elif entry[1] != dim:

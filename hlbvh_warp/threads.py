@@ -22,6 +22,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
+# How many `run` calls have jobs on several threads right now (see `side_by_side`).
+_SIDE_BY_SIDE = 0
 
 
 def usable_cores() -> int:
@@ -47,8 +49,17 @@ def _pool() -> ThreadPoolExecutor:
         return _POOL
 
 
+def side_by_side() -> bool:
+    """Whether launches are running side by side on several threads now. Recorded launches
+    (`hlbvh_warp.launches`) stay out of such stretches: made or replayed while another thread
+    ran a kernel, they crashed the process in Warp 1.19 (a segmentation fault in its CPU
+    `invoke`), where plain `wp.launch` calls side by side are safe."""
+    return _SIDE_BY_SIDE > 0
+
+
 def run(jobs, threads: int):
     """Run the callables `jobs` on up to `threads` threads (the caller's included); re-raises."""
+    global _SIDE_BY_SIDE
     jobs = list(jobs)
     if threads <= 1 or len(jobs) <= 1:
         for job in jobs:
@@ -57,13 +68,19 @@ def run(jobs, threads: int):
     # Greedy: the caller takes every `threads`-th job, the pool the rest in order.
     mine = jobs[::threads]
     others = [job for i, job in enumerate(jobs) if i % threads != 0]
-    futures = [_pool().submit(job) for job in others]
+    with _POOL_LOCK:
+        _SIDE_BY_SIDE += 1
     try:
-        for job in mine:
-            job()
+        futures = [_pool().submit(job) for job in others]
+        try:
+            for job in mine:
+                job()
+        finally:
+            for future in futures:
+                future.result()
     finally:
-        for future in futures:
-            future.result()
+        with _POOL_LOCK:
+            _SIDE_BY_SIDE -= 1
 
 
 def split_bounds(num: int, parts: int) -> list:

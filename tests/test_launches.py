@@ -66,6 +66,22 @@ def test_record_starts_over_past_its_limit(device, monkeypatch):
         assert len(rec.records) <= 3
 
 
+def test_kernels_whose_arguments_keep_changing_launch_plainly(device, monkeypatch):
+    # A scalar that changes every call would make a record every call that is never replayed:
+    # past MAX_RECORDS_PER_KERNEL a kernel's new argument sets launch plainly, right all the same,
+    # and its records made before still replay.
+    monkeypatch.setattr(launches, "MAX_RECORDS_PER_KERNEL", 3)
+    rec = RecordedLaunches(device)
+    x = wp.ones(4, dtype=wp.vec3, device=device)
+    y = wp.zeros(4, dtype=wp.vec3, device=device)
+    for a in range(10):
+        rec.launch(_axpy_kernel, 4, [float(a), x, wp.vec3(), wp.float64(0.0), 0, y])
+        np.testing.assert_allclose(y.numpy(), np.full((4, 3), float(a)))
+    assert len(rec.records) == 3
+    rec.launch(_axpy_kernel, 4, [1.0, x, wp.vec3(), wp.float64(0.0), 0, y])
+    np.testing.assert_allclose(y.numpy(), np.ones((4, 3)))
+
+
 @pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah"])
 def test_builder_frames_equal_plain_launches(device, method):
     # A Builder records its launches; one made to launch plainly must give the same trees,
@@ -73,8 +89,9 @@ def test_builder_frames_equal_plain_launches(device, method):
     v, f = default_scene(3000)
     mesh = ExplodingMesh(v, f, device=device, seed=4)
     recorded = Builder(len(mesh.faces), device=device, method=method, policy="auto", max_refits=2)
-    plain = Builder(len(mesh.faces), device=device, method=method, policy="auto", max_refits=2)
-    plain.pipeline.launches = None
+    plain = Builder(len(mesh.faces), device=device, method=method, policy="auto", max_refits=2,
+                    record_launches=False)
+    assert plain.pipeline.launches is None
     for b in (recorded, plain):
         b.build(mesh.vertices, mesh.faces)
     assert recorded.pipeline.launches is not None
@@ -90,3 +107,33 @@ def test_builder_frames_equal_plain_launches(device, method):
             np.testing.assert_array_equal(a[name], b[name], err_msg=f"frame {frame}: {name}")
     assert {"refit", "rebuild"} <= decisions, decisions
     assert len(recorded.pipeline.launches.records) > 0
+
+
+def test_recording_builders_survive_side_by_side_launches(tmp_path):
+    # On a multi-core CPU parts of a build run as launches side by side (`hlbvh_warp.threads`);
+    # recorded launches made or replayed there crashed the process with a segmentation fault
+    # (hlbvh_sah, two threads). Run in a child process, so that a crash fails this test alone.
+    import subprocess
+    import sys
+
+    script = tmp_path / "frames.py"
+    script.write_text(
+        "import warp as wp\n"
+        "wp.config.quiet = True\n"
+        "from hlbvh_warp.builder import Builder\n"
+        "from hlbvh_warp.config import BuildConfig\n"
+        "from hlbvh_warp.dynamic import ExplodingMesh\n"
+        "from hlbvh_warp.scenes import default_scene\n"
+        "v, f = default_scene(60000)\n"
+        "with wp.ScopedDevice('cpu'):\n"
+        "    mesh = ExplodingMesh(v, f, seed=0)\n"
+        "    for method in ('hlbvh_sah', 'hlbvh'):\n"
+        "        for rep in range(3):\n"
+        "            b = Builder(len(mesh.faces), BuildConfig(cpu_threads=2), method=method)\n"
+        "            b.build(mesh.update(0.0), mesh.faces)\n"
+        "            for k in range(1, 8):\n"
+        "                b.rebuild(mesh.update(k / 24.0))\n"
+        "print('done')\n"
+    )
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
