@@ -237,3 +237,159 @@ def leaf_histogram_kernel(
     if node_left[node] >= 0:
         return
     wp.atomic_add(histogram, node_end[node] - node_begin[node], 1)
+
+
+# End-point overlap (Aila, Karras & Laine 2013): the area of every triangle lying inside the box of
+# a node whose subtree does not hold it. A clipped triangle gains at most one vertex per plane.
+CLIP_CAPACITY = 9
+mat93d = wp.types.matrix(shape=(CLIP_CAPACITY, 3), dtype=wp.float64)
+EPO_STACK_SIZE = 64
+vec64i = wp.types.vector(length=EPO_STACK_SIZE, dtype=wp.int32)
+EPO_STACK = wp.constant(EPO_STACK_SIZE)
+
+
+@wp.func
+def clip_polygon(polygon: mat93d, count: int, axis: int, bound: wp.float64, sign: wp.float64):
+    """Sutherland-Hodgman: the part of the polygon where sign * (p[axis] - bound) >= 0."""
+    out = mat93d()
+    kept = int(0)
+    for i in range(count):
+        p = polygon[i]
+        q = polygon[(i + 1) % count]
+        dp = sign * (p[axis] - bound)
+        dq = sign * (q[axis] - bound)
+        if dp >= wp.float64(0.0):
+            out[kept] = p
+            kept += 1
+        if (dp >= wp.float64(0.0)) != (dq >= wp.float64(0.0)):
+            # The edge crosses the plane: dp and dq have opposite signs, so dp - dq is not zero.
+            t = dp / (dp - dq)
+            crossing = p + t * (q - p)
+            # Land exactly on the plane: the next plane's test must not see rounding past it.
+            crossing[axis] = bound
+            out[kept] = crossing
+            kept += 1
+    return out, kept
+
+
+@wp.func
+def clipped_triangle_area(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3) -> wp.float64:
+    """Area of triangle abc inside the closed box [lower, upper], in float64."""
+    polygon = mat93d()
+    polygon[0] = wp.vec3d(a)
+    polygon[1] = wp.vec3d(b)
+    polygon[2] = wp.vec3d(c)
+    count = int(3)
+    for axis in range(3):
+        if count > 0:
+            polygon, count = clip_polygon(polygon, count, axis, wp.float64(lower[axis]), wp.float64(1.0))
+        if count > 0:
+            polygon, count = clip_polygon(polygon, count, axis, wp.float64(upper[axis]), wp.float64(-1.0))
+    # A fan from the first vertex: half the length of the summed cross products (planar polygon).
+    twice = wp.vec3d()
+    for i in range(1, count - 1):
+        twice += wp.cross(polygon[i] - polygon[0], polygon[i + 1] - polygon[0])
+    return wp.float64(0.5) * wp.length(twice)
+
+
+@wp.func
+def box_overlaps(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: wp.vec3) -> bool:
+    return (lower_a[0] <= upper_b[0] and lower_b[0] <= upper_a[0] and lower_a[1] <= upper_b[1]
+            and lower_b[1] <= upper_a[1] and lower_a[2] <= upper_b[2] and lower_b[2] <= upper_a[2])
+
+
+@wp.func
+def foreign_area(
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    node: int,
+    first: int,
+    last: int,
+) -> wp.float64:
+    # Triangles at positions [first, last) of prim_order that lie outside the node's own range.
+    area = wp.float64(0.0)
+    lower = node_lowers[node]
+    upper = node_uppers[node]
+    for k in range(first, last):
+        if k < node_begin[node] or k >= node_end[node]:
+            p = prim_order[k]
+            if box_overlaps(lower, upper, prim_lowers[p], prim_uppers[p]):
+                area += clipped_triangle_area(vertices[faces[p, 0]], vertices[faces[p, 1]], vertices[faces[p, 2]],
+                                              lower, upper)
+    return area
+
+
+@wp.kernel
+def end_point_overlap_kernel(
+    first_node: int,
+    node_count: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    node_epo: wp.array(dtype=wp.float64),
+):
+    """Per node n: term(n) * area((S minus Q(n)) inside box(n)), S all triangles, Q(n) those
+    under n, term(n) the node's own term of the SAH (2 T1 for an interior node, T2 N for a leaf).
+
+    A walk from the root visits the nodes whose boxes meet n's, skipping n's own subtree (its range
+    of prim_order lies inside n's), and clips each foreign triangle to n's box.
+    """
+    n = first_node + wp.tid()
+    if n >= node_count[0]:
+        return
+    lower = node_lowers[n]
+    upper = node_uppers[n]
+    begin = node_begin[n]
+    end = node_end[n]
+    area = wp.float64(0.0)
+    stack = vec64i()
+    top = int(0)
+    node = int(0)
+    while node >= 0:
+        inside = node_begin[node] >= begin and node_end[node] <= end
+        if inside or not box_overlaps(lower, upper, node_lowers[node], node_uppers[node]):
+            node = -1
+        else:
+            left = node_left[node]
+            # A full stack (a tree deeper than it) tests the node's whole range instead.
+            if left < 0 or top >= EPO_STACK - 1:
+                area += foreign_area(node_lowers, node_uppers, node_begin, node_end, prim_order, prim_lowers,
+                                     prim_uppers, vertices, faces, n, node_begin[node], node_end[node])
+                node = -1
+            else:
+                stack[top] = node_right[node]
+                top += 1
+                node = left
+        if node < 0 and top > 0:
+            top -= 1
+            node = stack[top]
+    term = wp.float64(2.0) * t_traversal
+    if node_left[n] < 0:
+        term = t_intersect * wp.float64(end - begin)
+    node_epo[n] = term * area
+
+
+@wp.kernel
+def triangle_areas_kernel(vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.int32, ndim=2),
+                          areas: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    a = wp.vec3d(vertices[faces[i, 0]])
+    areas[i] = wp.float64(0.5) * wp.length(wp.cross(wp.vec3d(vertices[faces[i, 1]]) - a,
+                                                    wp.vec3d(vertices[faces[i, 2]]) - a))

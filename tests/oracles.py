@@ -129,3 +129,114 @@ def numpy_node_boxes(tree: dict, lowers: np.ndarray, uppers: np.ndarray):
 def brute_overlaps(lowers, uppers, q_lo, q_hi):
     """(Q, N) closed-box overlap of every query box with every box: touching counts."""
     return ((lowers[None] <= q_hi[:, None]) & (uppers[None] >= q_lo[:, None])).all(-1)
+
+
+def _hull_area_2d(points: np.ndarray) -> float:
+    """Area of the convex hull of 2D points (Andrew's monotone chain, shoelace)."""
+    pts = sorted(set(map(tuple, np.round(points, 15))))
+    if len(pts) < 3:
+        return 0.0
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower, upper = [], []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 0:
+            lower.pop()
+        lower.append(p)
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
+            upper.pop()
+        upper.append(p)
+    hull = np.array(lower[:-1] + upper[:-1])
+    if len(hull) < 3:
+        return 0.0
+    x, y = hull[:, 0], hull[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
+    """Area of a triangle inside a closed box, in float64, as the convex hull of the corners of
+    their intersection: the triangle's vertices in the box, its edges' crossings of the box's
+    planes, and the box's edges' (and corners') points on the triangle. Not a polygon clipper."""
+    tri = np.asarray(tri, dtype=np.float64)
+    lo = np.asarray(lower, dtype=np.float64)
+    hi = np.asarray(upper, dtype=np.float64)
+    a, b, c = tri
+    normal = np.cross(b - a, c - a)
+    twice = np.linalg.norm(normal)
+    if twice == 0.0:
+        return 0.0
+    scale = max(np.abs(tri).max(), np.abs(lo).max(), np.abs(hi).max(), 1.0)
+    eps = tol * scale
+
+    def in_box(p):
+        return bool(np.all(p >= lo - eps) and np.all(p <= hi + eps))
+
+    def on_triangle(p):
+        # Barycentric coordinates from sub-triangle areas, signed along the normal.
+        n = normal / twice
+        if abs(np.dot(p - a, n)) > eps:
+            return False
+        w = [np.dot(np.cross(c - b, p - b), n), np.dot(np.cross(a - c, p - c), n),
+             np.dot(np.cross(b - a, p - a), n)]
+        return min(w) >= -eps * scale
+
+    points = [p for p in tri if in_box(p)]
+    for p, q in ((a, b), (b, c), (c, a)):
+        for axis in range(3):
+            if p[axis] == q[axis]:
+                continue
+            for bound in (lo[axis], hi[axis]):
+                t = (bound - p[axis]) / (q[axis] - p[axis])
+                if 0.0 <= t <= 1.0:
+                    x = p + t * (q - p)
+                    x[axis] = bound
+                    if in_box(x):
+                        points.append(x)
+    corners = np.array([[(lo, hi)[(k >> j) & 1][j] for j in range(3)] for k in range(8)])
+    points += [p for p in corners if on_triangle(p)]
+    for k in range(8):
+        for j in range(3):
+            if (k >> j) & 1:
+                continue
+            p, q = corners[k], corners[k | (1 << j)]
+            denom = np.dot(q - p, normal)
+            if denom == 0.0:
+                continue
+            t = np.dot(a - p, normal) / denom
+            if 0.0 <= t <= 1.0:
+                x = p + t * (q - p)
+                if on_triangle(x):
+                    points.append(x)
+    if len(points) < 3:
+        return 0.0
+    # Coordinates in the triangle's plane.
+    u = (b - a) / np.linalg.norm(b - a)
+    w = np.cross(normal / twice, u)
+    pts = np.array(points) - a
+    return _hull_area_2d(np.stack([pts @ u, pts @ w], axis=1))
+
+
+def numpy_end_point_overlap(tree: dict, vertices, faces, t1=1.0, t2=1.0):
+    """EPO (Aila, Karras & Laine 2013) of a tree by brute force over every (node, triangle):
+    (sum over nodes of term(n) * area of the foreign triangles inside box(n)) / total area, with
+    term(n) = 2 t1 (interior) or t2 * N (leaf). Node boxes are rebuilt from the triangles.
+    Returns (epo, per_node)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tris = v[f]
+    left, begin, end, order = tree["node_left"], tree["node_begin"], tree["node_end"], tree["prim_order"]
+    areas = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+    tri_lo, tri_hi = tris.min(axis=1), tris.max(axis=1)
+    per_node = np.zeros(len(left))
+    for n in range(len(left)):
+        own = order[begin[n]:end[n]]
+        lo, hi = tri_lo[own].min(0), tri_hi[own].max(0)
+        foreign = np.setdiff1d(np.arange(len(f)), own)
+        meets = foreign[np.all(tri_lo[foreign] <= hi, axis=1) & np.all(tri_hi[foreign] >= lo, axis=1)]
+        overlap = sum(triangle_box_area(tris[p], lo, hi) for p in meets)
+        term = 2.0 * t1 if left[n] >= 0 else t2 * (end[n] - begin[n])
+        per_node[n] = term * overlap
+    return per_node.sum() / areas.sum(), per_node

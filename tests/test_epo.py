@@ -1,0 +1,176 @@
+"""End-point overlap (Aila, Karras & Laine 2013) against a float64 brute force over every
+(node, triangle) pair whose areas come from convex hulls, not from a polygon clipper."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hlbvh_warp as hw
+from hlbvh_warp.metrics import end_point_overlap, sah_cost
+from oracles import numpy_end_point_overlap, random_soup, triangle_box_area
+
+BUILDERS = ["hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median"]
+
+
+@pytest.mark.parametrize("method", BUILDERS)
+def test_epo_matches_the_brute_force(device, rng, method):
+    v, f = random_soup(rng, 36, scale=0.3)
+    bvh = hw.build(v, f, method=method, device=device)
+    epo, per_node = end_point_overlap(bvh, per_node=True)
+    expected, expected_nodes = numpy_end_point_overlap(bvh.to_numpy(), v, f)
+    assert expected > 0.0  # the soup's triangles overlap: the test can see a wrong sum
+    assert epo == pytest.approx(expected, rel=1e-9)
+    np.testing.assert_allclose(per_node, expected_nodes, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("t1, t2", [(1.2, 1.0), (0.0, 2.5)])
+def test_epo_weights_and_leaf_sizes(device, rng, t1, t2):
+    v, f = random_soup(rng, 40, scale=0.4)
+    bvh = hw.build(v, f, method="sweep_sah", device=device, config=hw.BuildConfig(max_leaf_size=4))
+    tree = bvh.to_numpy()
+    leaves = tree["node_left"][: bvh.num_nodes] < 0
+    assert (tree["node_end"] - tree["node_begin"])[: bvh.num_nodes][leaves].max() > 1
+    epo = end_point_overlap(bvh, t1, t2)
+    assert epo == pytest.approx(numpy_end_point_overlap(bvh.to_numpy(), v, f, t1, t2)[0], rel=1e-9)
+
+
+def test_hand_computed_epo(device):
+    # A: the slanted triangle (0,0,0), (2,0,0), (0,2,2), in the plane z = y, box [0,2]^3, area 2 sqrt 2.
+    # B: a triangle of area 0.5 in the plane z = 1, wholly inside A's box. A meets B's flat box
+    # [0.5,1.5]^2 x [1,1] in a segment only. So only leaf A pays: EPO = 1 * 0.5 / (2 sqrt 2 + 0.5).
+    v = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 2], [0.5, 0.5, 1], [1.5, 0.5, 1], [0.5, 1.5, 1]], dtype=np.float32)
+    f = np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int32)
+    bvh = hw.build(v, f, method="median", device=device)
+    epo, per_node = end_point_overlap(bvh, per_node=True)
+    assert epo == pytest.approx(0.5 / (2 * np.sqrt(2) + 0.5), rel=1e-12)
+    tree = bvh.to_numpy()
+    leaf_a = [n for n in range(3) if tree["node_left"][n] < 0 and tree["prim_order"][tree["node_begin"][n]] == 0]
+    assert per_node[leaf_a[0]] == pytest.approx(0.5, rel=1e-12)
+
+
+def test_duplicated_faces_overlap_wholly(device):
+    # Each copy of an axis-aligned (flat-boxed) triangle lies in the other's leaf box: every
+    # leaf pays the full area of its twin, the root nothing. EPO = 2a / 2a = 1.
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 1]], dtype=np.int32)
+    for method in ("median", "hlbvh"):
+        assert end_point_overlap(hw.build(v, f, method=method, device=device)) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_separated_triangles_have_no_overlap(device):
+    grid = np.stack(np.meshgrid(np.arange(6), np.arange(6), np.arange(2), indexing="ij"), -1).reshape(-1, 3)
+    corners = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0.5]])
+    v = (grid[:, None, :] * 2.0 + corners[None]).reshape(-1, 3).astype(np.float32)
+    f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+    bvh = hw.build(v, f, method="sweep_sah", device=device)
+    # Disjoint boxes, but interior nodes' boxes hold other triangles only where the sweep left gaps.
+    epo, per_node = end_point_overlap(bvh, per_node=True)
+    assert epo == pytest.approx(numpy_end_point_overlap(bvh.to_numpy(), v, f)[0], rel=1e-9, abs=1e-12)
+    tree = bvh.to_numpy()
+    leaves = tree["node_left"][: bvh.num_nodes] < 0
+    assert np.all(per_node[leaves] == 0.0)
+
+
+def test_degenerate_triangles_add_nothing(device, rng):
+    v, f = random_soup(rng, 30, scale=0.4)
+    # Points and segments among the triangles: zero area, inside many boxes.
+    extra_v = np.array([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2], [0.8, 0.8, 0.8]], dtype=np.float32)
+    v2 = np.concatenate([v, extra_v])
+    n = len(v)
+    f2 = np.concatenate([f, np.array([[n, n, n], [n + 1, n + 2, n + 1], [n + 1, n, n + 2]], dtype=np.int32)])
+    bvh = hw.build(v2, f2, method="hlbvh", device=device)
+    epo = end_point_overlap(bvh)
+    assert np.isfinite(epo)
+    assert epo == pytest.approx(numpy_end_point_overlap(bvh.to_numpy(), v2, f2)[0], rel=1e-9)
+
+
+def left_caterpillar(vertices, faces, device):
+    """A valid but maximally deep BVH: interior node k has interior node k + 1 as its left child
+    and one triangle as its right, so a walk that goes left first stacks every right child."""
+    import warp as wp
+
+    from hlbvh_warp.bvh import Bvh
+
+    tris = vertices[faces].astype(np.float64)
+    n = len(faces)
+    num_nodes = 2 * n - 1
+    left = np.full(num_nodes, -1, np.int32)
+    right = np.full(num_nodes, -1, np.int32)
+    parent = np.full(num_nodes, -1, np.int32)
+    begin = np.zeros(num_nodes, np.int32)
+    end = np.zeros(num_nodes, np.int32)
+    # Interior k is node 2k and covers [0, n - k); its right leaf (node 2k + 1) holds position
+    # n - k - 1. The deepest interior's left child is the leaf at position 0 (the last node).
+    for k in range(n - 1):
+        node = 2 * k
+        left[node] = 2 * k + 2 if k < n - 2 else num_nodes - 1
+        right[node] = 2 * k + 1
+        parent[left[node]] = parent[right[node]] = node
+        begin[node], end[node] = 0, n - k
+        begin[2 * k + 1], end[2 * k + 1] = n - k - 1, n - k
+    begin[num_nodes - 1], end[num_nodes - 1] = 0, 1
+    lo, hi = tris.min(axis=1), tris.max(axis=1)
+    node_lo = np.array([lo[begin[i]:end[i]].min(0) for i in range(num_nodes)], np.float32)
+    node_hi = np.array([hi[begin[i]:end[i]].max(0) for i in range(num_nodes)], np.float32)
+
+    def arr(a, dtype=wp.int32):
+        return wp.array(a, dtype=dtype, device=device)
+
+    return Bvh(method="caterpillar", config=hw.BuildConfig(), device=device,
+               prim_lowers=arr(lo.astype(np.float32), wp.vec3), prim_uppers=arr(hi.astype(np.float32), wp.vec3),
+               prim_order=arr(np.arange(n, dtype=np.int32)), node_lowers=arr(node_lo, wp.vec3),
+               node_uppers=arr(node_hi, wp.vec3), node_left=arr(left), node_right=arr(right),
+               node_parent=arr(parent), node_begin=arr(begin), node_end=arr(end),
+               node_count=arr(np.array([num_nodes], np.int32)), vertices=arr(vertices, wp.vec3),
+               faces=arr(faces))
+
+
+def test_a_tree_deeper_than_the_stack(device, rng):
+    # 70 levels: past the walk's 64-entry stack, where it tests a node's whole range instead.
+    v, f = random_soup(rng, 70, scale=0.25)
+    bvh = left_caterpillar(v, f, device)
+    assert hw.metrics.tree_stats(bvh)["depth"] == 69
+    epo, per_node = end_point_overlap(bvh, per_node=True)
+    expected, expected_nodes = numpy_end_point_overlap(bvh.to_numpy(), v, f)
+    assert epo == pytest.approx(expected, rel=1e-9)
+    np.testing.assert_allclose(per_node, expected_nodes, rtol=1e-9, atol=1e-12)
+
+
+def test_full_sweep_has_less_overlap_than_morton_builders(device, rng):
+    """Aila et al.'s observation on a real-ish surface: the greedy top-down SAH sweep keeps EPO
+    lower than a Morton-order build of the same triangles."""
+    u, w = np.meshgrid(np.linspace(0, 2 * np.pi, 40), np.linspace(0.2, np.pi - 0.2, 20), indexing="ij")
+    pts = np.stack([np.cos(u) * np.sin(w), np.sin(u) * np.sin(w), np.cos(w)], -1).reshape(-1, 3)
+    idx = np.arange(40 * 20).reshape(40, 20)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    f = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]).astype(np.int32)
+    v = pts.astype(np.float32)
+    sweep = end_point_overlap(hw.build(v, f, method="sweep_sah", device=device))
+    lbvh = end_point_overlap(hw.build(v, f, method="lbvh", device=device))
+    assert 0.0 < sweep < lbvh
+
+
+def test_triangle_box_oracle_on_known_shapes():
+    # The oracle itself: a half-cut right triangle, a regular hexagon across a cube, a miss.
+    tri = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    assert triangle_box_area(tri, [-1, -1, -1], [0.5, 2, 2]) == pytest.approx(0.375)
+    big = [[4.5, -1.5, -1.5], [-1.5, 4.5, -1.5], [-1.5, -1.5, 4.5]]
+    assert triangle_box_area(big, [0, 0, 0], [1, 1, 1]) == pytest.approx(3 * np.sqrt(3) / 4)
+    assert triangle_box_area(tri, [2, 2, 2], [3, 3, 3]) == 0.0
+
+
+def test_epo_rejects_box_trees_and_bad_costs(device):
+    lo = np.zeros((4, 3), dtype=np.float32) + np.arange(4, dtype=np.float32)[:, None]
+    box_bvh = hw.build_from_bounds(lo, lo + 0.5, device=device)
+    with pytest.raises(ValueError, match="mesh"):
+        end_point_overlap(box_bvh)
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+    bvh = hw.build(v, np.array([[0, 1, 2]], dtype=np.int32), device=device)
+    with pytest.raises(ValueError, match="t_intersect"):
+        end_point_overlap(bvh, 1.0, 0.0)
+    with pytest.raises(ValueError, match="takes a Bvh"):
+        end_point_overlap("not a tree")
+    # A single triangle overlaps nothing; its SAH cost is still defined.
+    assert end_point_overlap(bvh) == 0.0
+    assert sah_cost(bvh) == pytest.approx(1.0)
