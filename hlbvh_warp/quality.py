@@ -1,0 +1,195 @@
+"""``python -m hlbvh_warp quality``: tree quality beyond the SAH, for every builder.
+
+Wodniok & Goesele (GI 2016) judge a BVH by three numbers, each relative to a full plane-sweep
+SAH build: the SAH cost, the end-point overlap (EPO, Aila, Karras & Laine 2013) and the measured
+traversal cost m = n_s c_t + n_t c_i (their eq. 10) of primary and diffuse rays, n_s the mean
+nodes visited and n_t the mean triangles tested per ray, with (c_t, c_i) = (1.2, 1.0).
+
+The primary rays are pinhole images from ``--views`` cameras on a circle around the mesh; each
+primary hit spawns one diffuse ray, cosine-distributed about the surface normal on the side the
+camera saw. Both sets are made once (from the reference tree) and traced through every tree. The
+reference's primary hits are first checked against the float64 brute force, and every builder's
+hits against the reference's. One fixed-format row per builder, and a JSON of the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+import warp as wp
+
+#: The builders compared, and the one each ratio divides by.
+BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
+REFERENCE = "sweep_sah"
+#: Primary rays checked against the float64 brute force per mesh.
+ORACLE_RAYS = 256
+
+HEADER = (f"{'mesh':>12s} {'tris':>8s} {'builder':>10s} {'SAH':>8s} {'ratio':>6s} {'EPO':>8s} {'ratio':>6s} "
+          f"{'prim m':>7s} {'ratio':>6s} {'diff m':>7s} {'ratio':>6s} {'disagree':>8s}")
+
+
+def orbit_rays(vertices: np.ndarray, views: int, side: int):
+    """Pinhole images of side x side pixels (40 degree field of view) from `views` cameras on a
+    circle around the mesh's vertical (y) axis, 15 degrees above its equator."""
+    lo, hi = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
+    center, radius = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo)
+    half = np.tan(np.radians(20.0))
+    s = ((np.arange(side) + 0.5) / side * 2.0 - 1.0) * half
+    px, py = np.meshgrid(s, -s)
+    origins, directions = [], []
+    for k in range(views):
+        angle = 2.0 * np.pi * k / views
+        elevation = np.radians(15.0)
+        eye = center + 2.5 * radius * np.array([np.sin(angle) * np.cos(elevation), np.sin(elevation),
+                                                np.cos(angle) * np.cos(elevation)])
+        forward = (center - eye) / np.linalg.norm(center - eye)
+        right = np.cross(forward, [0.0, 1.0, 0.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        d = forward[None] + px.ravel()[:, None] * right[None] + py.ravel()[:, None] * up[None]
+        directions.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+        origins.append(np.repeat(eye[None], side * side, axis=0))
+    return np.concatenate(origins).astype(np.float32), np.concatenate(directions).astype(np.float32)
+
+
+def diffuse_rays(rng, vertices, faces, origins, directions, t, prim):
+    """One cosine-distributed ray from each hit, about the normal facing the incoming ray, its
+    origin moved off the surface by a small fraction of the scene so it does not hit its own triangle."""
+    hit = prim >= 0
+    o = origins[hit].astype(np.float64)
+    d = directions[hit].astype(np.float64)
+    tri = vertices[faces[prim[hit]]].astype(np.float64)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    keep = length[:, 0] > 0.0
+    normal = normal[keep] / length[keep]
+    o, d, hit_t = o[keep], d[keep], t[hit][keep].astype(np.float64)
+    normal *= -np.sign(np.einsum("ij,ij->i", normal, d))[:, None]
+    point = o + hit_t[:, None] * d
+    # Cosine-weighted directions: uniform points on the unit disk lifted to the hemisphere.
+    r, phi = np.sqrt(rng.random(len(point))), 2.0 * np.pi * rng.random(len(point))
+    helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    tangent = np.cross(normal, helper)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    bitangent = np.cross(normal, tangent)
+    z = np.sqrt(np.maximum(0.0, 1.0 - r * r))
+    out = (r * np.cos(phi))[:, None] * tangent + (r * np.sin(phi))[:, None] * bitangent + z[:, None] * normal
+    extent = np.linalg.norm(vertices.max(0).astype(np.float64) - vertices.min(0))
+    return (point + 1e-5 * extent * normal).astype(np.float32), out.astype(np.float32)
+
+
+def measure_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
+    from . import api, reference
+    from .config import BuildConfig
+    from .metrics import end_point_overlap, sah_cost
+    from .query import intersect
+
+    config = BuildConfig(cpu_threads=args.cpu_threads)
+    rng = np.random.default_rng(args.seed)
+    progress(f"[{name}] rays")
+    ref_bvh = api.build(vertices, faces, method=REFERENCE, device=device, config=config)
+    primary = orbit_rays(vertices, args.views, args.side)
+    t_ref, prim_ref = intersect(ref_bvh, *primary)
+    # The reference tree itself against the float64 brute force, on an even sample of the rays.
+    sample = np.linspace(0, len(t_ref) - 1, min(ORACLE_RAYS, len(t_ref))).astype(np.int64)
+    t_bf, prim_bf = reference.brute_force_closest_hit(vertices, faces, primary[0][sample], primary[1][sample])
+    wrong = reference.count_mismatches(t_ref[sample], prim_ref[sample], t_bf, prim_bf)
+    if wrong:
+        raise RuntimeError(f"{name}: {wrong} of {len(sample)} primary rays of the reference tree disagree with "
+                           "the float64 brute force")
+    diffuse = diffuse_rays(rng, vertices, faces, *primary, t_ref, prim_ref)
+    diffuse_ref = intersect(ref_bvh, *diffuse)
+    rows = []
+    for step, builder in enumerate(args.builders, 1):
+        progress(f"[{name} {step}/{len(args.builders)}] {builder}")
+        bvh = ref_bvh if builder == REFERENCE else api.build(vertices, faces, method=builder, device=device,
+                                                              config=config)
+        row = {"mesh": name, "num_tris": int(len(faces)), "builder": builder,
+               "sah": sah_cost(bvh, args.ct, args.ci), "epo": end_point_overlap(bvh, args.ct, args.ci),
+               "disagree": 0}
+        for kind, rays, ref_hits in (("primary", primary, (t_ref, prim_ref)), ("diffuse", diffuse, diffuse_ref)):
+            t, prim, stats = intersect(bvh, *rays, stats=True)
+            row["disagree"] += reference.count_mismatches(t, prim, *ref_hits)
+            summary = stats.summary(args.ct, args.ci)
+            row[kind] = {"num_rays": int(len(t)), "n_s": summary["mean_nodes_visited"],
+                         "n_t": summary["mean_prims_tested"], "m": summary["measured_cost"]}
+        rows.append(row)
+    ref = next((r for r in rows if r["builder"] == REFERENCE), None)
+    for row in rows:
+        row["sah_ratio"] = row["sah"] / ref["sah"]
+        row["epo_ratio"] = row["epo"] / ref["epo"] if ref["epo"] > 0 else float("nan")
+        for kind in ("primary", "diffuse"):
+            row[kind]["m_ratio"] = row[kind]["m"] / ref[kind]["m"]
+    return rows
+
+
+def format_row(row: dict) -> str:
+    return (f"{row['mesh']:>12s} {row['num_tris']:8d} {row['builder']:>10s} {row['sah']:8.2f} {row['sah_ratio']:6.3f} "
+            f"{row['epo']:8.3f} {row['epo_ratio']:6.3f} {row['primary']['m']:7.2f} {row['primary']['m_ratio']:6.3f} "
+            f"{row['diffuse']['m']:7.2f} {row['diffuse']['m_ratio']:6.3f} {row['disagree']:8d}")
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp quality", description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", action="append", default=[], help="mesh file (repeatable); default: a generated scene")
+    parser.add_argument("--scene-tris", type=int, default=20000, help="triangles of the generated scene")
+    parser.add_argument("--builders", default=",".join(BUILDERS), help="comma-separated builders (default: all)")
+    parser.add_argument("--views", type=int, default=8, help="cameras on the orbit")
+    parser.add_argument("--side", type=int, default=64, help="pixels per image side")
+    parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")
+    parser.add_argument("--ci", type=float, default=1.0, help="intersection cost c_i (Wodniok & Goesele: 1.0)")
+    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    parser.add_argument("--cpu-threads", type=int, default=0, help="BuildConfig.cpu_threads (0: every core)")
+    parser.add_argument("--json", default="out/quality.json", help="where to write the rows")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args(argv)
+    args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
+    unknown = [b for b in args.builders if b not in BUILDERS]
+    if unknown:
+        parser.error(f"unknown builders {unknown}; choose from {list(BUILDERS)}")
+    if REFERENCE not in args.builders:
+        args.builders.append(REFERENCE)
+    if args.views < 1 or args.side < 1:
+        parser.error("--views and --side must be >= 1")
+    if args.ct < 0 or args.ci <= 0:
+        parser.error("need --ct >= 0 and --ci > 0")
+    return args
+
+
+def main(argv=None) -> int:
+    from . import scenes
+
+    args = parse_args(list(sys.argv[1:] if argv is None else argv))
+    wp.config.quiet = True
+    wp.init()
+    device = wp.get_device(args.device)
+    meshes = [(pathlib.Path(p).stem, *scenes.load_mesh(p)) for p in args.mesh]
+    if not meshes:
+        meshes = [("generated", *scenes.default_scene(args.scene_tris))]
+
+    def progress(text):
+        print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
+
+    print(f"device: {device}  c_t = {args.ct}  c_i = {args.ci}  rays: {args.views} views of {args.side}^2, "
+          f"one diffuse bounce; ratios to {REFERENCE}")
+    print(HEADER)
+    rows = []
+    for name, vertices, faces in meshes:
+        mesh_rows = measure_mesh(name, vertices, faces, args, device, progress)
+        progress("")
+        for row in mesh_rows:
+            print(format_row(row), flush=True)
+        rows += mesh_rows
+    path = pathlib.Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"device": str(device), "c_t": args.ct, "c_i": args.ci, "rows": rows}, indent=1))
+    print(f"m = n_s c_t + n_t c_i per ray (Wodniok & Goesele 2016, eq. 10); wrote {path}")
+    return 1 if any(r["disagree"] for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,90 @@
+"""The quality command: SAH, EPO and measured ray cost per builder, and the rays it traces."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+import hlbvh_warp as hw
+from hlbvh_warp import quality
+from oracles import brute_force_closest_hit, numpy_end_point_overlap, random_soup
+from test_metrics import numpy_sah
+
+
+def test_quality_rows_against_the_oracles(tmp_path, rng):
+    v, f = random_soup(rng, 60, scale=0.3)
+    mesh_path = tmp_path / "soup.ply"
+    trimesh.Trimesh(v, f, process=False).export(mesh_path)
+    out = tmp_path / "quality.json"
+    code = quality.main(["--mesh", str(mesh_path), "--builders", "hlbvh,median", "--views", "2", "--side", "12",
+                         "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    data = json.loads(out.read_text())
+    rows = {r["builder"]: r for r in data["rows"]}
+    # The reference joins when not asked for: every ratio needs it.
+    assert set(rows) == {"hlbvh", "median", "sweep_sah"}
+    for name, row in rows.items():
+        tree = hw.build(v, f, method=name, device="cpu").to_numpy()
+        assert row["sah"] == pytest.approx(numpy_sah(tree, 1.2, 1.0), rel=1e-6)
+        assert row["epo"] == pytest.approx(numpy_end_point_overlap(tree, v, f, 1.2, 1.0)[0], rel=1e-9)
+        assert row["disagree"] == 0
+        for kind in ("primary", "diffuse"):
+            r = row[kind]
+            assert r["num_rays"] > 0 and r["n_s"] >= 1.0
+            assert r["m"] == pytest.approx(1.2 * r["n_s"] + 1.0 * r["n_t"])
+            assert r["m_ratio"] == pytest.approx(r["m"] / rows["sweep_sah"][kind]["m"])
+        assert row["epo_ratio"] == pytest.approx(row["epo"] / rows["sweep_sah"]["epo"])
+    assert rows["sweep_sah"]["sah_ratio"] == 1.0
+
+
+def test_orbit_cameras_look_at_the_mesh():
+    v = np.array([[-1, -2, -3], [3, 2, 1]], dtype=np.float32)
+    origins, directions = quality.orbit_rays(v, views=5, side=9)
+    assert origins.shape == directions.shape == (5 * 81, 3)
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, rtol=1e-6)
+    center = np.array([1.0, 0.0, -1.0])
+    for k in range(5):
+        # The middle pixel of each image points at the box's center.
+        middle = k * 81 + 40
+        to_center = center - origins[middle]
+        np.testing.assert_allclose(directions[middle], to_center / np.linalg.norm(to_center), atol=1e-6)
+    # Five distinct cameras at one distance from the center.
+    eyes = origins[::81]
+    assert len(np.unique(np.round(eyes, 4), axis=0)) == 5
+    np.testing.assert_allclose(np.linalg.norm(eyes - center, axis=1), np.linalg.norm(eyes[0] - center), rtol=1e-5)
+
+
+def test_diffuse_rays_leave_the_seen_side_cosine_distributed():
+    # A large square of two triangles facing +z, seen from above and (for half the rays) below.
+    v = np.array([[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]], dtype=np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+    rng = np.random.default_rng(3)
+    count = 20000
+    origins = np.concatenate([rng.uniform(-5, 5, (count, 3)) * [1, 1, 0] + [0, 0, 4],
+                              rng.uniform(-5, 5, (count, 3)) * [1, 1, 0] + [0, 0, -4]]).astype(np.float32)
+    directions = np.tile(np.array([[0, 0, -1]], np.float32), (2 * count, 1))
+    directions[count:] *= -1
+    t, prim = brute_force_closest_hit(v, f, origins, directions)
+    assert (prim >= 0).all()
+    out_o, out_d = quality.diffuse_rays(rng, v, f, origins, directions, t.astype(np.float32), prim)
+    side = np.sign(origins[:, 2])
+    # Each ray starts just off the hit point, on the side its camera ray came from.
+    np.testing.assert_allclose(out_o[:, :2], origins[:, :2], atol=1e-5)
+    assert np.all(out_o[:, 2] * side > 0) and np.all(np.abs(out_o[:, 2]) < 1e-3)
+    cos = out_d[:, 2] * side
+    np.testing.assert_allclose(np.linalg.norm(out_d, axis=1), 1.0, rtol=1e-5)
+    assert cos.min() >= 0.0
+    # Cosine-weighted: E[cos] = 2/3 and E[cos^2] = 1/2 (uniform would give 1/2 and 1/3).
+    assert cos.mean() == pytest.approx(2 / 3, abs=0.01)
+    assert (cos ** 2).mean() == pytest.approx(1 / 2, abs=0.01)
+    # Azimuths spread evenly: no preferred tangent direction.
+    assert abs(out_d[:, 0].mean()) < 0.01 and abs(out_d[:, 1].mean()) < 0.01
+
+
+def test_quality_rejects_bad_arguments():
+    for argv in (["--builders", "nope"], ["--views", "0"], ["--ci", "0"], ["--ct", "-1"]):
+        with pytest.raises(SystemExit):
+            quality.parse_args(argv)
