@@ -1,0 +1,180 @@
+"""Wide BVHs (k = 2 .. 16 children per node) collapsed from any binary BVH of this library.
+
+Garczorz (2026) builds BVHs of branching factor k in {2, 4, 8, 16} by direct k-way splitting or
+by collapsing a binary BVH, and measures serial CPU closest-hit traversal against k = 2. This
+module is the collapse (level by level on the device, ``kernels/wide.py``), a closest-hit ray
+query through the result, and its SAH cost:
+
+    wide = hlbvh_warp.wide.collapse(bvh, width=4)
+    t, prim = hlbvh_warp.wide.intersect(wide, origins, directions)
+
+The wide tree shares the binary tree's ``prim_order``, vertices and faces; it owns only its
+nodes. ``width=2`` gives the binary tree itself in the wide layout, the baseline of a k-ary
+comparison that changes nothing but k.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import inputs
+from .bvh import Bvh
+from .kernels import wide as kernels
+
+WIDTHS = tuple(range(2, kernels.MAX_WIDTH + 1))
+
+
+@dataclass
+class WideTraversalStats:
+    """Per ray: wide nodes visited, child boxes tested, triangles tested."""
+
+    nodes_visited: np.ndarray
+    boxes_tested: np.ndarray
+    prims_tested: np.ndarray
+
+    def summary(self) -> dict:
+        def mean(a):
+            return float(a.mean()) if a.size else 0.0
+
+        return {"mean_nodes_visited": mean(self.nodes_visited), "mean_boxes_tested": mean(self.boxes_tested),
+                "mean_prims_tested": mean(self.prims_tested)}
+
+
+class WideBvh:
+    """A BVH of up to ``width`` children per node (see ``kernels/wide.py`` for the slot layout).
+
+    ``slot_*`` arrays have ``num_nodes * width`` entries; ``wide_begin`` / ``wide_end`` are each
+    node's range of the binary tree's ``prim_order``. ``bvh`` is the binary tree it came from.
+    """
+
+    def __init__(self, bvh: Bvh, width: int, num_nodes: int, arrays: dict, levels: int):
+        self.bvh = bvh
+        self.width = width
+        self.num_nodes = num_nodes
+        #: Levels of wide nodes (the root's is 1).
+        self.depth = levels
+        for name, array in arrays.items():
+            setattr(self, name, array)
+
+    @property
+    def device(self):
+        return self.bvh.device
+
+    def to_numpy(self) -> dict:
+        names = ("slot_lowers", "slot_uppers", "slot_child", "slot_begin", "slot_end", "wide_begin", "wide_end")
+        out = {name: getattr(self, name).numpy() for name in names}
+        out["prim_order"] = self.bvh.prim_order.numpy()
+        return out
+
+
+def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
+    """Collapse a binary BVH to one of up to `width` children per node (greedy: a wide node's
+    interior child of largest surface area is replaced by its two children while there is room).
+
+    One expand launch, one scan and one emit launch per level of the wide tree, and one count
+    read on the host per level: a conversion after the build, not a per-frame stage.
+    """
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"collapse() takes a Bvh, got {type(bvh).__name__}")
+    if isinstance(width, bool) or not isinstance(width, (int, np.integer)) or not 2 <= width <= kernels.MAX_WIDTH:
+        raise ValueError(f"width must be an integer in [2, {kernels.MAX_WIDTH}], got {width!r}")
+    width = int(width)
+    device = bvh.device
+    level_arrays = []
+    frontier = wp.array(np.zeros(1, dtype=np.int32), dtype=wp.int32, device=device)
+    num_level, first = 1, 0
+    while num_level > 0:
+        chosen = wp.empty(num_level * width, dtype=wp.int32, device=device)
+        interior = wp.empty(num_level, dtype=wp.int32, device=device)
+        wp.launch(kernels.expand_kernel, dim=num_level, device=device,
+                  inputs=[width, frontier, bvh.node_left, bvh.node_right, bvh.node_lowers, bvh.node_uppers,
+                          chosen, interior])
+        offsets = wp.empty(num_level, dtype=wp.int32, device=device)
+        wp.utils.array_scan(interior, offsets, inclusive=False)
+        # The one host read of a level: how many wide nodes the next one has.
+        last = np.concatenate([offsets[num_level - 1:].numpy(), interior[num_level - 1:].numpy()])
+        num_next = int(last.sum())
+        slots = {name: wp.empty(num_level * width, dtype=dtype, device=device)
+                 for name, dtype in (("slot_lowers", wp.vec3), ("slot_uppers", wp.vec3), ("slot_child", wp.int32),
+                                     ("slot_begin", wp.int32), ("slot_end", wp.int32))}
+        ranges = {name: wp.empty(num_level, dtype=wp.int32, device=device) for name in ("wide_begin", "wide_end")}
+        next_frontier = wp.empty(max(num_next, 1), dtype=wp.int32, device=device)
+        wp.launch(kernels.emit_kernel, dim=num_level, device=device,
+                  inputs=[width, 0, first + num_level, frontier, chosen, offsets, bvh.node_left, bvh.node_lowers,
+                          bvh.node_uppers, bvh.node_begin, bvh.node_end, slots["slot_lowers"], slots["slot_uppers"],
+                          slots["slot_child"], slots["slot_begin"], slots["slot_end"], ranges["wide_begin"],
+                          ranges["wide_end"], next_frontier])
+        level_arrays.append((num_level, {**slots, **ranges}))
+        first += num_level
+        frontier, num_level = next_frontier, num_next
+    # The levels side by side in one array each: node numbers are already global.
+    total = first
+    arrays = {}
+    for name in ("slot_lowers", "slot_uppers", "slot_child", "slot_begin", "slot_end"):
+        arrays[name] = wp.empty(total * width, dtype=level_arrays[0][1][name].dtype, device=device)
+    for name in ("wide_begin", "wide_end"):
+        arrays[name] = wp.empty(total, dtype=wp.int32, device=device)
+    offset = 0
+    for count, level in level_arrays:
+        for name, array in level.items():
+            per_node = width if name.startswith("slot_") else 1
+            wp.copy(arrays[name], array, dest_offset=offset * per_node, count=count * per_node)
+        offset += count
+    return WideBvh(bvh, width, total, arrays, len(level_arrays))
+
+
+def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> float:
+    """Pantaleoni & Luebke's eq. (1) on the wide tree: C(node) = T1 * N_children + sum of
+    C(child) * area(child) / area(node), C(leaf) = T2 * N_prims. At width 2 it is
+    `metrics.sah_cost` of the binary tree."""
+    if t_traversal < 0 or t_intersect <= 0:
+        raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    bvh = wide.bvh
+    if int(bvh.node_left.numpy()[0]) < 0:
+        # A single leaf: no traversal step at all.
+        return float(t_intersect * bvh.num_prims)
+    root_lo, root_hi = (np.asarray(a.numpy()[0], dtype=np.float64) for a in (bvh.node_lowers, bvh.node_uppers))
+    d = root_hi - root_lo
+    root_area = 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+    terms = wp.empty(wide.num_nodes, dtype=wp.float64, device=wide.device)
+    wp.launch(kernels.wide_sah_terms_kernel, dim=wide.num_nodes, device=wide.device,
+              inputs=[wide.width, wp.float64(root_area), wide.slot_lowers, wide.slot_uppers, wide.slot_child,
+                      wide.slot_begin, wide.slot_end, wp.float64(t_traversal), wp.float64(t_intersect), terms])
+    root_children = int((wide.slot_child.numpy()[: wide.width] != kernels.EMPTY_SLOT).sum())
+    return float(t_traversal * root_children + terms.numpy().sum())
+
+
+def intersect(wide: WideBvh, origins, directions, t_max: float = float("inf"), stats: bool = False):
+    """Closest hit of every ray through the wide tree: ``(t, prim)`` as `hlbvh_warp.intersect`
+    returns them (a miss is ``(inf, -1)``), and a `WideTraversalStats` with `stats`."""
+    if not isinstance(wide, WideBvh):
+        raise ValueError(f"intersect() takes a WideBvh, got {type(wide).__name__}")
+    bvh = wide.bvh
+    if bvh.vertices is None or bvh.faces is None:
+        raise ValueError("intersect() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
+    o, d = inputs.ray_arrays(origins, directions)
+    try:
+        t_max = float(t_max)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"t_max must be a number, got {t_max!r}") from exc
+    device = wide.device
+    n = o.shape[0]
+    hit_t = wp.empty(n, dtype=float, device=device)
+    hit_prim = wp.empty(n, dtype=wp.int32, device=device)
+    counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
+    if n:
+        root_lo = wp.vec3(*bvh.node_lowers.numpy()[0])
+        root_hi = wp.vec3(*bvh.node_uppers.numpy()[0])
+        wp.launch(kernels.wide_closest_hit_kernel, dim=n, device=device,
+                  inputs=[wide.width, root_lo, root_hi, wide.slot_lowers, wide.slot_uppers, wide.slot_child,
+                          wide.slot_begin, wide.slot_end, wide.wide_begin, wide.wide_end, bvh.prim_order,
+                          bvh.vertices, bvh.faces, wp.array(o, dtype=wp.vec3, device=device),
+                          wp.array(d, dtype=wp.vec3, device=device), t_max, hit_t, hit_prim, counts])
+    out = (hit_t.numpy(), hit_prim.numpy())
+    if stats:
+        c = counts.numpy().reshape(-1, 3)
+        out += (WideTraversalStats(c[:, 0].copy(), c[:, 1].copy(), c[:, 2].copy()),)
+    return out

@@ -1,0 +1,326 @@
+"""Wide BVHs: a binary BVH collapsed to up to k children per node, and rays through one.
+
+Collapse (the usual construction of k-ary BVHs from binary ones; Garczorz 2026 compares it with
+direct k-way splitting): each wide node starts from its binary node's two children and, while it
+has fewer than k, replaces the interior child of largest surface area by that child's two
+children. The interior children left at the end become the next level's wide nodes, so the
+collapse runs level by level, one thread per wide node of a level, with a scan placing each
+level's new nodes.
+
+Layout: wide node w owns slots ``w * k .. w * k + k - 1``. A slot holds a child's box, its range
+of ``prim_order`` and ``slot_child``: the child's wide node index, ``LEAF`` for a leaf (its
+triangles are the range), or ``EMPTY`` past the last child. The child boxes sit in the parent
+(as in the multi-BVH nodes of Ernst & Greiner 2008), so a step tests all k boxes of one node.
+"""
+
+import warp as wp
+
+from .traversal import INF, intersect_triangle_watertight, ray_box_entry, ray_inverse_direction, ray_is_valid
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+MAX_WIDTH = 16
+LEAF_SLOT = -1
+EMPTY_SLOT = -2
+LEAF = wp.constant(LEAF_SLOT)
+EMPTY = wp.constant(EMPTY_SLOT)
+vec16i = wp.types.vector(length=MAX_WIDTH, dtype=wp.int32)
+vec16f = wp.types.vector(length=MAX_WIDTH, dtype=wp.float32)
+#: Deferred entries of the wide traversal: up to k - 1 per level of the wide tree.
+WIDE_STACK_SIZE = 256
+vec256i = wp.types.vector(length=WIDE_STACK_SIZE, dtype=wp.int32)
+vec256f = wp.types.vector(length=WIDE_STACK_SIZE, dtype=wp.float32)
+WIDE_STACK = wp.constant(WIDE_STACK_SIZE)
+
+
+@wp.func
+def box_area(lower: wp.vec3, upper: wp.vec3) -> float:
+    d = upper - lower
+    return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+
+@wp.kernel
+def expand_kernel(
+    width: int,
+    frontier: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_right: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    chosen: wp.array(dtype=wp.int32),
+    interior_count: wp.array(dtype=wp.int32),
+):
+    """The children of one wide node (the binary node ``frontier[w]``): binary node ids into
+    ``chosen[w * width ...]`` (-1 past the last), and how many of them are interior."""
+    w = wp.tid()
+    b = frontier[w]
+    picked = vec16i()
+    count = int(1)
+    picked[0] = b
+    if node_left[b] >= 0:
+        picked[0] = node_left[b]
+        picked[1] = node_right[b]
+        count = 2
+    while count < width:
+        best = int(-1)
+        best_area = float(-1.0)
+        for j in range(count):
+            c = picked[j]
+            if node_left[c] >= 0:
+                a = box_area(node_lowers[c], node_uppers[c])
+                if a > best_area:
+                    best_area = a
+                    best = j
+        if best < 0:
+            break
+        c = picked[best]
+        picked[best] = node_left[c]
+        picked[count] = node_right[c]
+        count += 1
+    interior = int(0)
+    for j in range(width):
+        if j < count:
+            chosen[w * width + j] = picked[j]
+            if node_left[picked[j]] >= 0:
+                interior += 1
+        else:
+            chosen[w * width + j] = -1
+    interior_count[w] = interior
+
+
+@wp.kernel
+def emit_kernel(
+    width: int,
+    first_wide: int,
+    next_first: int,
+    frontier: wp.array(dtype=wp.int32),
+    chosen: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    node_left: wp.array(dtype=wp.int32),
+    node_lowers: wp.array(dtype=wp.vec3),
+    node_uppers: wp.array(dtype=wp.vec3),
+    node_begin: wp.array(dtype=wp.int32),
+    node_end: wp.array(dtype=wp.int32),
+    slot_lowers: wp.array(dtype=wp.vec3),
+    slot_uppers: wp.array(dtype=wp.vec3),
+    slot_child: wp.array(dtype=wp.int32),
+    slot_begin: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    wide_begin: wp.array(dtype=wp.int32),
+    wide_end: wp.array(dtype=wp.int32),
+    next_frontier: wp.array(dtype=wp.int32),
+):
+    """Write wide node ``first_wide + w``: its slots, its own range, and its interior children
+    as the next level's wide nodes, numbered from ``next_first + offsets[w]``."""
+    w = wp.tid()
+    node = first_wide + w
+    b = frontier[w]
+    wide_begin[node] = node_begin[b]
+    wide_end[node] = node_end[b]
+    o = offsets[w]
+    for j in range(width):
+        s = node * width + j
+        c = chosen[w * width + j]
+        if c < 0:
+            # An empty slot: an inverted box no ray enters.
+            slot_lowers[s] = wp.vec3(INF)
+            slot_uppers[s] = wp.vec3(-INF)
+            slot_child[s] = EMPTY
+            slot_begin[s] = 0
+            slot_end[s] = 0
+        else:
+            slot_lowers[s] = node_lowers[c]
+            slot_uppers[s] = node_uppers[c]
+            slot_begin[s] = node_begin[c]
+            slot_end[s] = node_end[c]
+            if node_left[c] >= 0:
+                slot_child[s] = next_first + o
+                next_frontier[o] = c
+                o += 1
+            else:
+                slot_child[s] = LEAF
+
+
+@wp.kernel
+def wide_sah_terms_kernel(
+    width: int,
+    root_area: wp.float64,
+    slot_lowers: wp.array(dtype=wp.vec3),
+    slot_uppers: wp.array(dtype=wp.vec3),
+    slot_child: wp.array(dtype=wp.int32),
+    slot_begin: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    t_traversal: wp.float64,
+    t_intersect: wp.float64,
+    terms: wp.array(dtype=wp.float64),
+):
+    """Pantaleoni & Luebke's eq. (1) unrolled over a wide node's slots: every child costs
+    T1 at its parent, and each child's own term (T1 times its children, or T2 times its
+    triangles) weighs by area(child) / area(root)."""
+    w = wp.tid()
+    total = wp.float64(0.0)
+    for j in range(width):
+        s = w * width + j
+        kind = slot_child[s]
+        if kind != EMPTY:
+            lo = slot_lowers[s]
+            hi = slot_uppers[s]
+            dx = wp.float64(hi[0]) - wp.float64(lo[0])
+            dy = wp.float64(hi[1]) - wp.float64(lo[1])
+            dz = wp.float64(hi[2]) - wp.float64(lo[2])
+            ratio = wp.float64(1.0)
+            if root_area > wp.float64(0.0):
+                ratio = wp.float64(2.0) * (dx * dy + dy * dz + dz * dx) / root_area
+            own = t_intersect * wp.float64(slot_end[s] - slot_begin[s])
+            if kind >= 0:
+                grandchildren = int(0)
+                for i in range(width):
+                    if slot_child[kind * width + i] != EMPTY:
+                        grandchildren += 1
+                own = t_traversal * wp.float64(grandchildren)
+            total += own * ratio
+    terms[w] = total
+
+
+@wp.struct
+class WideHit:
+    t: float
+    prim: int
+    nodes_visited: int
+    boxes_tested: int
+    prims_tested: int
+
+
+@wp.func
+def wide_closest_hit(
+    width: int,
+    root_lower: wp.vec3,
+    root_upper: wp.vec3,
+    slot_lowers: wp.array(dtype=wp.vec3),
+    slot_uppers: wp.array(dtype=wp.vec3),
+    slot_child: wp.array(dtype=wp.int32),
+    slot_begin: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    wide_begin: wp.array(dtype=wp.int32),
+    wide_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    origin: wp.vec3,
+    direction: wp.vec3,
+    t_max: float,
+):
+    """Closest hit through a wide BVH: at each node all k child boxes are tested and the hit ones
+    stacked farthest first, so the nearest is taken next; an entry popped behind the closest hit
+    so far is dropped. Stack entries are wide nodes (>= 0) or leaf slots (-(slot + 1)). The same
+    watertight triangle test and padded box test as the binary traversal (kernels/traversal.py),
+    so both find the same hits."""
+    best_t = t_max
+    best_prim = int(-1)
+    visited = int(0)
+    boxes = int(0)
+    tested = int(0)
+    stack = vec256i()
+    stack_t = vec256f()
+    top = int(0)
+    inv = wp.vec3(0.0)
+    if ray_is_valid(origin, direction, t_max) == 1:
+        inv = ray_inverse_direction(direction)
+        t_root = ray_box_entry(origin, inv, root_lower, root_upper, best_t)
+        if t_root < INF:
+            stack[0] = 0
+            stack_t[0] = t_root
+            top = 1
+    while top > 0:
+        top -= 1
+        entry = stack[top]
+        if stack_t[top] <= best_t:
+            first = int(0)
+            last = int(0)
+            if entry < 0:
+                first = slot_begin[-entry - 1]
+                last = slot_end[-entry - 1]
+            elif top + width > WIDE_STACK:
+                # No room to stack the children: test the node's whole range instead.
+                visited += 1
+                first = wide_begin[entry]
+                last = wide_end[entry]
+            else:
+                visited += 1
+                hit_t = vec16f()
+                hit_e = vec16i()
+                hits = int(0)
+                for j in range(width):
+                    s = entry * width + j
+                    kind = slot_child[s]
+                    if kind != EMPTY:
+                        boxes += 1
+                        t = ray_box_entry(origin, inv, slot_lowers[s], slot_uppers[s], best_t)
+                        if t < INF:
+                            e = kind
+                            if kind == LEAF:
+                                e = -(s + 1)
+                            # Insertion by descending entry distance.
+                            i = hits
+                            while i > 0 and hit_t[i - 1] < t:
+                                hit_t[i] = hit_t[i - 1]
+                                hit_e[i] = hit_e[i - 1]
+                                i -= 1
+                            hit_t[i] = t
+                            hit_e[i] = e
+                            hits += 1
+                for i in range(hits):
+                    stack[top] = hit_e[i]
+                    stack_t[top] = hit_t[i]
+                    top += 1
+            for k in range(first, last):
+                p = prim_order[k]
+                tested += 1
+                h = intersect_triangle_watertight(origin, direction, vertices[faces[p, 0]], vertices[faces[p, 1]],
+                                                  vertices[faces[p, 2]], best_t)
+                if h.hit == 1:
+                    best_t = h.t
+                    best_prim = p
+    result = WideHit()
+    result.t = INF
+    result.prim = best_prim
+    if best_prim >= 0:
+        result.t = best_t
+    result.nodes_visited = visited
+    result.boxes_tested = boxes
+    result.prims_tested = tested
+    return result
+
+
+@wp.kernel
+def wide_closest_hit_kernel(
+    width: int,
+    root_lower: wp.vec3,
+    root_upper: wp.vec3,
+    slot_lowers: wp.array(dtype=wp.vec3),
+    slot_uppers: wp.array(dtype=wp.vec3),
+    slot_child: wp.array(dtype=wp.int32),
+    slot_begin: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    wide_begin: wp.array(dtype=wp.int32),
+    wide_end: wp.array(dtype=wp.int32),
+    prim_order: wp.array(dtype=wp.int32),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    t_max: float,
+    hit_t: wp.array(dtype=float),
+    hit_prim: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.vec3i),
+):
+    """One ray per thread; ``counts`` (nodes visited, boxes tested, triangles tested) is written
+    when it has an entry per ray."""
+    i = wp.tid()
+    h = wide_closest_hit(width, root_lower, root_upper, slot_lowers, slot_uppers, slot_child, slot_begin, slot_end,
+                         wide_begin, wide_end, prim_order, vertices, faces, origins[i], directions[i], t_max)
+    hit_t[i] = h.t
+    hit_prim[i] = h.prim
+    if counts.shape[0] > 0:
+        counts[i] = wp.vec3i(h.nodes_visited, h.boxes_tested, h.prims_tested)

@@ -1,0 +1,226 @@
+"""Wide BVHs: the collapse against a NumPy collapse of the same binary tree, node boxes against
+the triangles, the SAH against a float64 recursion, rays against the float64 brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hlbvh_warp as hw
+from hlbvh_warp import metrics, wide
+from handmade_trees import left_caterpillar
+from oracles import brute_force_closest_hit, random_rays, random_soup
+
+WIDTHS = [2, 3, 4, 8, 16]
+
+
+def numpy_collapse(tree: dict, width: int):
+    """Greedy collapse in plain Python: {wide node's binary id: sorted child (begin, end) ranges}."""
+    left, right = tree["node_left"], tree["node_right"]
+    lo, hi = tree["node_lowers"].astype(np.float64), tree["node_uppers"].astype(np.float64)
+    begin, end = tree["node_begin"], tree["node_end"]
+
+    def area(n):
+        d = hi[n] - lo[n]
+        return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+    out, todo = {}, [0]
+    while todo:
+        b = todo.pop()
+        children = [left[b], right[b]] if left[b] >= 0 else [b]
+        while len(children) < width:
+            interior = [c for c in children if left[c] >= 0]
+            if not interior:
+                break
+            # Largest area first; float32 areas as the kernel compares them, ties to the earlier slot.
+            areas = [np.float32(area(c)) for c in interior]
+            pick = interior[int(np.argmax(areas))]
+            children[children.index(pick)] = left[pick]
+            children.append(right[pick])
+        out[b] = sorted((begin[c], end[c]) for c in children)
+        todo += [c for c in children if left[c] >= 0]
+    return out
+
+
+def wide_nodes(w: dict, width: int):
+    """The wide tree as {node: [(child kind, begin, end, lower, upper), ...]}."""
+    num = len(w["wide_begin"])
+    nodes = {}
+    for n in range(num):
+        slots = []
+        for j in range(width):
+            s = n * width + j
+            if w["slot_child"][s] != -2:
+                slots.append((int(w["slot_child"][s]), int(w["slot_begin"][s]), int(w["slot_end"][s]),
+                              w["slot_lowers"][s], w["slot_uppers"][s]))
+        nodes[n] = slots
+    return nodes
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("method, leaf", [("hlbvh", 1), ("sweep_sah", 1), ("median", 3)])
+def test_collapse_structure_and_boxes(device, rng, width, method, leaf):
+    v, f = random_soup(rng, 150, scale=0.2)
+    bvh = hw.build(v, f, method=method, device=device, config=hw.BuildConfig(max_leaf_size=leaf))
+    w = wide.collapse(bvh, width).to_numpy()
+    nodes = wide_nodes(w, width)
+    tri = v[f].astype(np.float64)
+    order = w["prim_order"]
+    leaves = []
+    for n, slots in nodes.items():
+        assert 2 <= len(slots) <= width
+        # A node's range is its children's ranges laid end to end.
+        ranges = sorted((b, e) for _, b, e, _, _ in slots)
+        assert ranges[0][0] == w["wide_begin"][n] and ranges[-1][1] == w["wide_end"][n]
+        assert all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))
+        for kind, b, e, lo, hi in slots:
+            # Each slot's box is the exact box of its triangles.
+            ids = order[b:e]
+            np.testing.assert_array_equal(lo, tri[ids].min(axis=(0, 1)).astype(np.float32))
+            np.testing.assert_array_equal(hi, tri[ids].max(axis=(0, 1)).astype(np.float32))
+            if kind >= 0:
+                assert (w["wide_begin"][kind], w["wide_end"][kind]) == (b, e)
+            else:
+                assert kind == -1 and 1 <= e - b <= leaf
+                leaves.append((b, e))
+    # The leaves cover every position once.
+    covered = np.zeros(len(f), int)
+    for b, e in leaves:
+        covered[b:e] += 1
+    assert (covered == 1).all()
+    # Every wide node's children are the ones the greedy rule picks from the binary tree.
+    expected = numpy_collapse(bvh.to_numpy(), width)
+    got = {n: sorted((b, e) for _, b, e, _, _ in slots) for n, slots in nodes.items()}
+    assert sorted(got.values()) == sorted(expected.values())
+
+
+def numpy_wide_sah(w: dict, width: int, t1=1.0, t2=1.0):
+    nodes = wide_nodes(w, width)
+
+    def area(lo, hi):
+        d = np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
+        return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+    def cost(n, node_area):
+        total = t1 * len(nodes[n])
+        for kind, b, e, lo, hi in nodes[n]:
+            child = cost(kind, area(lo, hi)) if kind >= 0 else t2 * (e - b)
+            total += child * area(lo, hi) / node_area
+        return total
+
+    slots = nodes[0]
+    root_lo = np.min([s[3] for s in slots], axis=0)
+    root_hi = np.max([s[4] for s in slots], axis=0)
+    return cost(0, area(root_lo, root_hi))
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_wide_sah_against_a_recursion(device, rng, width):
+    v, f = random_soup(rng, 120, scale=0.3)
+    bvh = hw.build(v, f, method="hlbvh_sah", device=device)
+    w = wide.collapse(bvh, width)
+    assert wide.sah_cost(w, 1.2, 1.0) == pytest.approx(numpy_wide_sah(w.to_numpy(), width, 1.2, 1.0), rel=1e-9)
+    if width == 2:
+        # The binary tree itself in the wide layout.
+        assert w.num_nodes == len(f) - 1
+        assert wide.sah_cost(w) == pytest.approx(metrics.sah_cost(bvh), rel=1e-9)
+
+
+@pytest.mark.parametrize("width", [2, 4, 8, 16])
+def test_wide_rays_match_the_brute_force(device, rng, width):
+    v, f = random_soup(rng, 400, scale=0.15)
+    bvh = hw.build(v, f, method="hlbvh", device=device)
+    w = wide.collapse(bvh, width)
+    o, d = random_rays(rng, v, 600)
+    t, prim, stats = wide.intersect(w, o, d, stats=True)
+    t_ref, prim_ref = brute_force_closest_hit(v, f, o, d)
+    assert (prim_ref >= 0).sum() > 100
+    from hlbvh_warp.reference import count_mismatches
+
+    assert count_mismatches(t, prim, t_ref, prim_ref) == 0
+    hits = prim >= 0
+    assert (stats.prims_tested[hits] >= 1).all()
+    assert (stats.boxes_tested <= stats.nodes_visited * width).all()
+    # Bounded t: only hits before t_max count.
+    cut = float(np.median(t_ref[prim_ref >= 0]))
+    t2, prim2 = wide.intersect(w, o, d, t_max=cut)
+    keep = (prim_ref >= 0) & (t_ref < cut * (1 - 1e-5))
+    assert (prim2[keep] >= 0).all()
+    assert (prim2[(prim_ref < 0) | (t_ref > cut * (1 + 1e-5))] < 0).all()
+
+
+def test_wide_rays_on_a_tree_deeper_than_the_stack(device, rng):
+    # A caterpillar collapsed at width 16: 15 leaves and one interior child per level, about
+    # 40 levels, so rays through the middle would stack more than the traversal's 256 entries.
+    v, f = random_soup(rng, 600, scale=0.6)
+    w = wide.collapse(left_caterpillar(v, f, device), 16)
+    assert w.depth > 256 // 15
+    o, d = random_rays(rng, v, 300)
+    t, prim = wide.intersect(w, o, d)
+    t_ref, prim_ref = brute_force_closest_hit(v, f, o, d)
+    from hlbvh_warp.reference import count_mismatches
+
+    assert count_mismatches(t, prim, t_ref, prim_ref) == 0
+
+
+def test_small_trees_and_bad_rays(device):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1]], dtype=np.float32)
+    one = hw.build(v, np.array([[0, 1, 2]], dtype=np.int32), device=device)
+    two = hw.build(v, np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int32), device=device)
+    o = np.array([[0.2, 0.2, 5], [0.2, 0.2, 5], [np.nan, 0, 0], [0.2, 0.2, 5]], dtype=np.float32)
+    d = np.array([[0, 0, -1], [0, 0, 1], [0, 0, -1], [0, 0, 0]], dtype=np.float32)
+    for bvh, first_t in ((one, 5.0), (two, 4.0)):
+        for width in (2, 16):
+            w = wide.collapse(bvh, width)
+            t, prim = wide.intersect(w, o, d)
+            assert t[0] == pytest.approx(first_t) and prim[0] >= 0
+            assert (prim[1:] == -1).all() and np.isinf(t[1:]).all()
+    assert wide.sah_cost(wide.collapse(one, 4)) == pytest.approx(1.0)
+    assert wide.sah_cost(wide.collapse(two, 4), 1.0, 1.0) == pytest.approx(metrics.sah_cost(two))
+
+
+def test_bad_arguments(device):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+    bvh = hw.build(v, np.array([[0, 1, 2]], dtype=np.int32), device=device)
+    for width in (1, 17, 2.5, True, "4"):
+        with pytest.raises(ValueError, match="width"):
+            wide.collapse(bvh, width)
+    with pytest.raises(ValueError, match="takes a Bvh"):
+        wide.collapse("tree", 4)
+    boxes = hw.build_from_bounds(v, v + 1, device=device)
+    w = wide.collapse(boxes, 4)
+    with pytest.raises(ValueError, match="mesh"):
+        wide.intersect(w, v, v)
+    with pytest.raises(ValueError, match="takes a WideBvh"):
+        wide.intersect(bvh, v, v)
+    with pytest.raises(ValueError, match="t_intersect"):
+        wide.sah_cost(w, 1.0, 0.0)
+
+
+def test_bench_wide_rows(tmp_path):
+    from hlbvh_warp import wide_bench
+
+    out = tmp_path / "wide.json"
+    code = wide_bench.main(["--scene-tris", "2000", "--widths", "4,16", "--views", "2", "--side", "16", "--repeats", "1",
+                            "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    import json
+
+    rows = json.loads(out.read_text())["rows"]
+    for kind in ("primary", "diffuse"):
+        ks = {r["k"]: r for r in rows if r["rays"] == kind}
+        # Width 2 joins as the baseline; the binary traversal is timed beside it.
+        assert set(ks) == {2, 4, 16, "bin"}
+        assert ks[2]["speedup"] == 1.0
+        assert all(r["disagree"] == 0 and r["mrays_per_s"] > 0 for r in ks.values())
+        assert ks[16]["depth"] < ks[4]["depth"] < ks[2]["depth"]
+        # Fewer, wider nodes: fewer visited per ray.
+        assert ks[16]["n_s"] < ks[4]["n_s"] < ks[2]["n_s"]
+
+
+def test_bench_wide_rejects_bad_arguments():
+    from hlbvh_warp import wide_bench
+
+    for argv in (["--widths", "1"], ["--widths", "4,x"], ["--widths", "32"], ["--method", "nope"], ["--repeats", "0"]):
+        with pytest.raises(SystemExit):
+            wide_bench.parse_args(argv)
