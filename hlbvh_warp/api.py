@@ -12,6 +12,9 @@ from .hlbvh import HlbvhPipeline, StageTimer
 
 #: method name -> callable(pipeline inputs) returning a Bvh; reference builders add themselves.
 BUILDERS = {}
+#: Builders that take minutes at 100k triangles (offline quality references): the demo and the
+#: default tables leave them out unless asked for.
+OFFLINE_BUILDERS = ("recursive_sah",)
 
 
 def register_builder(name: str):

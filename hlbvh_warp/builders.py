@@ -609,3 +609,13 @@ for _name in TOP_DOWN_MODES:
 api.BUILDERS["hlbvh_sah"] = _hlbvh_sah
 
 __all__ = ["TopDownBuilder", "HlbvhSahPipeline", "build_top_down", "array_bytes", "pipeline_buffer_bytes"]
+
+
+def _recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device,
+                   timer: StageTimer) -> Bvh:
+    from .recursive_sah import build_recursive_sah
+
+    return build_recursive_sah(prim_lowers, prim_uppers, config, device, timer)
+
+
+api.BUILDERS["recursive_sah"] = _recursive_sah

@@ -37,6 +37,9 @@ class BuildConfig:
         sah_traversal_cost: T1 of the paper's SAH cost (eq. 1), per child visited.
         sah_intersection_cost: T2 of the paper's SAH cost, per primitive in a leaf.
         sah_bins: bins per axis of the ``binned_sah`` builder.
+        recursive_sah_bins: bins per axis of the ``recursive_sah`` builder's own splits
+            (Wodniok & Goesele 2016: 256 for RBVH, 64 for RBVH*).
+        recursive_sah_temp_bins: bins per axis of its temporary BVHs (the paper: 32; at most 32).
         cluster_min_prims: ``hlbvh_sah`` with an automatic m (``coarse_bits=None``) only: while
             its clusters (the non-empty coarse voxels) hold fewer primitives than this on
             average, they are merged into the voxels of the grid one bit coarser per axis.
@@ -86,6 +89,8 @@ class BuildConfig:
     sah_traversal_cost: float = 1.0
     sah_intersection_cost: float = 1.0
     sah_bins: int = 16
+    recursive_sah_bins: int = 64
+    recursive_sah_temp_bins: int = 32
     cluster_min_prims: float = 6.0
     emission: str = "auto"
     cpu_threads: int = 0
@@ -105,6 +110,8 @@ class BuildConfig:
             (self.sah_traversal_cost >= 0.0, "sah_traversal_cost must be >= 0"),
             (self.sah_intersection_cost > 0.0, "sah_intersection_cost must be > 0"),
             (2 <= self.sah_bins <= 256, "sah_bins must be in [2, 256]"),
+            (2 <= self.recursive_sah_bins <= 256, "recursive_sah_bins must be in [2, 256]"),
+            (2 <= self.recursive_sah_temp_bins <= 32, "recursive_sah_temp_bins must be in [2, 32]"),
             (self.cluster_min_prims >= 0.0, "cluster_min_prims must be >= 0"),
             (self.emission in EMISSIONS, f"emission must be one of {EMISSIONS}"),
             (self.cpu_threads >= 0, "cpu_threads must be >= 0"),

@@ -69,7 +69,8 @@ def main(argv=None) -> int:
 
         # 1. Every build method on the static scene, checked against a float64 brute force.
         api._load_optional_builders()
-        methods = args.methods.split(",") if args.methods else list(api.BUILDERS)
+        methods = (args.methods.split(",") if args.methods
+                   else [m for m in api.BUILDERS if m not in api.OFFLINE_BUILDERS])
         origins, directions = rays_at(vertices, args.rays)
         reference = brute_force_closest_hit(vertices, faces, origins, directions)
         for method in methods:
