@@ -139,9 +139,11 @@ def format_row(row: dict) -> str:
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp quality", description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", action="append", default=[], help="mesh file (repeatable); default: a generated scene")
+    parser.add_argument("--mesh", action="append", default=[],
+                        help="mesh file (repeatable); default: a generated scene")
     parser.add_argument("--scene-tris", type=int, default=20000, help="triangles of the generated scene")
-    parser.add_argument("--builders", default=",".join(BUILDERS), help="comma-separated builders (default: all but recursive_sah)")
+    parser.add_argument("--builders", default=",".join(BUILDERS),
+                        help="comma-separated builders (default: all but recursive_sah)")
     parser.add_argument("--views", type=int, default=8, help="cameras on the orbit")
     parser.add_argument("--side", type=int, default=64, help="pixels per image side")
     parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")

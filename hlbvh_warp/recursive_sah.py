@@ -27,9 +27,9 @@ import numpy as np
 import warp as wp
 
 from . import threads as threads_module
-from .bvh import Bvh
+from .bvh import Bvh, bvh_from_numpy
 from .config import BuildConfig
-from .hlbvh import StageTimer, compute_bounds
+from .hlbvh import StageTimer
 from .kernels import recursive_sah as kernels
 
 #: Primitive ids one launch of temporary builds may hold (side ranges of the scratch array).
@@ -88,7 +88,6 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
     arena = 2 * n - 1
     left = np.full(arena, -1, np.int32)
     right = np.full(arena, -1, np.int32)
-    parent = np.full(arena, -1, np.int32)
     node_begin = np.zeros(arena, np.int32)
     node_end = np.zeros(arena, np.int32)
     node_end[0] = n
@@ -162,26 +161,13 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
         cut = begins + np.where(has, left_count, counts // 2)
         children = next_node + 2 * np.arange(len(nodes))
         left[nodes], right[nodes] = children, children + 1
-        parent[children] = parent[children + 1] = nodes
         node_begin[children], node_end[children] = begins, cut
         node_begin[children + 1], node_end[children + 1] = cut, begins + counts
         next_node += 2 * len(nodes)
         open_nodes = np.stack([children, children + 1], axis=1).ravel()
 
-    def arr(a, dtype=wp.int32):
-        return wp.array(a, dtype=dtype, device=device)
-
-    num_nodes = next_node
-    out = {name: arr(a) for name, a in (("node_left", left), ("node_right", right), ("node_parent", parent),
-                                         ("node_begin", node_begin), ("node_end", node_end))}
-    prim_order = arr(order)
-    node_count = arr(np.array([num_nodes], np.int32))
-    node_lowers = wp.empty(arena, dtype=wp.vec3, device=device)
-    node_uppers = wp.empty(arena, dtype=wp.vec3, device=device)
     timer.stage("bbox")
-    compute_bounds(device, node_count, out["node_left"], out["node_right"], out["node_parent"], out["node_begin"],
-                   out["node_end"], prim_order, prim_lowers, prim_uppers, wp.empty(arena, dtype=wp.int32, device=device),
-                   node_lowers, node_uppers)
-    return Bvh(method="recursive_sah", config=config, device=device, prim_lowers=prim_lowers, prim_uppers=prim_uppers,
-               prim_order=prim_order, node_lowers=node_lowers, node_uppers=node_uppers, node_count=node_count,
-               timings=timer.finish(), **out)
+    used = slice(0, next_node)
+    return bvh_from_numpy(method="recursive_sah", config=config, device=device, prim_lowers=prim_lowers,
+                          prim_uppers=prim_uppers, prim_order=order, node_left=left[used], node_right=right[used],
+                          node_begin=node_begin[used], node_end=node_end[used], timings=timer.finish())

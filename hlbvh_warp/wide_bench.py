@@ -105,7 +105,8 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         # Interior nodes, as the wide rows count them: a full binary tree has (nodes - 1) / 2.
         entries.append({"k": "bin", "nodes": (bvh.num_nodes - 1) // 2, "depth": None, "collapse_ms": None, "sah": None,
                         "n_s": summary["mean_nodes_visited"], "boxes": 2 * summary["mean_nodes_visited"],
-                        "n_t": summary["mean_prims_tested"], "disagree": reference.count_mismatches(t, prim, ref_t, ref_p)})
+                        "n_t": summary["mean_prims_tested"],
+                        "disagree": reference.count_mismatches(t, prim, ref_t, ref_p)})
         progress(f"[{name} {method}] timing {kind} rays")
         times = best_times(fns, args.repeats, device)
         base = times[widths.index(2)]
@@ -128,7 +129,8 @@ def parse_args(argv):
     from . import wide
 
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-wide", description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", action="append", default=[], help="mesh file (repeatable); default: a generated scene")
+    parser.add_argument("--mesh", action="append", default=[],
+                        help="mesh file (repeatable); default: a generated scene")
     parser.add_argument("--scene-tris", type=int, default=20000, help="triangles of the generated scene")
     parser.add_argument("--method", action="append", default=None,
                         help="binary builder to collapse (repeatable; default hlbvh_sah)")
@@ -187,7 +189,8 @@ def main(argv=None) -> int:
     path = pathlib.Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "rows": rows}, indent=1))
-    print(f"inner: interior nodes; n_s: nodes visited per ray, boxes: child boxes tested, n_t: triangles tested; wrote {path}")
+    print(f"inner: interior nodes; n_s: nodes visited per ray, boxes: child boxes tested, n_t: triangles tested; "
+          f"wrote {path}")
     return 1 if any(r["disagree"] for r in rows) else 0
 
 

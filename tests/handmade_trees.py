@@ -6,7 +6,7 @@ import numpy as np
 import warp as wp
 
 import hlbvh_warp as hw
-from hlbvh_warp.bvh import Bvh
+from hlbvh_warp.bvh import bvh_from_numpy
 
 
 def left_caterpillar(vertices, faces, device):
@@ -17,30 +17,19 @@ def left_caterpillar(vertices, faces, device):
     num_nodes = 2 * n - 1
     left = np.full(num_nodes, -1, np.int32)
     right = np.full(num_nodes, -1, np.int32)
-    parent = np.full(num_nodes, -1, np.int32)
     begin = np.zeros(num_nodes, np.int32)
     end = np.zeros(num_nodes, np.int32)
     # Interior k is node 2k and covers [0, n - k); its right leaf (node 2k + 1) holds position
     # n - k - 1. The deepest interior's left child is the leaf at position 0 (the last node).
     for k in range(n - 1):
-        node = 2 * k
-        left[node] = 2 * k + 2 if k < n - 2 else num_nodes - 1
-        right[node] = 2 * k + 1
-        parent[left[node]] = parent[right[node]] = node
-        begin[node], end[node] = 0, n - k
+        left[2 * k] = 2 * k + 2 if k < n - 2 else num_nodes - 1
+        right[2 * k] = 2 * k + 1
+        begin[2 * k], end[2 * k] = 0, n - k
         begin[2 * k + 1], end[2 * k + 1] = n - k - 1, n - k
     begin[num_nodes - 1], end[num_nodes - 1] = 0, 1
-    lo, hi = tris.min(axis=1), tris.max(axis=1)
-    node_lo = np.array([lo[begin[i]:end[i]].min(0) for i in range(num_nodes)], np.float32)
-    node_hi = np.array([hi[begin[i]:end[i]].max(0) for i in range(num_nodes)], np.float32)
-
-    def arr(a, dtype=wp.int32):
-        return wp.array(a, dtype=dtype, device=device)
-
-    return Bvh(method="caterpillar", config=hw.BuildConfig(), device=device,
-               prim_lowers=arr(lo.astype(np.float32), wp.vec3), prim_uppers=arr(hi.astype(np.float32), wp.vec3),
-               prim_order=arr(np.arange(n, dtype=np.int32)), node_lowers=arr(node_lo, wp.vec3),
-               node_uppers=arr(node_hi, wp.vec3), node_left=arr(left), node_right=arr(right),
-               node_parent=arr(parent), node_begin=arr(begin), node_end=arr(end),
-               node_count=arr(np.array([num_nodes], np.int32)), vertices=arr(vertices, wp.vec3),
-               faces=arr(faces))
+    return bvh_from_numpy(method="caterpillar", config=hw.BuildConfig(), device=device,
+                          prim_lowers=tris.min(axis=1).astype(np.float32),
+                          prim_uppers=tris.max(axis=1).astype(np.float32),
+                          prim_order=np.arange(n), node_left=left, node_right=right, node_begin=begin, node_end=end,
+                          vertices=wp.array(vertices, dtype=wp.vec3, device=device),
+                          faces=wp.array(faces, dtype=wp.int32, device=device))

@@ -201,8 +201,8 @@ def test_bench_wide_rows(tmp_path):
     from hlbvh_warp import wide_bench
 
     out = tmp_path / "wide.json"
-    code = wide_bench.main(["--scene-tris", "2000", "--widths", "4,16", "--views", "2", "--side", "16", "--repeats", "1",
-                            "--device", "cpu", "--json", str(out)])
+    code = wide_bench.main(["--scene-tris", "2000", "--widths", "4,16", "--views", "2", "--side", "16",
+                            "--repeats", "1", "--device", "cpu", "--json", str(out)])
     assert code == 0
     import json
 
