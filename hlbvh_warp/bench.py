@@ -417,8 +417,7 @@ def main(argv=None) -> int:
     if not meshes:
         meshes = [("generated", *generated_scene(args.scene_tris, args.seed))]
 
-    def progress(text):
-        print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
+    progress = scenes.progress
 
     print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}  cpu_threads: {args.cpu_threads or 'all cores'}")
     mesh_width = max([MESH_WIDTH] + [len(name) for name, _, _ in meshes])

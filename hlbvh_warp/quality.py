@@ -173,13 +173,8 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
-    meshes = [(pathlib.Path(p).stem, *scenes.load_mesh(p)) for p in args.mesh]
-    if not meshes:
-        meshes = [("generated", *scenes.default_scene(args.scene_tris))]
-
-    def progress(text):
-        print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
-
+    meshes = scenes.named_meshes(args.mesh, args.scene_tris)
+    progress = scenes.progress
     print(f"device: {device}  c_t = {args.ct}  c_i = {args.ci}  rays: {args.views} views of {args.side}^2, "
           f"one diffuse bounce; ratios to {REFERENCE}")
     print(HEADER)

@@ -61,6 +61,23 @@ def default_scene(num_tris: int = 60000):
     return torus_knot(rings=rings, sides=sides)
 
 
+def named_meshes(paths, num_tris: int = 60000) -> list:
+    """``(name, vertices, faces)`` of each mesh file (named by its stem), or of the generated default
+    scene when no path is given: the mesh list of the measuring commands."""
+    import pathlib
+
+    if not paths:
+        return [("generated", *default_scene(num_tris))]
+    return [(pathlib.Path(p).stem, *load_mesh(p)) for p in paths]
+
+
+def progress(text: str):
+    """One status line on stderr, rewritten in place (the measuring commands' progress)."""
+    import sys
+
+    print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
+
+
 def load_mesh(path):
     """``(vertices float32, faces int32)`` of a mesh file (anything trimesh reads), unprocessed."""
     import trimesh

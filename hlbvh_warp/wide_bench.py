@@ -31,21 +31,9 @@ HEADER = (f"{'mesh':>10s} {'method':>10s} {'k':>3s} {'inner':>7s} {'depth':>5s} 
           f"{'rays':>7s} {'Mrays/s':>8s} {'x k=2':>6s} {'n_s':>6s} {'boxes':>6s} {'n_t':>5s} {'disagree':>8s}")
 
 
-def best_times(fns, repeats: int, device) -> list:
-    """Best wall time of each function, the functions taking turns so all see the same load."""
-    best = [float("inf")] * len(fns)
-    for _ in range(repeats):
-        for i, fn in enumerate(fns):
-            wp.synchronize_device(device)
-            start = time.perf_counter()
-            fn()
-            wp.synchronize_device(device)
-            best[i] = min(best[i], time.perf_counter() - start)
-    return best
-
-
 def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
     from . import api, quality, reference, wide
+    from .ray_bench import best_times
     from .config import BuildConfig
     from .kernels import traversal
     from .kernels import wide as wide_kernels
@@ -167,13 +155,8 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
-    meshes = [(pathlib.Path(p).stem, *scenes.load_mesh(p)) for p in args.mesh]
-    if not meshes:
-        meshes = [("generated", *scenes.default_scene(args.scene_tris))]
-
-    def progress(text):
-        print(f"\r\033[K{text}", end="", file=sys.stderr, flush=True)
-
+    meshes = scenes.named_meshes(args.mesh, args.scene_tris)
+    progress = scenes.progress
     print(f"device: {device}  rays: {args.views} views of {args.side}^2 and one diffuse bounce; best of "
           f"{args.repeats}; x k=2 = time at k = 2 / time (> 1: faster); bin = the library's binary traversal")
     print(HEADER)

@@ -15,6 +15,8 @@ overflow float32, and at 1e18 coordinates float32 products already lose the rati
 
 import warp as wp
 
+from .traversal import box_overlap
+
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
@@ -293,12 +295,6 @@ def clipped_triangle_area(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, up
 
 
 @wp.func
-def box_overlaps(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: wp.vec3) -> bool:
-    return (lower_a[0] <= upper_b[0] and lower_b[0] <= upper_a[0] and lower_a[1] <= upper_b[1]
-            and lower_b[1] <= upper_a[1] and lower_a[2] <= upper_b[2] and lower_b[2] <= upper_a[2])
-
-
-@wp.func
 def foreign_area(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
@@ -320,7 +316,7 @@ def foreign_area(
     for k in range(first, last):
         if k < node_begin[node] or k >= node_end[node]:
             p = prim_order[k]
-            if box_overlaps(lower, upper, prim_lowers[p], prim_uppers[p]):
+            if box_overlap(lower, upper, prim_lowers[p], prim_uppers[p]) == 1:
                 area += clipped_triangle_area(vertices[faces[p, 0]], vertices[faces[p, 1]], vertices[faces[p, 2]],
                                               lower, upper)
     return area
@@ -364,7 +360,7 @@ def end_point_overlap_kernel(
     node = int(0)
     while node >= 0:
         inside = node_begin[node] >= begin and node_end[node] <= end
-        if inside or not box_overlaps(lower, upper, node_lowers[node], node_uppers[node]):
+        if inside or box_overlap(lower, upper, node_lowers[node], node_uppers[node]) == 0:
             node = -1
         else:
             left = node_left[node]

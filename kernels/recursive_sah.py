@@ -19,6 +19,8 @@ so the stack holds at most log2(N) deferred siblings.
 
 import warp as wp
 
+from .metrics import box_area64
+
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
@@ -29,14 +31,6 @@ binned_counts = wp.types.vector(length=3 * MAX_TEMP_BINS, dtype=wp.int32)
 binned_boxes = wp.types.matrix(shape=(3 * MAX_TEMP_BINS, 3), dtype=wp.float32)
 binned_areas = wp.types.vector(length=MAX_TEMP_BINS, dtype=wp.float64)
 BIG = wp.constant(3.0e38)
-
-
-@wp.func
-def area64(lower: wp.vec3, upper: wp.vec3) -> wp.float64:
-    dx = wp.float64(upper[0]) - wp.float64(lower[0])
-    dy = wp.float64(upper[1]) - wp.float64(lower[1])
-    dz = wp.float64(upper[2]) - wp.float64(lower[2])
-    return wp.float64(2.0) * (dx * dy + dy * dz + dz * dx)
 
 
 @wp.func
@@ -85,7 +79,7 @@ def temp_bvh_cost(
             box_hi = wp.max(box_hi, hi)
             cen_lo = wp.min(cen_lo, c)
             cen_hi = wp.max(cen_hi, c)
-        area = area64(box_lo, box_hi)
+        area = box_area64(box_lo, box_hi)
         if n <= max_leaf:
             total += t_intersect * wp.float64(n) * area
             continue
@@ -122,7 +116,7 @@ def temp_bvh_cost(
                     slot = axis * num_bins + j
                     r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
                     r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
-                    right_area[j] = area64(r_lo, r_hi)
+                    right_area[j] = box_area64(r_lo, r_hi)
                 l_lo = wp.vec3(BIG)
                 l_hi = wp.vec3(-BIG)
                 left_count = int(0)
@@ -132,7 +126,7 @@ def temp_bvh_cost(
                     l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
                     left_count += counts[slot]
                     if left_count > 0 and left_count < n:
-                        cost = area64(l_lo, l_hi) * wp.float64(left_count) + right_area[j] * wp.float64(n - left_count)
+                        cost = box_area64(l_lo, l_hi) * wp.float64(left_count) + right_area[j] * wp.float64(n - left_count)
                         if best_axis < 0 or cost < best_cost:
                             best_cost = cost
                             best_axis = axis

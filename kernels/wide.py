@@ -15,6 +15,7 @@ triangles are the range), or ``EMPTY`` past the last child. The child boxes sit 
 
 import warp as wp
 
+from .metrics import box_area64
 from .traversal import INF, intersect_triangle_watertight, ray_box_entry, ray_inverse_direction, ray_is_valid
 
 # Forward-only kernels: no adjoints to compile.
@@ -164,14 +165,9 @@ def wide_sah_terms_kernel(
         s = w * width + j
         kind = slot_child[s]
         if kind != EMPTY:
-            lo = slot_lowers[s]
-            hi = slot_uppers[s]
-            dx = wp.float64(hi[0]) - wp.float64(lo[0])
-            dy = wp.float64(hi[1]) - wp.float64(lo[1])
-            dz = wp.float64(hi[2]) - wp.float64(lo[2])
             ratio = wp.float64(1.0)
             if root_area > wp.float64(0.0):
-                ratio = wp.float64(2.0) * (dx * dy + dy * dz + dz * dx) / root_area
+                ratio = box_area64(slot_lowers[s], slot_uppers[s]) / root_area
             own = t_intersect * wp.float64(slot_end[s] - slot_begin[s])
             if kind >= 0:
                 grandchildren = int(0)

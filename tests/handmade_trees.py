@@ -9,9 +9,10 @@ import hlbvh_warp as hw
 from hlbvh_warp.bvh import bvh_from_numpy
 
 
-def left_caterpillar(vertices, faces, device):
-    """A valid but maximally deep BVH: interior node k has interior node k + 1 as its left child
-    and one triangle as its right, so a walk that goes left first stacks every right child."""
+def caterpillar(vertices, faces, device, deep: str = "left"):
+    """A valid but maximally deep BVH of depth N - 1: interior node 2k has one triangle as a leaf
+    child (node 2k + 1) and the rest of the chain (node 2k + 2) as its other child, on the
+    `deep` side. With the chain on the left, a walk that goes left first stacks every leaf."""
     tris = vertices[faces].astype(np.float64)
     n = len(faces)
     num_nodes = 2 * n - 1
@@ -19,14 +20,20 @@ def left_caterpillar(vertices, faces, device):
     right = np.full(num_nodes, -1, np.int32)
     begin = np.zeros(num_nodes, np.int32)
     end = np.zeros(num_nodes, np.int32)
-    # Interior k is node 2k and covers [0, n - k); its right leaf (node 2k + 1) holds position
-    # n - k - 1. The deepest interior's left child is the leaf at position 0 (the last node).
-    for k in range(n - 1):
-        left[2 * k] = 2 * k + 2 if k < n - 2 else num_nodes - 1
-        right[2 * k] = 2 * k + 1
+    k = np.arange(n - 1)
+    chain, leaf = 2 * k + 2, 2 * k + 1
+    if deep == "left":
+        # Interior 2k covers [0, n - k); its leaf holds position n - k - 1.
+        left[2 * k], right[2 * k] = chain, leaf
         begin[2 * k], end[2 * k] = 0, n - k
-        begin[2 * k + 1], end[2 * k + 1] = n - k - 1, n - k
-    begin[num_nodes - 1], end[num_nodes - 1] = 0, 1
+        begin[leaf], end[leaf] = n - k - 1, n - k
+        begin[num_nodes - 1], end[num_nodes - 1] = 0, 1
+    else:
+        # Interior 2k covers [k, n); its leaf holds position k.
+        left[2 * k], right[2 * k] = leaf, chain
+        begin[2 * k], end[2 * k] = k, n
+        begin[leaf], end[leaf] = k, k + 1
+        begin[num_nodes - 1], end[num_nodes - 1] = n - 1, n
     return bvh_from_numpy(method="caterpillar", config=hw.BuildConfig(), device=device,
                           prim_lowers=tris.min(axis=1).astype(np.float32),
                           prim_uppers=tris.max(axis=1).astype(np.float32),

@@ -8,7 +8,7 @@ import pytest
 
 import hlbvh_warp as hw
 from hlbvh_warp.metrics import end_point_overlap, sah_cost
-from handmade_trees import left_caterpillar
+from handmade_trees import caterpillar
 from oracles import numpy_end_point_overlap, random_soup, triangle_box_area
 
 BUILDERS = ["hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median"]
@@ -89,7 +89,7 @@ def test_degenerate_triangles_add_nothing(device, rng):
 def test_a_tree_deeper_than_the_stack(device, rng):
     # 70 levels: past the walk's 64-entry stack, where it tests a node's whole range instead.
     v, f = random_soup(rng, 70, scale=0.25)
-    bvh = left_caterpillar(v, f, device)
+    bvh = caterpillar(v, f, device)
     assert hw.metrics.tree_stats(bvh)["depth"] == 69
     epo, per_node = end_point_overlap(bvh, per_node=True)
     expected, expected_nodes = numpy_end_point_overlap(bvh.to_numpy(), v, f)

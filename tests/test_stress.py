@@ -9,14 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-import warp as wp
 from conftest import shared_mesh
+from handmade_trees import caterpillar
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracles import brute_force_closest_hit
 
 from hlbvh_warp import api, query, stress_report
-from hlbvh_warp.bvh import bvh_from_numpy
 from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
 
 api._load_optional_builders()
@@ -114,22 +113,8 @@ def test_traversal_exact_on_a_chain_deeper_than_the_stack(device, rng):
     n = 300
     verts, faces = stress_report.scene_soup(rng)[0][: 3 * n], np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
     # Node 2k is interior (k < n - 1) with a leaf left child 2k + 1 and the rest of the chain right.
-    num_nodes = 2 * n - 1
-    left = np.full(num_nodes, -1, np.int32)
-    right = np.full(num_nodes, -1, np.int32)
-    begin = np.zeros(num_nodes, np.int32)
-    end = np.zeros(num_nodes, np.int32)
-    for k in range(n - 1):
-        left[2 * k], right[2 * k] = 2 * k + 1, 2 * k + 2
-        begin[2 * k], end[2 * k] = k, n
-        begin[2 * k + 1], end[2 * k + 1] = k, k + 1
-    begin[num_nodes - 1], end[num_nodes - 1] = n - 1, n
+    bvh = caterpillar(verts, faces, device, deep="right")
     tri = verts.reshape(-1, 3, 3)
-    bvh = bvh_from_numpy(
-        method="chain", config=BuildConfig(), device=device, prim_lowers=tri.min(1), prim_uppers=tri.max(1),
-        prim_order=np.arange(n), node_left=left, node_right=right, node_begin=begin, node_end=end,
-        vertices=wp.array(verts, dtype=wp.vec3, device=device), faces=wp.array(faces, dtype=wp.int32, device=device),
-    )
     assert bvh.depth == n - 1 > TRAVERSAL_STACK_SIZE
     rays = stress_report.ray_families(rng, verts, faces, num_rays=200)
     o, d = rays["random"]

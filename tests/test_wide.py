@@ -8,7 +8,7 @@ import pytest
 
 import hlbvh_warp as hw
 from hlbvh_warp import metrics, wide
-from handmade_trees import left_caterpillar
+from handmade_trees import caterpillar
 from oracles import brute_force_closest_hit, random_rays, random_soup
 
 WIDTHS = [2, 3, 4, 8, 16]
@@ -153,7 +153,7 @@ def test_wide_rays_on_a_tree_deeper_than_the_stack(device, rng):
     # A caterpillar collapsed at width 16: 15 leaves and one interior child per level, about
     # 40 levels, so rays through the middle would stack more than the traversal's 256 entries.
     v, f = random_soup(rng, 600, scale=0.6)
-    w = wide.collapse(left_caterpillar(v, f, device), 16)
+    w = wide.collapse(caterpillar(v, f, device), 16)
     assert w.depth > 256 // 15
     o, d = random_rays(rng, v, 300)
     t, prim = wide.intersect(w, o, d)
