@@ -23,6 +23,7 @@ import warp as wp
 from . import inputs
 from .bvh import Bvh
 from .kernels import wide as kernels
+from .kernels.traversal import PackedTriangle
 
 WIDTHS = tuple(range(2, kernels.MAX_WIDTH + 1))
 
@@ -48,6 +49,8 @@ class WideBvh:
 
     ``slot_*`` arrays have ``num_nodes * width`` entries; ``wide_begin`` / ``wide_end`` are each
     node's range of the binary tree's ``prim_order``. ``bvh`` is the binary tree it came from.
+    ``slots`` (the same fields as one `WideSlot` record per slot) and ``triangles`` (the binary
+    tree's packed triangles) are what the ray traversal reads.
     """
 
     def __init__(self, bvh: Bvh, width: int, num_nodes: int, arrays: dict, levels: int):
@@ -123,6 +126,18 @@ def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
             per_node = width if name.startswith("slot_") else 1
             wp.copy(arrays[name], array, dest_offset=offset * per_node, count=count * per_node)
         offset += count
+    # The traversal layout: each slot's fields in one record, and the binary tree's packed
+    # triangles (in prim_order order, shared with its own ray queries).
+    arrays["slots"] = wp.empty(total * width, dtype=kernels.WideSlot, device=device)
+    wp.launch(kernels.pack_slots_kernel, dim=total * width, device=device,
+              inputs=[arrays["slot_lowers"], arrays["slot_uppers"], arrays["slot_child"], arrays["slot_begin"],
+                      arrays["slot_end"], arrays["slots"]])
+    if bvh.vertices is not None and bvh.faces is not None:
+        from .query import view
+
+        arrays["triangles"] = view(bvh).packed_triangles
+    else:
+        arrays["triangles"] = wp.empty(0, dtype=PackedTriangle, device=device)
     return WideBvh(bvh, width, total, arrays, len(level_arrays))
 
 
@@ -147,6 +162,16 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
     return float(t_traversal * root_children + terms.numpy().sum())
 
 
+def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max: float, hit_t: wp.array,
+                  hit_prim: wp.array, counts: wp.array) -> list:
+    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs."""
+    bvh = wide.bvh
+    root_lo = wp.vec3(*bvh.node_lowers.numpy()[0])
+    root_hi = wp.vec3(*bvh.node_uppers.numpy()[0])
+    return [wide.width, root_lo, root_hi, wide.slots, wide.wide_begin, wide.wide_end, bvh.prim_order, wide.triangles,
+            origins, directions, float(t_max), hit_t, hit_prim, counts]
+
+
 def intersect(wide: WideBvh, origins, directions, t_max: float = float("inf"), stats: bool = False):
     """Closest hit of every ray through the wide tree: ``(t, prim)`` as `hlbvh_warp.intersect`
     returns them (a miss is ``(inf, -1)``), and a `WideTraversalStats` with `stats`."""
@@ -166,13 +191,9 @@ def intersect(wide: WideBvh, origins, directions, t_max: float = float("inf"), s
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
     if n:
-        root_lo = wp.vec3(*bvh.node_lowers.numpy()[0])
-        root_hi = wp.vec3(*bvh.node_uppers.numpy()[0])
         wp.launch(kernels.wide_closest_hit_kernel, dim=n, device=device,
-                  inputs=[wide.width, root_lo, root_hi, wide.slot_lowers, wide.slot_uppers, wide.slot_child,
-                          wide.slot_begin, wide.slot_end, wide.wide_begin, wide.wide_end, bvh.prim_order,
-                          bvh.vertices, bvh.faces, wp.array(o, dtype=wp.vec3, device=device),
-                          wp.array(d, dtype=wp.vec3, device=device), t_max, hit_t, hit_prim, counts])
+                  inputs=launch_inputs(wide, wp.array(o, dtype=wp.vec3, device=device),
+                                       wp.array(d, dtype=wp.vec3, device=device), t_max, hit_t, hit_prim, counts))
     out = (hit_t.numpy(), hit_prim.numpy())
     if stats:
         c = counts.numpy().reshape(-1, 3)

@@ -59,8 +59,6 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         raise RuntimeError(f"{name}: {wrong} of {len(sample)} primary rays through k = 2 disagree with the "
                            "float64 brute force")
     diffuse = quality.diffuse_rays(rng, vertices, faces, *primary, t2, prim2)
-    root_lo = wp.vec3(*bvh.node_lowers.numpy()[0])
-    root_hi = wp.vec3(*bvh.node_uppers.numpy()[0])
     rows = []
     for kind, (o_np, d_np) in (("primary", primary), ("diffuse", diffuse)):
         n = len(o_np)
@@ -74,9 +72,7 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         for k in widths:
             w = trees[k]
             t, prim, stats = wide.intersect(w, o_np, d_np, stats=True)
-            inputs = [k, root_lo, root_hi, w.slot_lowers, w.slot_uppers, w.slot_child, w.slot_begin, w.slot_end,
-                      w.wide_begin, w.wide_end, bvh.prim_order, bvh.vertices, bvh.faces, o, d, float("inf"),
-                      out_t, out_p, no_counts]
+            inputs = wide.launch_inputs(w, o, d, float("inf"), out_t, out_p, no_counts)
             fns.append(lambda inputs=inputs: wp.launch(wide_kernels.wide_closest_hit_kernel, dim=n, inputs=inputs,
                                                        device=device))
             summary = stats.summary()

@@ -16,7 +16,8 @@ triangles are the range), or ``EMPTY`` past the last child. The child boxes sit 
 import warp as wp
 
 from .metrics import box_area64
-from .traversal import INF, intersect_triangle_watertight, ray_box_entry, ray_inverse_direction, ray_is_valid
+from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, ray_box_entry, ray_inverse_direction,
+                        ray_is_valid)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -180,6 +181,52 @@ def wide_sah_terms_kernel(
 
 
 @wp.struct
+class WideSlot:
+    """One child of a wide node in the traversal layout: the slot arrays' five fields in one
+    36-byte record, so a node's k children are k records side by side (one or two cache lines at
+    k = 2, four at k = 4) instead of five arrays' worth of lines."""
+
+    lower: wp.vec3
+    upper: wp.vec3
+    child: wp.int32
+    begin: wp.int32
+    end: wp.int32
+
+
+@wp.kernel
+def pack_slots_kernel(
+    slot_lowers: wp.array(dtype=wp.vec3),
+    slot_uppers: wp.array(dtype=wp.vec3),
+    slot_child: wp.array(dtype=wp.int32),
+    slot_begin: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    slots: wp.array(dtype=WideSlot),
+):
+    s = wp.tid()
+    record = WideSlot()
+    record.lower = slot_lowers[s]
+    record.upper = slot_uppers[s]
+    record.child = slot_child[s]
+    record.begin = slot_begin[s]
+    record.end = slot_end[s]
+    slots[s] = record
+
+
+# Software prefetch of a wide node's first slot records (as the binary traversal's, a hint only).
+_PREFETCH_SLOTS = """
+#if !defined(__CUDA_ARCH__)
+    const char* first = (const char*)slots.data + (size_t)index * (size_t)slots.strides[0];
+    __builtin_prefetch(first);
+    __builtin_prefetch(first + 64);
+#endif
+"""
+
+
+@wp.func_native(_PREFETCH_SLOTS)
+def prefetch_slots(slots: wp.array(dtype=WideSlot), index: int): ...
+
+
+@wp.struct
 class WideHit:
     t: float
     prim: int
@@ -193,16 +240,11 @@ def wide_closest_hit(
     width: int,
     root_lower: wp.vec3,
     root_upper: wp.vec3,
-    slot_lowers: wp.array(dtype=wp.vec3),
-    slot_uppers: wp.array(dtype=wp.vec3),
-    slot_child: wp.array(dtype=wp.int32),
-    slot_begin: wp.array(dtype=wp.int32),
-    slot_end: wp.array(dtype=wp.int32),
+    slots: wp.array(dtype=WideSlot),
     wide_begin: wp.array(dtype=wp.int32),
     wide_end: wp.array(dtype=wp.int32),
     prim_order: wp.array(dtype=wp.int32),
-    vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.int32, ndim=2),
+    triangles: wp.array(dtype=PackedTriangle),
     origin: wp.vec3,
     direction: wp.vec3,
     t_max: float,
@@ -211,7 +253,7 @@ def wide_closest_hit(
     stacked farthest first, so the nearest is taken next; an entry popped behind the closest hit
     so far is dropped. Stack entries are wide nodes (>= 0) or leaf slots (-(slot + 1)). The same
     watertight triangle test and padded box test as the binary traversal (kernels/traversal.py),
-    so both find the same hits."""
+    so both find the same hits. ``triangles`` are the binary tree's, in ``prim_order`` order."""
     best_t = t_max
     best_prim = int(-1)
     visited = int(0)
@@ -235,8 +277,9 @@ def wide_closest_hit(
             first = int(0)
             last = int(0)
             if entry < 0:
-                first = slot_begin[-entry - 1]
-                last = slot_end[-entry - 1]
+                record = slots[-entry - 1]
+                first = record.begin
+                last = record.end
             elif top + width > WIDE_STACK:
                 # No room to stack the children: test the node's whole range instead.
                 visited += 1
@@ -249,13 +292,13 @@ def wide_closest_hit(
                 hits = int(0)
                 for j in range(width):
                     s = entry * width + j
-                    kind = slot_child[s]
-                    if kind != EMPTY:
+                    record = slots[s]
+                    if record.child != EMPTY:
                         boxes += 1
-                        t = ray_box_entry(origin, inv, slot_lowers[s], slot_uppers[s], best_t)
+                        t = ray_box_entry(origin, inv, record.lower, record.upper, best_t)
                         if t < INF:
-                            e = kind
-                            if kind == LEAF:
+                            e = record.child
+                            if e == LEAF:
                                 e = -(s + 1)
                             # Insertion by descending entry distance.
                             i = hits
@@ -270,14 +313,16 @@ def wide_closest_hit(
                     stack[top] = hit_e[i]
                     stack_t[top] = hit_t[i]
                     top += 1
+                # The nearest child is taken next: ask for its records now.
+                if hits > 0 and hit_e[hits - 1] >= 0:
+                    prefetch_slots(slots, hit_e[hits - 1] * width)
             for k in range(first, last):
-                p = prim_order[k]
                 tested += 1
-                h = intersect_triangle_watertight(origin, direction, vertices[faces[p, 0]], vertices[faces[p, 1]],
-                                                  vertices[faces[p, 2]], best_t)
+                tri = triangles[k]
+                h = intersect_triangle_watertight(origin, direction, tri.a, tri.b, tri.c, best_t)
                 if h.hit == 1:
                     best_t = h.t
-                    best_prim = p
+                    best_prim = prim_order[k]
     result = WideHit()
     result.t = INF
     result.prim = best_prim
@@ -294,16 +339,11 @@ def wide_closest_hit_kernel(
     width: int,
     root_lower: wp.vec3,
     root_upper: wp.vec3,
-    slot_lowers: wp.array(dtype=wp.vec3),
-    slot_uppers: wp.array(dtype=wp.vec3),
-    slot_child: wp.array(dtype=wp.int32),
-    slot_begin: wp.array(dtype=wp.int32),
-    slot_end: wp.array(dtype=wp.int32),
+    slots: wp.array(dtype=WideSlot),
     wide_begin: wp.array(dtype=wp.int32),
     wide_end: wp.array(dtype=wp.int32),
     prim_order: wp.array(dtype=wp.int32),
-    vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.int32, ndim=2),
+    triangles: wp.array(dtype=PackedTriangle),
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
     t_max: float,
@@ -314,8 +354,8 @@ def wide_closest_hit_kernel(
     """One ray per thread; ``counts`` (nodes visited, boxes tested, triangles tested) is written
     when it has an entry per ray."""
     i = wp.tid()
-    h = wide_closest_hit(width, root_lower, root_upper, slot_lowers, slot_uppers, slot_child, slot_begin, slot_end,
-                         wide_begin, wide_end, prim_order, vertices, faces, origins[i], directions[i], t_max)
+    h = wide_closest_hit(width, root_lower, root_upper, slots, wide_begin, wide_end, prim_order, triangles,
+                         origins[i], directions[i], t_max)
     hit_t[i] = h.t
     hit_prim[i] = h.prim
     if counts.shape[0] > 0:
