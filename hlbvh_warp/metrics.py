@@ -1,4 +1,5 @@
-"""Tree quality: the SAH cost of Pantaleoni & Luebke 2010 (eq. 1) and shape statistics.
+"""Tree quality: the SAH cost of Pantaleoni & Luebke 2010 (eq. 1), the end-point overlap of
+Aila, Karras & Laine 2013 (`end_point_overlap`) and shape statistics.
 
 The cost is computed on the build device, bottom-up (kernels/metrics.py):
 

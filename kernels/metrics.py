@@ -1,4 +1,5 @@
-"""Tree-quality metrics on the device: the SAH cost of every node, depths, leaf sizes.
+"""Tree-quality metrics on the device: the SAH cost of every node, depths, leaf sizes, and the
+end-point overlap (Aila, Karras & Laine 2013; at the end of this file).
 
 The SAH cost is the recursive formula of Pantaleoni & Luebke 2010, section 4.2 (eq. 1, after
 Goldsmith & Salmon 1987):
