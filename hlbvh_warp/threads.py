@@ -95,5 +95,10 @@ def launch_parts(kernel, device, parts: list, threads: int):
     made once by the caller, so a per-frame launch creates no arrays."""
     import warp as wp
 
+    # Load (on a fresh cache: compile) the kernel's module here, once: launched first from
+    # several threads at once, each compiled the same module into the same cache files. CPU
+    # launches load it for a block size of 1 (Warp's default there), so that is the one loaded.
+    device = wp.get_device(device)
+    kernel.module.load(device, 1 if device.is_cpu else None)
     run([lambda dim=dim, inputs=inputs: wp.launch(kernel, dim=dim, inputs=inputs, device=device)
          for dim, inputs in parts], threads)

@@ -129,3 +129,48 @@ def test_resorted_frames_equal_with_split_gathers(device):
             np.testing.assert_array_equal(codes[i], codes[i - 2])
             np.testing.assert_array_equal(trees[i]["prim_order"], trees[i - 2]["prim_order"])
             np.testing.assert_array_equal(canonical(trees[i]), canonical(trees[i - 2]))
+
+
+def test_launch_parts_compiles_a_module_once(tmp_path, monkeypatch):
+    """A kernel whose module is not loaded yet, launched first in parts on two threads, is
+    compiled once (launched first from both threads, each compiled it)."""
+    import importlib.util
+    import uuid
+
+    import numpy as np
+    import warp as wp
+
+    from hlbvh_warp import threads as threads_module
+
+    name = f"fresh_{uuid.uuid4().hex[:8]}"
+    path = tmp_path / f"{name}.py"
+    path.write_text(
+        "import warp as wp\n\n\n"
+        "@wp.kernel\n"
+        "def double(first: int, a: wp.array(dtype=float)):\n"
+        "    i = first + wp.tid()\n"
+        "    a[i] = 2.0 * float(i)\n"
+    )
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    loads = []
+    original = type(module.double.module).load
+
+    def counting_load(self, device, block_dim=None, *args, **kwargs):
+        # A load that finds no executable for its block size compiles (or reads the cache).
+        key = (device.context, block_dim if block_dim is not None else self.options["block_dim"])
+        missing = key not in self.execs
+        result = original(self, device, block_dim, *args, **kwargs)
+        if missing:
+            loads.append((threading.current_thread().name, key[1]))
+        return result
+
+    import threading
+
+    monkeypatch.setattr(type(module.double.module), "load", counting_load)
+    a = wp.zeros(2000, dtype=float, device="cpu")
+    parts = [(1000, [0, a]), (1000, [1000, a])]
+    threads_module.launch_parts(module.double, "cpu", parts, 2)
+    np.testing.assert_array_equal(a.numpy(), 2.0 * np.arange(2000))
+    assert len(loads) == 1, loads
