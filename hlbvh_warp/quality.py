@@ -131,6 +131,26 @@ def measure_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
     return rows
 
 
+def epo_weight(rows: list, kind: str, steps: int = 101) -> dict:
+    """The EPO weight of the cost predictor p = SAH (1 - alpha) + EPO alpha (Wodniok & Goesele
+    2016, eq. 3, after Aila et al. 2013) fitted as they fit it: alpha sampled on [0, 1], keeping
+    the one whose p correlates best (Pearson) with the measured cost m of `kind` rays across the
+    builders of one mesh. Also the correlation of the SAH alone (alpha = 0). Trees that tie on
+    every measure (hlbvh and lbvh build the same one) count once."""
+    distinct = {(r["sah"], r["epo"], r[kind]["m"]): r for r in rows}
+    sah, epo, m = (np.array(v, dtype=np.float64) for v in zip(*distinct))
+    if len(m) < 3 or np.ptp(m) == 0:
+        return {"alpha": float("nan"), "r": float("nan"), "r_sah": float("nan"), "trees": int(len(m))}
+
+    def pearson(p):
+        return float(np.corrcoef(p, m)[0, 1]) if np.ptp(p) > 0 else float("nan")
+
+    alphas = np.linspace(0.0, 1.0, steps)
+    r = np.array([pearson(sah * (1.0 - a) + epo * a) for a in alphas])
+    best = int(np.nanargmax(r))
+    return {"alpha": float(alphas[best]), "r": float(r[best]), "r_sah": float(r[0]), "trees": int(len(m))}
+
+
 def format_row(row: dict) -> str:
     return (f"{row['mesh']:>12s} {row['num_tris']:8d} {row['builder']:>13s} {row['sah']:8.2f} {row['sah_ratio']:6.3f} "
             f"{row['epo']:8.3f} {row['epo_ratio']:6.3f} {row['primary']['m']:7.2f} {row['primary']['m_ratio']:6.3f} "
@@ -178,16 +198,22 @@ def main(argv=None) -> int:
     print(f"device: {device}  c_t = {args.ct}  c_i = {args.ci}  rays: {args.views} views of {args.side}^2, "
           f"one diffuse bounce; ratios to {REFERENCE}")
     print(HEADER)
-    rows = []
+    rows, fits = [], []
     for name, vertices, faces in meshes:
         mesh_rows = measure_mesh(name, vertices, faces, args, device, progress)
         progress("")
         for row in mesh_rows:
             print(format_row(row), flush=True)
+        for kind in ("primary", "diffuse"):
+            fit = epo_weight(mesh_rows, kind)
+            fits.append({"mesh": name, "rays": kind, **fit})
+            print(f"{name:>12s} {kind} rays: p = SAH (1 - a) + EPO a correlates best with m at a = {fit['alpha']:.2f} "
+                  f"(r = {fit['r']:.3f}; the SAH alone r = {fit['r_sah']:.3f}; {fit['trees']} distinct trees)")
         rows += mesh_rows
     path = pathlib.Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"device": str(device), "c_t": args.ct, "c_i": args.ci, "rows": rows}, indent=1))
+    path.write_text(json.dumps({"device": str(device), "c_t": args.ct, "c_i": args.ci, "rows": rows,
+                                     "epo_weights": fits}, indent=1))
     print(f"m = n_s c_t + n_t c_i per ray (Wodniok & Goesele 2016, eq. 10); wrote {path}")
     return 1 if any(r["disagree"] for r in rows) else 0
 

@@ -88,3 +88,17 @@ def test_quality_rejects_bad_arguments():
     for argv in (["--builders", "nope"], ["--views", "0"], ["--ci", "0"], ["--ct", "-1"]):
         with pytest.raises(SystemExit):
             quality.parse_args(argv)
+
+
+def test_epo_weight_recovers_a_known_mix():
+    rng = np.random.default_rng(5)
+    sah, epo = rng.uniform(50, 90, 7), rng.uniform(4, 16, 7)
+    rows = [{"sah": a, "epo": b, "diffuse": {"m": 3.0 + 0.4 * a + 0.6 * b * 7.0}} for a, b in zip(sah, epo)]
+    # m = 3 + 0.4 SAH + 4.2 EPO is a multiple of SAH (1 - a) + EPO a at a = 4.2 / 4.6.
+    fit = quality.epo_weight(rows, "diffuse", steps=4601)
+    assert fit["alpha"] == pytest.approx(4.2 / 4.6, abs=1e-3)
+    assert fit["r"] == pytest.approx(1.0, abs=1e-9)
+    assert fit["r_sah"] < fit["r"]
+    # The same tree twice counts once; fewer than three distinct trees give no fit.
+    assert quality.epo_weight(rows + rows[:1], "diffuse", steps=4601)["trees"] == 7
+    assert np.isnan(quality.epo_weight(rows[:2], "diffuse")["alpha"])
