@@ -50,7 +50,8 @@ class WideBvh:
     ``slot_*`` arrays have ``num_nodes * width`` entries; ``wide_begin`` / ``wide_end`` are each
     node's range of the binary tree's ``prim_order``. ``bvh`` is the binary tree it came from.
     ``slots`` (the same fields as one `WideSlot` record per slot) and ``triangles`` (the binary
-    tree's packed triangles) are what the ray traversal reads.
+    tree's packed triangles) are what the ray traversal reads. The wide tree is a snapshot of the
+    binary one: after a refit or rebuild of that tree, collapse it again.
     """
 
     def __init__(self, bvh: Bvh, width: int, num_nodes: int, arrays: dict, levels: int):
