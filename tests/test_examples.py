@@ -150,3 +150,31 @@ def test_particle_collisions(device, headless, tmp_path):
         assert "average" in example.table()
     paths = example.save(tmp_path)
     assert len(paths) == (0 if headless else 1)
+
+
+@pytest.mark.parametrize("headless", [True, False])
+def test_camera_orbit(device, headless, tmp_path):
+    module = load_example("example_camera_orbit")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=1500, methods=("hlbvh", "sweep_sah"), widths=(2, 4, 16), resolution=24,
+                                 num_frames=36, headless=headless)
+        for _ in range(3):
+            example.step()
+            example.render()
+    assert example.frame == 3
+    # Every tree at every width finds the reference's hits on every pixel (up to shared-edge ties).
+    assert set(example.disagree) == {(m, k) for m in ("hlbvh", "sweep_sah") for k in (2, 4, 16)}
+    assert all(v == 0 for v in example.disagree.values())
+    assert all(len(v) == 3 for v in example.ms.values())
+    lines = example.table().splitlines()
+    assert len(lines) == 2 + len(example.trees)
+    # The orbit turns: the first and the last frame differ.
+    assert not np.array_equal(example.camera(0).eye, example.camera(2).eye)
+    if headless:
+        assert example.save(tmp_path) == []
+    else:
+        paths = example.save(tmp_path)
+        assert [p.name for p in paths] == ["camera_orbit.png", "camera_orbit.gif"]
+        assert all(p.stat().st_size > 0 for p in paths)
+        # Something was hit: the image is not all sky.
+        assert (example.image[..., 0] != example.image[0, 0, 0]).any()
