@@ -175,7 +175,7 @@ def end_point_overlap(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1
     args = [bvh.node_count, bvh.node_lowers, bvh.node_uppers, bvh.node_left, bvh.node_right, bvh.node_begin,
             bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers, bvh.vertices, bvh.faces,
             wp.float64(t_traversal), wp.float64(t_intersect), node_epo]
-    threads = threads_module.usable_cores() if device.is_cpu else 1
+    threads = threads_module.resolved_threads(bvh.config, device)
     if threads > 1 and num_nodes > EPO_CPU_SLICES:
         # Nodes near the root meet far more foreign triangles than the rest: many small slices
         # keep both threads busy to the end.

@@ -36,10 +36,6 @@ from .kernels import recursive_sah as kernels
 SCRATCH_ITEMS = 1 << 23
 
 
-def _segment_reduce(values: np.ndarray, starts: np.ndarray, op) -> np.ndarray:
-    return op.reduceat(values, starts, axis=0)
-
-
 def _bins(centroids: np.ndarray, lower: np.ndarray, extent: np.ndarray, num_bins: int) -> np.ndarray:
     """Bin of every centroid per axis, the float32 expression of the kernel's `bin_of`; an axis of
     zero extent puts everything in bin 0."""
@@ -108,10 +104,10 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
         positions = np.repeat(begins - starts, counts) + np.arange(counts.sum())
         items = order[positions]
         c = centroids[items]
-        c_lo = _segment_reduce(c, starts, np.minimum)
-        c_hi = _segment_reduce(c, starts, np.maximum)
-        box_area = _area(_segment_reduce(lowers[items], starts, np.minimum),
-                         _segment_reduce(uppers[items], starts, np.maximum))
+        c_lo = np.minimum.reduceat(c, starts)
+        c_hi = np.maximum.reduceat(c, starts)
+        box_area = _area(np.minimum.reduceat(lowers[items], starts),
+                         np.maximum.reduceat(uppers[items], starts))
         extent = (c_hi - c_lo).astype(np.float32)
         bins = _bins(c, c_lo[member], extent[member], num_bins)
         # Per axis, the level's primitives in (node, bin) order, stable: each node's segment holds

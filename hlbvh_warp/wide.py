@@ -149,17 +149,17 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
     if t_traversal < 0 or t_intersect <= 0:
         raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
     bvh = wide.bvh
-    if int(bvh.node_left.numpy()[0]) < 0:
+    if int(bvh.node_left[0:1].numpy()[0]) < 0:
         # A single leaf: no traversal step at all.
         return float(t_intersect * bvh.num_prims)
-    root_lo, root_hi = (np.asarray(a.numpy()[0], dtype=np.float64) for a in (bvh.node_lowers, bvh.node_uppers))
+    root_lo, root_hi = (a[0:1].numpy()[0].astype(np.float64) for a in (bvh.node_lowers, bvh.node_uppers))
     d = root_hi - root_lo
     root_area = 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
     terms = wp.empty(wide.num_nodes, dtype=wp.float64, device=wide.device)
     wp.launch(kernels.wide_sah_terms_kernel, dim=wide.num_nodes, device=wide.device,
               inputs=[wide.width, wp.float64(root_area), wide.slot_lowers, wide.slot_uppers, wide.slot_child,
                       wide.slot_begin, wide.slot_end, wp.float64(t_traversal), wp.float64(t_intersect), terms])
-    root_children = int((wide.slot_child.numpy()[: wide.width] != kernels.EMPTY_SLOT).sum())
+    root_children = int((wide.slot_child[: wide.width].numpy() != kernels.EMPTY_SLOT).sum())
     return float(t_traversal * root_children + terms.numpy().sum())
 
 
@@ -167,8 +167,9 @@ def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max:
                   hit_prim: wp.array, counts: wp.array) -> list:
     """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs."""
     bvh = wide.bvh
-    root_lo = wp.vec3(*bvh.node_lowers.numpy()[0])
-    root_hi = wp.vec3(*bvh.node_uppers.numpy()[0])
+    # The root's box: one element read back, not the node arrays (a copy of each on CUDA).
+    root_lo = wp.vec3(*bvh.node_lowers[0:1].numpy()[0])
+    root_hi = wp.vec3(*bvh.node_uppers[0:1].numpy()[0])
     return [wide.width, root_lo, root_hi, wide.slots, wide.wide_begin, wide.wide_end, bvh.prim_order, wide.triangles,
             origins, directions, float(t_max), hit_t, hit_prim, counts]
 

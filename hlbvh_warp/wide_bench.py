@@ -59,6 +59,8 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         raise RuntimeError(f"{name}: {wrong} of {len(sample)} primary rays through k = 2 disagree with the "
                            "float64 brute force")
     diffuse = quality.diffuse_rays(rng, vertices, faces, *primary, t2, prim2)
+    # Width 2's hits, each set traced once: the reference every width is checked against.
+    reference_hits = {"primary": (t2, prim2), "diffuse": wide.intersect(trees[2], *diffuse)}
     rows = []
     for kind, (o_np, d_np) in (("primary", primary), ("diffuse", diffuse)):
         n = len(o_np)
@@ -67,7 +69,7 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         out_t = wp.empty(n, dtype=float, device=device)
         out_p = wp.empty(n, dtype=wp.int32, device=device)
         no_counts = wp.empty(0, dtype=wp.vec3i, device=device)
-        ref_t, ref_p = wide.intersect(trees[2], o_np, d_np)
+        ref_t, ref_p = reference_hits[kind]
         fns, entries = [], []
         for k in widths:
             w = trees[k]
