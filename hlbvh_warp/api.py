@@ -99,7 +99,7 @@ def build(mesh, faces=None, *, method: str = "hlbvh", device=None, config: Build
         faces: ``(F, 3)`` vertex indices of any integer width when ``mesh`` is vertices.
         method: ``"hlbvh"`` (Pantaleoni & Luebke 2010), ``"lbvh"`` (one global radix sort, the
             paper's Table 1 baseline), or a reference builder (``"sweep_sah"``, ``"binned_sah"``,
-            ``"median"``, ``"hlbvh_sah"``) where installed.
+            ``"median"``, ``"hlbvh_sah"``, the offline ``"recursive_sah"`` and ``"sbvh"``).
         device: Warp device; the current default device when ``None``.
         config: `BuildConfig`; defaults when ``None``.
         timings: when True, synchronize around every stage and fill ``Bvh.timings`` (ms).
@@ -126,7 +126,10 @@ def build(mesh, faces=None, *, method: str = "hlbvh", device=None, config: Build
         from .kernels import morton
 
         wp.launch(morton.triangle_bounds_kernel, dim=n, inputs=[vertices, face_arr, lowers, uppers], device=device)
-        bvh = builder(lowers, uppers, config, device, timer)
+        if getattr(builder, "needs_triangles", False):
+            bvh = builder(lowers, uppers, config, device, timer, triangles=(vertices, face_arr))
+        else:
+            bvh = builder(lowers, uppers, config, device, timer)
     bvh.vertices = vertices
     bvh.faces = face_arr
     return bvh
@@ -136,6 +139,8 @@ def build_from_bounds(lowers, uppers, *, method: str = "hlbvh", device=None, con
                       timings: bool = False) -> Bvh:
     """Build a BVH over arbitrary primitives given by their boxes ``(N, 3)`` lowers and uppers."""
     config, device = _resolve(method, config, device)
+    if getattr(BUILDERS[method], "needs_triangles", False):
+        raise ValueError(f"method {method!r} splits triangles and needs a mesh: use build(), not build_from_bounds()")
     lo, hi = inputs.bounds_arrays(lowers, uppers)
     timer = StageTimer(device, timings)
     return BUILDERS[method](

@@ -619,3 +619,15 @@ def _recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildCo
 
 
 api.BUILDERS["recursive_sah"] = _recursive_sah
+
+
+def _sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device, timer: StageTimer,
+          triangles: tuple | None = None) -> Bvh:
+    from .spatial_split import build_sbvh
+
+    return build_sbvh(prim_lowers, prim_uppers, config, device, timer, triangles)
+
+
+# Spatial splits clip triangles: this builder needs the mesh, not only the boxes.
+_sbvh.needs_triangles = True
+api.BUILDERS["sbvh"] = _sbvh

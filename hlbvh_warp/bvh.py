@@ -28,6 +28,11 @@ class Bvh:
     ``prim_order[k]`` is the input index of the k-th primitive in tree order. The arrays have the
     arena's capacity (2N - 1); ``num_nodes`` entries are used, a count kept on the device and read
     only when asked for.
+
+    A spatial-split tree (``method="sbvh"``) references a triangle from every leaf that holds a
+    part of it: its ``prim_order`` has ``num_refs`` >= ``num_prims`` entries and its node boxes
+    bound those parts, not whole triangles. Every other builder's ``prim_order`` is a permutation
+    (``num_refs == num_prims``).
     """
 
     def __init__(
@@ -50,8 +55,10 @@ class Bvh:
         vertices: wp.array | None = None,
         faces: wp.array | None = None,
         timings: dict | None = None,
+        num_prims: int | None = None,
     ):
         self.method = method
+        self._num_prims = num_prims
         self.config = config
         self.device = wp.get_device(device)
         self.prim_lowers = prim_lowers
@@ -73,7 +80,18 @@ class Bvh:
 
     @property
     def num_prims(self) -> int:
+        """Primitives (triangles or boxes) the tree was built over."""
+        return self.prim_order.shape[0] if self._num_prims is None else self._num_prims
+
+    @property
+    def num_refs(self) -> int:
+        """Entries of ``prim_order``: ``num_prims``, or more where spatial splits duplicated some."""
         return self.prim_order.shape[0]
+
+    @property
+    def has_duplicates(self) -> bool:
+        """True where ``prim_order`` lists a primitive more than once (spatial splits)."""
+        return self.num_refs != self.num_prims
 
     @property
     def num_nodes(self) -> int:

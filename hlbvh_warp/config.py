@@ -40,6 +40,14 @@ class BuildConfig:
         recursive_sah_bins: bins per axis of the ``recursive_sah`` builder's own splits
             (Wodniok & Goesele 2016: 256 for RBVH, 64 for RBVH*).
         recursive_sah_temp_bins: bins per axis of its temporary BVHs (the paper: 32; at most 32).
+        sbvh_bins: bins per axis of the ``sbvh`` builder (Stich et al. 2009), for its object splits
+            (centroid bins) and its spatial splits (equal slabs of the node's box); at most 64.
+        sbvh_alpha: the ``sbvh`` builder tries spatial splits only where the best object split's
+            two boxes overlap by more than this fraction of the root's surface area (Stich et
+            al.'s alpha; 1e-5 as they and Wodniok & Goesele use; ``inf`` turns spatial splits off).
+        sbvh_max_duplication: the ``sbvh`` builder holds at most (1 + this) x N references: a
+            memory bound. Spatial splits past it fall back to the node's object split (in node
+            order within a level).
         cluster_min_prims: ``hlbvh_sah`` with an automatic m (``coarse_bits=None``) only: while
             its clusters (the non-empty coarse voxels) hold fewer primitives than this on
             average, they are merged into the voxels of the grid one bit coarser per axis.
@@ -91,6 +99,9 @@ class BuildConfig:
     sah_bins: int = 16
     recursive_sah_bins: int = 64
     recursive_sah_temp_bins: int = 32
+    sbvh_bins: int = 32
+    sbvh_alpha: float = 1e-5
+    sbvh_max_duplication: float = 1.0
     cluster_min_prims: float = 6.0
     emission: str = "auto"
     cpu_threads: int = 0
@@ -112,6 +123,10 @@ class BuildConfig:
             (2 <= self.sah_bins <= 256, "sah_bins must be in [2, 256]"),
             (2 <= self.recursive_sah_bins <= 256, "recursive_sah_bins must be in [2, 256]"),
             (2 <= self.recursive_sah_temp_bins <= 32, "recursive_sah_temp_bins must be in [2, 32]"),
+            (2 <= self.sbvh_bins <= 64, "sbvh_bins must be in [2, 64]"),
+            (not np.isnan(self.sbvh_alpha) and self.sbvh_alpha >= 0.0, "sbvh_alpha must be >= 0"),
+            (np.isfinite(self.sbvh_max_duplication) and self.sbvh_max_duplication >= 0.0,
+             "sbvh_max_duplication must be finite and >= 0"),
             (self.cluster_min_prims >= 0.0, "cluster_min_prims must be >= 0"),
             (self.emission in EMISSIONS, f"emission must be one of {EMISSIONS}"),
             (self.cpu_threads >= 0, "cpu_threads must be >= 0"),

@@ -92,8 +92,8 @@ def cost_from_sum(bvh: Bvh, total: float, count: int, t_traversal: float, t_inte
     if root_area > 0.0:
         return float(total / root_area)
     # Zero-area root: every ratio is taken as 1, so the cost is the sum of the terms of a binary
-    # tree with N primitives in (count + 1) / 2 leaves.
-    return float(2.0 * t_traversal * ((count + 1) // 2 - 1) + t_intersect * bvh.num_prims)
+    # tree with N references in (count + 1) / 2 leaves.
+    return float(2.0 * t_traversal * ((count + 1) // 2 - 1) + t_intersect * bvh.num_refs)
 
 
 def sah_scratch_size(capacity: int, device) -> int:
@@ -105,7 +105,8 @@ def sah_scratch_size(capacity: int, device) -> int:
 def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> dict:
     """Node and leaf counts, depth, leaf-size histogram and SAH cost, computed on the device.
 
-    ``leaf_size_histogram[k]`` is the number of leaves holding k primitives.
+    ``leaf_size_histogram[k]`` is the number of leaves holding k primitives (references, in a
+    spatial-split tree: ``num_refs`` counts them).
     """
     device = bvh.device
     num_nodes = bvh.num_nodes
@@ -122,18 +123,41 @@ def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> 
     hist = histogram.numpy().astype(np.int64)
     return {
         "num_prims": bvh.num_prims,
+        "num_refs": bvh.num_refs,
         "num_nodes": num_nodes,
         "num_leaves": num_leaves,
         "num_interior": num_nodes - num_leaves,
         "depth": int(max_depth.numpy()[0]),
         "leaf_size_histogram": hist.tolist(),
-        "mean_leaf_size": float(bvh.num_prims / max(num_leaves, 1)),
+        "mean_leaf_size": float(bvh.num_refs / max(num_leaves, 1)),
         "sah_cost": sah_cost(bvh, t_traversal, t_intersect),
     }
 
 
 #: Nodes per launch of the end-point overlap on the CPU, where slices run side by side.
 EPO_CPU_SLICES = 64
+
+
+def _ref_index(bvh: Bvh):
+    """The EPO kernel's `RefIndex`: empty for a permutation, else every triangle's positions."""
+    device = bvh.device
+    refs = kernels.RefIndex()
+    refs.has_duplicates = int(bvh.has_duplicates)
+    if not bvh.has_duplicates:
+        refs.start = refs.positions = refs.leaf_of = wp.zeros(1, dtype=wp.int32, device=device)
+        return refs
+    tree = bvh.to_numpy()
+    order = tree["prim_order"]
+    leaves = np.nonzero(tree["node_left"] < 0)[0]
+    # The leaves' ranges tile [0, num_refs): in order of their first positions, one run each.
+    leaves = leaves[np.argsort(tree["node_begin"][leaves], kind="stable")]
+    leaf_of = np.repeat(leaves, tree["node_end"][leaves] - tree["node_begin"][leaves]).astype(np.int32)
+    positions = np.argsort(order, kind="stable").astype(np.int32)  # ascending within each triangle
+    start = np.concatenate([[0], np.cumsum(np.bincount(order, minlength=bvh.num_prims))]).astype(np.int32)
+    refs.start = wp.array(start, dtype=wp.int32, device=device)
+    refs.positions = wp.array(positions, dtype=wp.int32, device=device)
+    refs.leaf_of = wp.array(leaf_of, dtype=wp.int32, device=device)
+    return refs
 
 
 def end_point_overlap(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, per_node: bool = False):
@@ -174,7 +198,7 @@ def end_point_overlap(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1
               device=device)
     args = [bvh.node_count, bvh.node_lowers, bvh.node_uppers, bvh.node_left, bvh.node_right, bvh.node_begin,
             bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers, bvh.vertices, bvh.faces,
-            wp.float64(t_traversal), wp.float64(t_intersect), node_epo]
+            _ref_index(bvh), wp.float64(t_traversal), wp.float64(t_intersect), node_epo]
     threads = threads_module.resolved_threads(bvh.config, device)
     if threads > 1 and num_nodes > EPO_CPU_SLICES:
         # Nodes near the root meet far more foreign triangles than the rest: many small slices

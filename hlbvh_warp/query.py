@@ -63,7 +63,8 @@ class TraversalLayout:
 
     def __init__(self, bvh: Bvh):
         device = bvh.device
-        num_prims = bvh.num_prims
+        # Positions of prim_order: more than the triangles where spatial splits duplicated some.
+        num_prims = bvh.num_refs
         self.first_steps = wp.zeros(bvh.node_left.shape[0], dtype=wp.int32, device=device)
         # Positions of interior nodes lie below N - 1; keep one record for a single-leaf tree.
         self.nodes = wp.zeros(max(num_prims - 1, 1), dtype=traversal.PackedNode, device=device)
@@ -83,7 +84,7 @@ class TraversalLayout:
             wp.launch(traversal.first_steps_climb_kernel, dim=capacity, device=device,
                       inputs=[bvh.node_count, bvh.node_parent, bvh.node_begin, self.first_steps])
             wp.launch(traversal.pack_nodes_kernel, dim=capacity, inputs=nodes, device=device)
-        wp.launch(traversal.pack_triangles_kernel, dim=bvh.num_prims, device=device,
+        wp.launch(traversal.pack_triangles_kernel, dim=bvh.num_refs, device=device,
                   inputs=[bvh.prim_order, bvh.vertices, bvh.faces, self.triangles])
 
 
@@ -131,6 +132,14 @@ def _require_mesh(bvh: Bvh, name: str):
         raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError(f"{name}() needs a BVH built over a mesh (build()), not over bare boxes")
+
+
+def _require_whole_boxes(bvh: Bvh, name: str):
+    # Box queries test a primitive's whole box at a leaf; a spatial-split leaf's box bounds only its
+    # part of a triangle, so the walk could miss a triangle whose box meets the query elsewhere.
+    if bvh.has_duplicates:
+        raise ValueError(f"{name}() needs a tree whose leaves bound whole primitives; this {bvh.method!r} tree "
+                         "splits triangles across leaves (spatial splits): build one with an object-split method")
 
 
 def _t_max_value(t_max) -> float:
@@ -278,7 +287,14 @@ def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
     prim = out_prim.numpy().astype(np.int64)
     t = out_t.numpy()
     order = np.lexsort((prim, t, ray_id))
-    return ray_id[order], prim[order], t[order]
+    ray_id, prim, t = ray_id[order], prim[order], t[order]
+    if bvh.has_duplicates:
+        # A triangle split across leaves is met once per leaf the ray enters, with the same t
+        # (the same test on the same triangle): equal neighbours after the sort.
+        keep = np.ones(len(prim), bool)
+        keep[1:] = (ray_id[1:] != ray_id[:-1]) | (prim[1:] != prim[:-1]) | (t[1:] != t[:-1])
+        ray_id, prim, t = ray_id[keep], prim[keep], t[keep]
+    return ray_id, prim, t
 
 
 def _box_arrays(lowers, uppers):
@@ -312,6 +328,7 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
     """
     if not isinstance(bvh, Bvh):
         raise ValueError(f"query_aabb() takes a Bvh, got {type(bvh).__name__}")
+    _require_whole_boxes(bvh, "query_aabb")
     lo, hi = _box_arrays(lowers, uppers)
     num_queries = lo.shape[0]
     if num_queries == 0:

@@ -151,7 +151,7 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
     bvh = wide.bvh
     if int(bvh.node_left[0:1].numpy()[0]) < 0:
         # A single leaf: no traversal step at all.
-        return float(t_intersect * bvh.num_prims)
+        return float(t_intersect * bvh.num_refs)
     root_lo, root_hi = (a[0:1].numpy()[0].astype(np.float64) for a in (bvh.node_lowers, bvh.node_uppers))
     d = root_hi - root_lo
     root_area = 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])

@@ -295,6 +295,37 @@ def clipped_triangle_area(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, up
     return wp.float64(0.5) * wp.length(twice)
 
 
+@wp.struct
+class RefIndex:
+    """Where each triangle sits in prim_order, for trees that list a triangle more than once
+    (spatial splits): positions ``positions[start[p]:start[p + 1]]`` of triangle p, ascending, and
+    the leaf holding each position. Unused (empty) when ``has_duplicates`` is 0."""
+
+    has_duplicates: int
+    start: wp.array(dtype=wp.int32)
+    positions: wp.array(dtype=wp.int32)
+    leaf_of: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def counted_here(refs: RefIndex, node_lowers: wp.array(dtype=wp.vec3), node_uppers: wp.array(dtype=wp.vec3),
+                 begin: int, end: int, lower: wp.vec3, upper: wp.vec3, p: int, k: int) -> int:
+    # A triangle with a reference under the node is not foreign to it; a foreign triangle met
+    # through several references counts once: at the first of them whose leaf meets the box
+    # (the walk reaches every such leaf, or a whole range holding it).
+    first_met = int(-1)
+    for i in range(refs.start[p], refs.start[p + 1]):
+        q = refs.positions[i]
+        if q >= begin and q < end:
+            return 0
+        leaf = refs.leaf_of[q]
+        if first_met < 0 and box_overlap(lower, upper, node_lowers[leaf], node_uppers[leaf]) == 1:
+            first_met = q
+    if first_met == k:
+        return 1
+    return 0
+
+
 @wp.func
 def foreign_area(
     node_lowers: wp.array(dtype=wp.vec3),
@@ -306,6 +337,7 @@ def foreign_area(
     prim_uppers: wp.array(dtype=wp.vec3),
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.int32, ndim=2),
+    refs: RefIndex,
     node: int,
     first: int,
     last: int,
@@ -318,8 +350,10 @@ def foreign_area(
         if k < node_begin[node] or k >= node_end[node]:
             p = prim_order[k]
             if box_overlap(lower, upper, prim_lowers[p], prim_uppers[p]) == 1:
-                area += clipped_triangle_area(vertices[faces[p, 0]], vertices[faces[p, 1]], vertices[faces[p, 2]],
-                                              lower, upper)
+                if refs.has_duplicates == 0 or counted_here(refs, node_lowers, node_uppers, node_begin[node],
+                                                            node_end[node], lower, upper, p, k) == 1:
+                    area += clipped_triangle_area(vertices[faces[p, 0]], vertices[faces[p, 1]],
+                                                  vertices[faces[p, 2]], lower, upper)
     return area
 
 
@@ -338,6 +372,7 @@ def end_point_overlap_kernel(
     prim_uppers: wp.array(dtype=wp.vec3),
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.int32, ndim=2),
+    refs: RefIndex,
     t_traversal: wp.float64,
     t_intersect: wp.float64,
     node_epo: wp.array(dtype=wp.float64),
@@ -368,7 +403,7 @@ def end_point_overlap_kernel(
             # A full stack (a tree deeper than it) tests the node's whole range instead.
             if left < 0 or top >= EPO_STACK - 1:
                 area += foreign_area(node_lowers, node_uppers, node_begin, node_end, prim_order, prim_lowers,
-                                     prim_uppers, vertices, faces, n, node_begin[node], node_end[node])
+                                     prim_uppers, vertices, faces, refs, n, node_begin[node], node_end[node])
                 node = -1
             else:
                 stack[top] = node_right[node]

@@ -1,0 +1,436 @@
+"""Spatial-split BVH (SBVH; Stich, Friedrich & Dietrich, "Spatial Splits in Bounding Volume
+Hierarchies", HPG 2009): the split search of one node and the distribution of its references.
+
+A reference is a triangle id with a box that bounds the part of the triangle it stands for: the
+whole triangle's box at first, a clipped one after a spatial split cut the triangle in two. Every
+node picks the cheaper by the SAH A(L) N(L) + A(R) N(R) of
+
+- the best object split: centroids of its references' boxes in ``num_bins`` bins per axis
+  (Wald 2007), the first best in axis-then-boundary order;
+- the best spatial split (only where the object split's two boxes overlap by more than alpha of
+  the root's area, Stich et al.'s section 4.4): ``num_bins`` equal slabs of the node's box per
+  axis; a reference enters the slab of its box's lower corner and exits at its upper corner's,
+  and every slab it spans gets the box of the triangle clipped to that slab within the
+  reference's box (their "chopped" binning). A reference straddling the chosen plane goes to
+  both children, each with the box of its side's part.
+
+One thread per node of a tree level (``split_search_kernel``, then ``distribute_kernel`` at the
+offsets the host scans from the chosen splits). Clipping is the float64 Sutherland-Hodgman of
+the EPO metric; a clipped box is rounded outward to float32 and kept inside the box it was cut
+from, so a reference's box always contains its part of the triangle and its parent's box.
+"""
+
+import warp as wp
+
+from .metrics import box_area64, clip_polygon, mat93d
+
+# Forward-only kernels: no adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+MAX_BINS = 64
+bin_counts = wp.types.vector(length=3 * MAX_BINS, dtype=wp.int32)
+bin_boxes = wp.types.matrix(shape=(3 * MAX_BINS, 3), dtype=wp.float32)
+bin_areas = wp.types.vector(length=MAX_BINS, dtype=wp.float64)
+BIG = wp.constant(3.0e38)
+
+#: The kinds of node the host may choose; the distribution kernel takes the host's choice.
+KIND_LEAF = wp.constant(0)
+KIND_OBJECT = wp.constant(1)
+KIND_SPATIAL = wp.constant(2)
+KIND_HALVE = wp.constant(3)
+# Float32 rounding outward by at least one unit in the last place (2^-23 relative), and a floor
+# for values near zero.
+OUTWARD = wp.constant(2.4e-7)
+TINY = wp.constant(1.0e-30)
+
+
+@wp.func
+def centroid_bin(c: float, lower: float, extent: float, num_bins: int) -> int:
+    b = int(float(num_bins) * (c - lower) / extent)
+    return wp.clamp(b, 0, num_bins - 1)
+
+
+@wp.func
+def slab_plane(lower: float, extent: float, j: int, num_bins: int) -> float:
+    # Boundary j (1 .. num_bins - 1) of the node box's equal slabs along one axis; monotone in j.
+    return lower + extent * (float(j) / float(num_bins))
+
+
+@wp.func
+def planes_at_or_below(x: float, lower: float, extent: float, num_bins: int, strict: int) -> int:
+    """How many of the planes 1 .. num_bins - 1 lie at or below x (strictly below if `strict`):
+    the slab of x, found from the planes' own float32 values so that the reference's side of a
+    plane never disagrees with the plane the distribution cuts at."""
+    j = wp.clamp(int(float(num_bins) * (x - lower) / extent), 0, num_bins - 1)
+    # The guess is off by at most a step or two of rounding: walk it to the exact count.
+    while j > 0 and (slab_plane(lower, extent, j, num_bins) > x or (strict == 1 and slab_plane(lower, extent, j, num_bins) == x)):
+        j -= 1
+    while j < num_bins - 1:
+        p = slab_plane(lower, extent, j + 1, num_bins)
+        if p < x or (strict == 0 and p == x):
+            j += 1
+        else:
+            break
+    return j
+
+
+@wp.func
+def round_down(x: wp.float64) -> float:
+    f = float(x)
+    return f - (wp.abs(f) * OUTWARD + TINY)
+
+
+@wp.func
+def round_up(x: wp.float64) -> float:
+    f = float(x)
+    return f + (wp.abs(f) * OUTWARD + TINY)
+
+
+@wp.func
+def clipped_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """The box of triangle abc inside the closed box [lower, upper], rounded outward to float32 and
+    clamped to [lower, upper]. Where clipping leaves nothing (the part lies on the box's face only
+    by rounding) the box [lower, upper] itself is returned: conservative, never inverted."""
+    polygon = mat93d()
+    polygon[0] = wp.vec3d(a)
+    polygon[1] = wp.vec3d(b)
+    polygon[2] = wp.vec3d(c)
+    count = int(3)
+    for axis in range(3):
+        if count > 0:
+            polygon, count = clip_polygon(polygon, count, axis, wp.float64(lower[axis]), wp.float64(1.0))
+        if count > 0:
+            polygon, count = clip_polygon(polygon, count, axis, wp.float64(upper[axis]), wp.float64(-1.0))
+    if count == 0:
+        return lower, upper
+    lo = polygon[0]
+    hi = polygon[0]
+    for i in range(1, count):
+        lo = wp.min(lo, polygon[i])
+        hi = wp.max(hi, polygon[i])
+    out_lo = wp.vec3(round_down(lo[0]), round_down(lo[1]), round_down(lo[2]))
+    out_hi = wp.vec3(round_up(hi[0]), round_up(hi[1]), round_up(hi[2]))
+    return wp.max(out_lo, lower), wp.min(out_hi, upper)
+
+
+@wp.func
+def slab_box(lower: wp.vec3, upper: wp.vec3, axis: int, lo: float, hi: float):
+    # [lower, upper] with its extent along `axis` narrowed to [lo, hi] (which lie inside it).
+    l = lower
+    u = upper
+    l[axis] = wp.max(lower[axis], lo)
+    u[axis] = wp.min(upper[axis], hi)
+    return l, u
+
+
+@wp.func
+def triangle_part(vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.int32, ndim=2), tri: int,
+                  lower: wp.vec3, upper: wp.vec3):
+    return clipped_box(vertices[faces[tri, 0]], vertices[faces[tri, 1]], vertices[faces[tri, 2]], lower, upper)
+
+
+@wp.kernel
+def split_search_kernel(
+    first_seg: int,
+    seg_begin: wp.array(dtype=wp.int32),
+    seg_end: wp.array(dtype=wp.int32),
+    seg_open: wp.array(dtype=wp.int32),
+    ref_tri: wp.array(dtype=wp.int32),
+    ref_lo: wp.array(dtype=wp.vec3),
+    ref_hi: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    num_bins: int,
+    max_leaf: int,
+    root_area: wp.float64,
+    alpha: wp.float64,
+    seg_lo: wp.array(dtype=wp.vec3),
+    seg_hi: wp.array(dtype=wp.vec3),
+    seg_cen_lo: wp.array(dtype=wp.vec3),
+    seg_cen_hi: wp.array(dtype=wp.vec3),
+    obj_axis: wp.array(dtype=wp.int32),
+    obj_bin: wp.array(dtype=wp.int32),
+    obj_left: wp.array(dtype=wp.int32),
+    obj_cost: wp.array(dtype=wp.float64),
+    sp_axis: wp.array(dtype=wp.int32),
+    sp_bin: wp.array(dtype=wp.int32),
+    sp_left: wp.array(dtype=wp.int32),
+    sp_right: wp.array(dtype=wp.int32),
+    sp_cost: wp.array(dtype=wp.float64),
+):
+    s = first_seg + wp.tid()
+    obj_axis[s] = -1
+    sp_axis[s] = -1
+    if seg_open[s] == 0:
+        return
+    b = seg_begin[s]
+    e = seg_end[s]
+    n = e - b
+    box_lo = wp.vec3(BIG)
+    box_hi = wp.vec3(-BIG)
+    cen_lo = wp.vec3(BIG)
+    cen_hi = wp.vec3(-BIG)
+    for k in range(b, e):
+        lo = ref_lo[k]
+        hi = ref_hi[k]
+        c = 0.5 * (lo + hi)
+        box_lo = wp.min(box_lo, lo)
+        box_hi = wp.max(box_hi, hi)
+        cen_lo = wp.min(cen_lo, c)
+        cen_hi = wp.max(cen_hi, c)
+    seg_lo[s] = box_lo
+    seg_hi[s] = box_hi
+    seg_cen_lo[s] = cen_lo
+    seg_cen_hi[s] = cen_hi
+    if n <= max_leaf:
+        return
+
+    # Object split: centroid bins, the sweep of every bin boundary.
+    counts = bin_counts()
+    boxes_lo = bin_boxes()
+    boxes_hi = bin_boxes()
+    for i in range(3 * num_bins):
+        boxes_lo[i] = wp.vec3(BIG)
+        boxes_hi[i] = wp.vec3(-BIG)
+    extent = cen_hi - cen_lo
+    for k in range(b, e):
+        lo = ref_lo[k]
+        hi = ref_hi[k]
+        c = 0.5 * (lo + hi)
+        for axis in range(3):
+            if extent[axis] > 0.0:
+                slot = axis * num_bins + centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins)
+                counts[slot] = counts[slot] + 1
+                boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
+                boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
+    best_cost = wp.float64(0.0)
+    best_axis = int(-1)
+    best_bin = int(0)
+    best_left = int(0)
+    for axis in range(3):
+        if extent[axis] > 0.0:
+            right_area = bin_areas()
+            r_lo = wp.vec3(BIG)
+            r_hi = wp.vec3(-BIG)
+            for j in range(num_bins - 1, 0, -1):
+                slot = axis * num_bins + j
+                r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
+                r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
+                right_area[j] = box_area64(r_lo, r_hi)
+            l_lo = wp.vec3(BIG)
+            l_hi = wp.vec3(-BIG)
+            left_count = int(0)
+            for j in range(1, num_bins):
+                slot = axis * num_bins + j - 1
+                l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
+                l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
+                left_count += counts[slot]
+                if left_count > 0 and left_count < n:
+                    cost = box_area64(l_lo, l_hi) * wp.float64(left_count) + right_area[j] * wp.float64(n - left_count)
+                    if best_axis < 0 or cost < best_cost:
+                        best_cost = cost
+                        best_axis = axis
+                        best_bin = j
+                        best_left = left_count
+    obj_axis[s] = best_axis
+    obj_bin[s] = best_bin
+    obj_left[s] = best_left
+    obj_cost[s] = best_cost
+
+    # Stich et al.'s test: try spatial splits where the object split's children overlap.
+    try_spatial = int(1)
+    if best_axis >= 0:
+        l_lo = wp.vec3(BIG)
+        l_hi = wp.vec3(-BIG)
+        r_lo = wp.vec3(BIG)
+        r_hi = wp.vec3(-BIG)
+        for j in range(num_bins):
+            slot = best_axis * num_bins + j
+            if j < best_bin:
+                l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
+                l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
+            else:
+                r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
+                r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
+        o_lo = wp.max(l_lo, r_lo)
+        o_hi = wp.min(l_hi, r_hi)
+        overlap = wp.float64(0.0)
+        if o_lo[0] <= o_hi[0] and o_lo[1] <= o_hi[1] and o_lo[2] <= o_hi[2]:
+            overlap = box_area64(o_lo, o_hi)
+        if not (overlap > alpha * root_area):
+            try_spatial = 0
+    if try_spatial == 0:
+        return
+
+    # Spatial split: chopped binning into equal slabs of the node's box.
+    entries = bin_counts()
+    exits = bin_counts()
+    for i in range(3 * num_bins):
+        boxes_lo[i] = wp.vec3(BIG)
+        boxes_hi[i] = wp.vec3(-BIG)
+    size = box_hi - box_lo
+    for k in range(b, e):
+        lo = ref_lo[k]
+        hi = ref_hi[k]
+        tri = ref_tri[k]
+        for axis in range(3):
+            if size[axis] > 0.0:
+                b0 = planes_at_or_below(lo[axis], box_lo[axis], size[axis], num_bins, 0)
+                b1 = wp.max(b0, planes_at_or_below(hi[axis], box_lo[axis], size[axis], num_bins, 1))
+                entries[axis * num_bins + b0] = entries[axis * num_bins + b0] + 1
+                exits[axis * num_bins + b1] = exits[axis * num_bins + b1] + 1
+                if b0 == b1:
+                    slot = axis * num_bins + b0
+                    boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
+                    boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
+                else:
+                    for bb in range(b0, b1 + 1):
+                        slab_lo = lo[axis]
+                        slab_hi = hi[axis]
+                        if bb > b0:
+                            slab_lo = slab_plane(box_lo[axis], size[axis], bb, num_bins)
+                        if bb < b1:
+                            slab_hi = slab_plane(box_lo[axis], size[axis], bb + 1, num_bins)
+                        clip_lo, clip_hi = slab_box(lo, hi, axis, slab_lo, slab_hi)
+                        part_lo, part_hi = triangle_part(vertices, faces, tri, clip_lo, clip_hi)
+                        slot = axis * num_bins + bb
+                        boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), part_lo)
+                        boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), part_hi)
+    sp_best = wp.float64(0.0)
+    sp_best_axis = int(-1)
+    sp_best_bin = int(0)
+    sp_best_left = int(0)
+    sp_best_right = int(0)
+    for axis in range(3):
+        if size[axis] > 0.0:
+            right_area = bin_areas()
+            right_count = bin_counts()
+            r_lo = wp.vec3(BIG)
+            r_hi = wp.vec3(-BIG)
+            r_n = int(0)
+            for j in range(num_bins - 1, 0, -1):
+                slot = axis * num_bins + j
+                r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
+                r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
+                r_n += exits[slot]
+                right_area[j] = box_area64(r_lo, r_hi)
+                right_count[j] = r_n
+            l_lo = wp.vec3(BIG)
+            l_hi = wp.vec3(-BIG)
+            l_n = int(0)
+            for j in range(1, num_bins):
+                slot = axis * num_bins + j - 1
+                l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
+                l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
+                l_n += entries[slot]
+                r_n = right_count[j]
+                # Both sides strictly smaller than the node: the recursion always ends.
+                if l_n > 0 and r_n > 0 and l_n < n and r_n < n:
+                    cost = box_area64(l_lo, l_hi) * wp.float64(l_n) + right_area[j] * wp.float64(r_n)
+                    if sp_best_axis < 0 or cost < sp_best:
+                        sp_best = cost
+                        sp_best_axis = axis
+                        sp_best_bin = j
+                        sp_best_left = l_n
+                        sp_best_right = r_n
+    sp_axis[s] = sp_best_axis
+    sp_bin[s] = sp_best_bin
+    sp_left[s] = sp_best_left
+    sp_right[s] = sp_best_right
+    sp_cost[s] = sp_best
+
+
+@wp.kernel
+def distribute_kernel(
+    first_seg: int,
+    seg_begin: wp.array(dtype=wp.int32),
+    seg_end: wp.array(dtype=wp.int32),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_axis: wp.array(dtype=wp.int32),
+    seg_bin: wp.array(dtype=wp.int32),
+    seg_left: wp.array(dtype=wp.int32),
+    seg_out: wp.array(dtype=wp.int32),
+    seg_lo: wp.array(dtype=wp.vec3),
+    seg_hi: wp.array(dtype=wp.vec3),
+    seg_cen_lo: wp.array(dtype=wp.vec3),
+    seg_cen_hi: wp.array(dtype=wp.vec3),
+    num_bins: int,
+    ref_tri: wp.array(dtype=wp.int32),
+    ref_lo: wp.array(dtype=wp.vec3),
+    ref_hi: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    out_tri: wp.array(dtype=wp.int32),
+    out_lo: wp.array(dtype=wp.vec3),
+    out_hi: wp.array(dtype=wp.vec3),
+):
+    """Write segment s's references at seg_out[s]: a leaf's as they are, a split node's left side
+    (seg_left[s] references) and then its right side, in their current order."""
+    s = first_seg + wp.tid()
+    b = seg_begin[s]
+    e = seg_end[s]
+    kind = seg_kind[s]
+    axis = seg_axis[s]
+    j = seg_bin[s]
+    left = seg_out[s]
+    right = left + seg_left[s]
+    if kind == KIND_HALVE:
+        right = left + (e - b) // 2
+    box_lo = seg_lo[s]
+    size = seg_hi[s] - box_lo
+    cen_lo = seg_cen_lo[s]
+    extent = seg_cen_hi[s] - cen_lo
+    plane = float(0.0)
+    if kind == KIND_SPATIAL:
+        plane = slab_plane(box_lo[axis], size[axis], j, num_bins)
+    for k in range(b, e):
+        tri = ref_tri[k]
+        lo = ref_lo[k]
+        hi = ref_hi[k]
+        to_left = int(0)
+        to_right = int(0)
+        if kind == KIND_LEAF:
+            to_left = 1
+        elif kind == KIND_HALVE:
+            if k - b < (e - b) // 2:
+                to_left = 1
+            else:
+                to_right = 1
+        elif kind == KIND_OBJECT:
+            # The search kernel's expression, so both count the same side.
+            c = 0.5 * (lo + hi)
+            if centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins) < j:
+                to_left = 1
+            else:
+                to_right = 1
+        else:
+            b0 = planes_at_or_below(lo[axis], box_lo[axis], size[axis], num_bins, 0)
+            b1 = wp.max(b0, planes_at_or_below(hi[axis], box_lo[axis], size[axis], num_bins, 1))
+            if b0 < j:
+                to_left = 1
+            if b1 >= j:
+                to_right = 1
+        if to_left == 1 and to_right == 1:
+            # Straddles the plane: each side gets the box of its part of the triangle.
+            clip_lo, clip_hi = slab_box(lo, hi, axis, lo[axis], plane)
+            part_lo, part_hi = triangle_part(vertices, faces, tri, clip_lo, clip_hi)
+            out_tri[left] = tri
+            out_lo[left] = part_lo
+            out_hi[left] = part_hi
+            left += 1
+            clip_lo, clip_hi = slab_box(lo, hi, axis, plane, hi[axis])
+            part_lo, part_hi = triangle_part(vertices, faces, tri, clip_lo, clip_hi)
+            out_tri[right] = tri
+            out_lo[right] = part_lo
+            out_hi[right] = part_hi
+            right += 1
+        elif to_left == 1:
+            out_tri[left] = tri
+            out_lo[left] = lo
+            out_hi[left] = hi
+            left += 1
+        else:
+            out_tri[right] = tri
+            out_lo[right] = lo
+            out_hi[right] = hi
+            right += 1
