@@ -12,9 +12,15 @@ from .hlbvh import HlbvhPipeline, StageTimer
 
 #: method name -> callable(pipeline inputs) returning a Bvh; reference builders add themselves.
 BUILDERS = {}
-#: Builders that take minutes at 100k triangles (offline quality references): the demo and the
-#: default tables leave them out unless asked for.
-OFFLINE_BUILDERS = ("recursive_sah",)
+#: Offline quality references, seconds (``sbvh``) to minutes (``recursive_sah``) at 100k
+#: triangles: the demo and the default tables leave them out unless asked for.
+OFFLINE_BUILDERS = ("recursive_sah", "sbvh")
+
+
+def needs_mesh(method: str) -> bool:
+    """True for builders that cut triangles (spatial splits): they take a mesh, not bare boxes."""
+    _load_optional_builders()
+    return getattr(BUILDERS.get(method), "needs_triangles", False)
 
 
 def register_builder(name: str):
@@ -139,7 +145,7 @@ def build_from_bounds(lowers, uppers, *, method: str = "hlbvh", device=None, con
                       timings: bool = False) -> Bvh:
     """Build a BVH over arbitrary primitives given by their boxes ``(N, 3)`` lowers and uppers."""
     config, device = _resolve(method, config, device)
-    if getattr(BUILDERS[method], "needs_triangles", False):
+    if needs_mesh(method):
         raise ValueError(f"method {method!r} splits triangles and needs a mesh: use build(), not build_from_bounds()")
     lo, hi = inputs.bounds_arrays(lowers, uppers)
     timer = StageTimer(device, timings)

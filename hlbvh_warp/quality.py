@@ -162,8 +162,10 @@ def parse_args(argv):
     parser.add_argument("--mesh", action="append", default=[],
                         help="mesh file (repeatable); default: a generated scene")
     parser.add_argument("--scene-tris", type=int, default=20000, help="triangles of the generated scene")
+    parser.add_argument("--scene", default="knot", choices=["knot", "knot+large"],
+                        help="the generated scene: the torus knot, or with 8 large triangles across it")
     parser.add_argument("--builders", default=",".join(BUILDERS),
-                        help="comma-separated builders (default: all but recursive_sah)")
+                        help="comma-separated builders (default: all but the offline recursive_sah and sbvh)")
     parser.add_argument("--views", type=int, default=8, help="cameras on the orbit")
     parser.add_argument("--side", type=int, default=64, help="pixels per image side")
     parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")
@@ -193,7 +195,7 @@ def main(argv=None) -> int:
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
-    meshes = scenes.named_meshes(args.mesh, args.scene_tris)
+    meshes = scenes.named_meshes(args.mesh, args.scene_tris, args.scene)
     progress = scenes.progress
     print(f"device: {device}  c_t = {args.ct}  c_i = {args.ci}  rays: {args.views} views of {args.side}^2, "
           f"one diffuse bounce; ratios to {REFERENCE}")

@@ -61,13 +61,32 @@ def default_scene(num_tris: int = 60000):
     return torus_knot(rings=rings, sides=sides)
 
 
-def named_meshes(paths, num_tris: int = 60000) -> list:
-    """``(name, vertices, faces)`` of each mesh file (named by its stem), or of the generated default
-    scene when no path is given: the mesh list of the measuring commands."""
+def knot_with_large_triangles(num_tris: int = 60000, num_large: int = 8, seed: int = 0):
+    """The default scene with `num_large` of its triangles replaced by large ones spanning its
+    bounds (corners drawn uniformly in its box): small and large triangles mixed, as in the
+    architectural scenes spatial splits were made for (Stich et al. 2009), where every object
+    split holding a large triangle gets a box as large as the scene's."""
+    vertices, faces = default_scene(max(num_tris - num_large, 18))
+    rng = np.random.default_rng(seed)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    corners = (lo + (hi - lo) * rng.uniform(0.0, 1.0, (num_large * 3, 3))).astype(np.float32)
+    large = len(vertices) + np.arange(num_large * 3, dtype=np.int32).reshape(-1, 3)
+    return np.concatenate([vertices, corners]), np.concatenate([faces, large])
+
+
+#: The generated scenes of the measuring commands, by name.
+GENERATED = {"knot": default_scene, "knot+large": knot_with_large_triangles}
+
+
+def named_meshes(paths, num_tris: int = 60000, generated: str = "knot") -> list:
+    """``(name, vertices, faces)`` of each mesh file (named by its stem), or of the generated
+    scene `generated` (`GENERATED`) when no path is given: the mesh list of the measuring commands."""
     import pathlib
 
     if not paths:
-        return [("generated", *default_scene(num_tris))]
+        if generated not in GENERATED:
+            raise ValueError(f"unknown generated scene {generated!r}; choose one of {sorted(GENERATED)}")
+        return [("generated" if generated == "knot" else generated, *GENERATED[generated](num_tris))]
     return [(pathlib.Path(p).stem, *load_mesh(p)) for p in paths]
 
 

@@ -187,6 +187,37 @@ def build_sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
     )
 
 
+def root_split_costs(vertices, faces, config: BuildConfig | None = None, device=None) -> dict:
+    """The root's cheapest object split and cheapest spatial split as the split search prices them
+    (A(L) N(L) + A(R) N(R), ``inf`` where there is none), and their axes and bin boundaries: what
+    `build_sbvh` chooses between at the top of the tree. For tests and diagnostics."""
+    from . import inputs
+
+    config = config or BuildConfig()
+    device = wp.get_device(device)
+    verts_np, faces_np = inputs.mesh_arrays(vertices, faces)
+    tris = verts_np[faces_np]
+    lo, hi = tris.min(axis=1), tris.max(axis=1)
+    n = len(faces_np)
+    dev = _SegmentArrays(1, device)
+    dev.upload(begin=[0], end=[n], open=[1])
+    wp.launch(kernels.split_search_kernel, dim=1, device=device,
+              inputs=[0, dev.begin, dev.end, dev.open, wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device),
+                      wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device),
+                      wp.array(verts_np, dtype=wp.vec3, device=device),
+                      wp.array(faces_np, dtype=wp.int32, device=device), config.sbvh_bins, config.max_leaf_size,
+                      wp.float64(_area(lo.min(axis=0), hi.max(axis=0))), wp.float64(config.sbvh_alpha), dev.lo,
+                      dev.hi, dev.cen_lo, dev.cen_hi, dev.obj_axis, dev.obj_bin, dev.obj_left, dev.obj_cost,
+                      dev.sp_axis, dev.sp_bin, dev.sp_left, dev.sp_right, dev.sp_cost])
+    found = {name: value[0] for name, value in dev.download().items()}
+    return {
+        "object": float(found["obj_cost"]) if found["obj_axis"] >= 0 else np.inf,
+        "object_axis": int(found["obj_axis"]), "object_bin": int(found["obj_bin"]),
+        "spatial": float(found["sp_cost"]) if found["sp_axis"] >= 0 else np.inf,
+        "spatial_axis": int(found["sp_axis"]), "spatial_bin": int(found["sp_bin"]),
+    }
+
+
 def _area(lower: np.ndarray, upper: np.ndarray) -> float:
     d = upper.astype(np.float64) - lower.astype(np.float64)
     return float(2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0]))

@@ -87,10 +87,9 @@ def round_up(x: wp.float64) -> float:
 
 
 @wp.func
-def clipped_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
-    """The box of triangle abc inside the closed box [lower, upper], rounded outward to float32 and
-    clamped to [lower, upper]. Where clipping leaves nothing (the part lies on the box's face only
-    by rounding) the box [lower, upper] itself is returned: conservative, never inverted."""
+def triangle_in_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """The polygon of triangle abc inside the closed box [lower, upper], in float64 (its part a
+    reference stands for): clipped once per reference, then cut by slab planes only."""
     polygon = mat93d()
     polygon[0] = wp.vec3d(a)
     polygon[1] = wp.vec3d(b)
@@ -101,13 +100,28 @@ def clipped_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.ve
             polygon, count = clip_polygon(polygon, count, axis, wp.float64(lower[axis]), wp.float64(1.0))
         if count > 0:
             polygon, count = clip_polygon(polygon, count, axis, wp.float64(upper[axis]), wp.float64(-1.0))
-    if count == 0:
+    return polygon, count
+
+
+@wp.func
+def slab_part_box(polygon: mat93d, count: int, axis: int, lower: wp.vec3, upper: wp.vec3):
+    """The box of the polygon's part with lower[axis] <= x[axis] <= upper[axis], rounded outward to
+    float32 and clamped to [lower, upper] (the reference's box narrowed to the slab). Where the
+    cut leaves nothing (the part touches the slab only by rounding) [lower, upper] itself is
+    returned: conservative, never inverted."""
+    part = polygon
+    n = count
+    if n > 0:
+        part, n = clip_polygon(part, n, axis, wp.float64(lower[axis]), wp.float64(1.0))
+    if n > 0:
+        part, n = clip_polygon(part, n, axis, wp.float64(upper[axis]), wp.float64(-1.0))
+    if n == 0:
         return lower, upper
-    lo = polygon[0]
-    hi = polygon[0]
-    for i in range(1, count):
-        lo = wp.min(lo, polygon[i])
-        hi = wp.max(hi, polygon[i])
+    lo = part[0]
+    hi = part[0]
+    for i in range(1, n):
+        lo = wp.min(lo, part[i])
+        hi = wp.max(hi, part[i])
     out_lo = wp.vec3(round_down(lo[0]), round_down(lo[1]), round_down(lo[2]))
     out_hi = wp.vec3(round_up(hi[0]), round_up(hi[1]), round_up(hi[2]))
     return wp.max(out_lo, lower), wp.min(out_hi, upper)
@@ -121,12 +135,6 @@ def slab_box(lower: wp.vec3, upper: wp.vec3, axis: int, lo: float, hi: float):
     l[axis] = wp.max(lower[axis], lo)
     u[axis] = wp.min(upper[axis], hi)
     return l, u
-
-
-@wp.func
-def triangle_part(vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.int32, ndim=2), tri: int,
-                  lower: wp.vec3, upper: wp.vec3):
-    return clipped_box(vertices[faces[tri, 0]], vertices[faces[tri, 1]], vertices[faces[tri, 2]], lower, upper)
 
 
 @wp.kernel
@@ -273,6 +281,8 @@ def split_search_kernel(
         lo = ref_lo[k]
         hi = ref_hi[k]
         tri = ref_tri[k]
+        polygon = mat93d()
+        count = int(-1)  # the reference's polygon, clipped on first need
         for axis in range(3):
             if size[axis] > 0.0:
                 b0 = planes_at_or_below(lo[axis], box_lo[axis], size[axis], num_bins, 0)
@@ -284,6 +294,9 @@ def split_search_kernel(
                     boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                     boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
                 else:
+                    if count < 0:
+                        polygon, count = triangle_in_box(vertices[faces[tri, 0]], vertices[faces[tri, 1]],
+                                                         vertices[faces[tri, 2]], lo, hi)
                     for bb in range(b0, b1 + 1):
                         slab_lo = lo[axis]
                         slab_hi = hi[axis]
@@ -292,7 +305,7 @@ def split_search_kernel(
                         if bb < b1:
                             slab_hi = slab_plane(box_lo[axis], size[axis], bb + 1, num_bins)
                         clip_lo, clip_hi = slab_box(lo, hi, axis, slab_lo, slab_hi)
-                        part_lo, part_hi = triangle_part(vertices, faces, tri, clip_lo, clip_hi)
+                        part_lo, part_hi = slab_part_box(polygon, count, axis, clip_lo, clip_hi)
                         slot = axis * num_bins + bb
                         boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), part_lo)
                         boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), part_hi)
@@ -412,14 +425,16 @@ def distribute_kernel(
                 to_right = 1
         if to_left == 1 and to_right == 1:
             # Straddles the plane: each side gets the box of its part of the triangle.
+            polygon, count = triangle_in_box(vertices[faces[tri, 0]], vertices[faces[tri, 1]], vertices[faces[tri, 2]],
+                                             lo, hi)
             clip_lo, clip_hi = slab_box(lo, hi, axis, lo[axis], plane)
-            part_lo, part_hi = triangle_part(vertices, faces, tri, clip_lo, clip_hi)
+            part_lo, part_hi = slab_part_box(polygon, count, axis, clip_lo, clip_hi)
             out_tri[left] = tri
             out_lo[left] = part_lo
             out_hi[left] = part_hi
             left += 1
             clip_lo, clip_hi = slab_box(lo, hi, axis, plane, hi[axis])
-            part_lo, part_hi = triangle_part(vertices, faces, tri, clip_lo, clip_hi)
+            part_lo, part_hi = slab_part_box(polygon, count, axis, clip_lo, clip_hi)
             out_tri[right] = tri
             out_lo[right] = part_lo
             out_hi[right] = part_hi

@@ -219,10 +219,13 @@ def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
     return _hull_area_2d(np.stack([pts @ u, pts @ w], axis=1))
 
 
-def numpy_end_point_overlap(tree: dict, vertices, faces, t1=1.0, t2=1.0):
+def numpy_end_point_overlap(tree: dict, vertices, faces, t1=1.0, t2=1.0, node_boxes=None):
     """EPO (Aila, Karras & Laine 2013) of a tree by brute force over every (node, triangle):
     (sum over nodes of term(n) * area of the foreign triangles inside box(n)) / total area, with
-    term(n) = 2 t1 (interior) or t2 * N (leaf). Node boxes are rebuilt from the triangles.
+    term(n) = 2 t1 (interior) or t2 * N (leaf; N counts references). A triangle is foreign to n
+    when no entry of n's range of prim_order names it (a spatial-split tree lists some triangles
+    in several leaves). Node boxes are rebuilt from the whole triangles, or taken from
+    ``node_boxes`` = (lowers, uppers) (a spatial-split tree's boxes bound parts of triangles).
     Returns (epo, per_node)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -233,10 +236,114 @@ def numpy_end_point_overlap(tree: dict, vertices, faces, t1=1.0, t2=1.0):
     per_node = np.zeros(len(left))
     for n in range(len(left)):
         own = order[begin[n]:end[n]]
-        lo, hi = tri_lo[own].min(0), tri_hi[own].max(0)
+        if node_boxes is None:
+            lo, hi = tri_lo[own].min(0), tri_hi[own].max(0)
+        else:
+            lo, hi = (np.asarray(b[n], dtype=np.float64) for b in node_boxes)
         foreign = np.setdiff1d(np.arange(len(f)), own)
         meets = foreign[np.all(tri_lo[foreign] <= hi, axis=1) & np.all(tri_hi[foreign] >= lo, axis=1)]
         overlap = sum(triangle_box_area(tris[p], lo, hi) for p in meets)
         term = 2.0 * t1 if left[n] >= 0 else t2 * (end[n] - begin[n])
         per_node[n] = term * overlap
     return per_node.sum() / areas.sum(), per_node
+
+
+def triangle_slab_bounds(tri, axis: int, lower: float, upper: float):
+    """Bounding box (float64) of the part of a triangle with lower <= x[axis] <= upper: its
+    vertices in the slab and its edges' crossings of the two planes. None when they miss."""
+    tri = np.asarray(tri, dtype=np.float64)
+    points = [p for p in tri if lower <= p[axis] <= upper]
+    for i in range(3):
+        p, q = tri[i], tri[(i + 1) % 3]
+        if p[axis] == q[axis]:
+            continue
+        for bound in (lower, upper):
+            t = (bound - p[axis]) / (q[axis] - p[axis])
+            if 0.0 < t < 1.0:
+                x = p + t * (q - p)
+                x[axis] = bound
+                points.append(x)
+    if not points:
+        return None
+    pts = np.array(points)
+    return pts.min(axis=0), pts.max(axis=0)
+
+
+def _box_area(lo, hi) -> float:
+    d = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    return float(2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0]))
+
+
+def sbvh_root_candidates(vertices, faces, num_bins: int) -> dict:
+    """Every split candidate of the root of a spatial-split BVH (Stich et al. 2009), priced by
+    A(L) N(L) + A(R) N(R) in float64, enumerated candidate by candidate:
+
+    - object splits: the triangles whose box centroid falls in centroid bins below boundary j
+      (bins: float32 ``B * (c - c_min) / extent``, clamped), on each axis;
+    - spatial splits at the float32 planes ``lo + extent * (j / B)`` of the root box: a triangle
+      whose box starts below the plane goes left, one whose box ends above it goes right (both:
+      each side boxed by the triangle's part on that side, ``triangle_slab_bounds``).
+
+    Returns the cheapest object cost, the cheapest spatial cost, and the overlap area of the
+    cheapest object split's two boxes."""
+    v = np.asarray(vertices, dtype=np.float32)
+    tris = v[np.asarray(faces, dtype=np.int64)]
+    lo, hi = tris.min(axis=1), tris.max(axis=1)
+    n = len(tris)
+    c = np.float32(0.5) * (lo + hi)
+    c_lo, c_hi = c.min(0), c.max(0)
+    best_obj, obj_boxes = np.inf, None
+    for axis in range(3):
+        extent = c_hi[axis] - c_lo[axis]
+        if extent <= 0:
+            continue
+        bins = np.clip(((np.float32(num_bins) * (c[:, axis] - c_lo[axis])) / extent).astype(np.int64), 0,
+                       num_bins - 1)
+        for j in range(1, num_bins):
+            side = bins < j
+            n_left = int(side.sum())
+            if 0 < n_left < n:
+                boxes = (lo[side].min(0), hi[side].max(0), lo[~side].min(0), hi[~side].max(0))
+                cost = _box_area(boxes[0], boxes[1]) * n_left + _box_area(boxes[2], boxes[3]) * (n - n_left)
+                if cost < best_obj:
+                    best_obj, obj_boxes = cost, boxes
+    overlap = 0.0
+    if obj_boxes is not None:
+        o_lo, o_hi = np.maximum(obj_boxes[0], obj_boxes[2]), np.minimum(obj_boxes[1], obj_boxes[3])
+        overlap = _box_area(o_lo, o_hi) if (o_lo <= o_hi).all() else 0.0
+    box_lo, box_hi = lo.min(0), hi.max(0)
+    best_sp = np.inf
+    for axis in range(3):
+        size = box_hi[axis] - box_lo[axis]
+        if size <= 0:
+            continue
+        planes = [np.float32(box_lo[axis] + size * np.float32(np.float32(j) / np.float32(num_bins)))
+                  for j in range(num_bins)]
+        for j in range(1, num_bins):
+            plane = float(planes[j])
+            goes_left = lo[:, axis] < plane
+            # A box ending on the plane stays left whole; one lying flat on it goes right.
+            goes_right = (hi[:, axis] > plane) | ~goes_left
+            n_left, n_right = int(goes_left.sum()), int(goes_right.sum())
+            if not (0 < n_left < n and 0 < n_right < n):
+                continue
+            parts = {True: [], False: []}
+            for t in range(n):
+                both = goes_left[t] and goes_right[t]
+                for to_left, wanted in ((True, goes_left[t]), (False, goes_right[t])):
+                    if not wanted:
+                        continue
+                    if both:
+                        box = triangle_slab_bounds(tris[t], axis, -np.inf if to_left else plane,
+                                                   plane if to_left else np.inf)
+                        if box is not None:
+                            parts[to_left].append(box)
+                    else:
+                        parts[to_left].append((lo[t], hi[t]))
+            l_lo = np.min([p[0] for p in parts[True]], axis=0)
+            l_hi = np.max([p[1] for p in parts[True]], axis=0)
+            r_lo = np.min([p[0] for p in parts[False]], axis=0)
+            r_hi = np.max([p[1] for p in parts[False]], axis=0)
+            cost = _box_area(l_lo, l_hi) * n_left + _box_area(r_lo, r_hi) * n_right
+            best_sp = min(best_sp, cost)
+    return {"object": best_obj, "spatial": best_sp, "object_overlap": overlap}
