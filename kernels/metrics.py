@@ -276,8 +276,9 @@ def clip_polygon(polygon: mat93d, count: int, axis: int, bound: wp.float64, sign
 
 
 @wp.func
-def clipped_triangle_area(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3) -> wp.float64:
-    """Area of triangle abc inside the closed box [lower, upper], in float64."""
+def triangle_in_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """The polygon of triangle abc inside the closed box [lower, upper], in float64 (the EPO's
+    overlap; the part of a triangle a spatial-split reference stands for)."""
     polygon = mat93d()
     polygon[0] = wp.vec3d(a)
     polygon[1] = wp.vec3d(b)
@@ -288,6 +289,13 @@ def clipped_triangle_area(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, up
             polygon, count = clip_polygon(polygon, count, axis, wp.float64(lower[axis]), wp.float64(1.0))
         if count > 0:
             polygon, count = clip_polygon(polygon, count, axis, wp.float64(upper[axis]), wp.float64(-1.0))
+    return polygon, count
+
+
+@wp.func
+def clipped_triangle_area(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3) -> wp.float64:
+    """Area of triangle abc inside the closed box [lower, upper], in float64."""
+    polygon, count = triangle_in_box(a, b, c, lower, upper)
     # A fan from the first vertex: half the length of the summed cross products (planar polygon).
     twice = wp.vec3d()
     for i in range(1, count - 1):

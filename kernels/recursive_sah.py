@@ -20,6 +20,7 @@ so the stack holds at most log2(N) deferred siblings.
 import warp as wp
 
 from .metrics import box_area64
+from .sah import BIG, sweep_bin_boundaries
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -29,8 +30,6 @@ STACK_SIZE = 64
 vec64i = wp.types.vector(length=STACK_SIZE, dtype=wp.int32)
 binned_counts = wp.types.vector(length=3 * MAX_TEMP_BINS, dtype=wp.int32)
 binned_boxes = wp.types.matrix(shape=(3 * MAX_TEMP_BINS, 3), dtype=wp.float32)
-binned_areas = wp.types.vector(length=MAX_TEMP_BINS, dtype=wp.float64)
-BIG = wp.constant(3.0e38)
 
 
 @wp.func
@@ -103,34 +102,17 @@ def temp_bvh_cost(
                     counts[slot] = counts[slot] + 1
                     boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                     boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
-        # Sweep the bin boundaries: the right sides' areas from the right, then the left sides.
+        # Sweep the bin boundaries of every axis (an object split: a bin's count on both sides).
         best_cost = wp.float64(-1.0)
         best_axis = int(-1)
         best_bin = int(0)
+        best_left = int(0)
+        best_right = int(0)
         for axis in range(3):
             if extent[axis] > 0.0:
-                right_area = binned_areas()
-                r_lo = wp.vec3(BIG)
-                r_hi = wp.vec3(-BIG)
-                for j in range(num_bins - 1, 0, -1):
-                    slot = axis * num_bins + j
-                    r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
-                    r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
-                    right_area[j] = box_area64(r_lo, r_hi)
-                l_lo = wp.vec3(BIG)
-                l_hi = wp.vec3(-BIG)
-                left_count = int(0)
-                for j in range(1, num_bins):
-                    slot = axis * num_bins + j - 1
-                    l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
-                    l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
-                    left_count += counts[slot]
-                    if left_count > 0 and left_count < n:
-                        cost = box_area64(l_lo, l_hi) * wp.float64(left_count) + right_area[j] * wp.float64(n - left_count)
-                        if best_axis < 0 or cost < best_cost:
-                            best_cost = cost
-                            best_axis = axis
-                            best_bin = j
+                best_cost, best_axis, best_bin, best_left, best_right = sweep_bin_boundaries(
+                    boxes_lo, boxes_hi, counts, counts, axis, num_bins, n, best_cost, best_axis, best_bin, best_left,
+                    best_right)
         mid = b + n // 2
         if best_axis >= 0:
             # Partition in place: the items of bins below best_bin first.

@@ -18,6 +18,8 @@ clusters weighted by the SAH cost of their subtrees. Split costs are evaluated i
 Orders are stored flat: ``order[axis * num_items + position]``.
 """
 
+from typing import Any
+
 import warp as wp
 
 from .metrics import box_area64
@@ -95,6 +97,67 @@ def init_top_down_kernel(
 @wp.func
 def bin_of(c: float, cmin: float, scale: float, num_bins: int) -> int:
     return wp.clamp(int((c - cmin) * scale), 0, num_bins - 1)
+
+
+# Sweeps over per-bin boxes kept in a thread's local arrays (Wald 2007), shared by the recursive-SAH
+# builder's temporary BVHs and the SBVH's object and spatial splits: at most this many bins.
+MAX_SWEEP_BINS = 64
+sweep_areas = wp.types.vector(length=MAX_SWEEP_BINS, dtype=wp.float64)
+sweep_counts = wp.types.vector(length=MAX_SWEEP_BINS, dtype=wp.int32)
+BIG = wp.constant(3.0e38)
+
+
+@wp.func
+def sweep_bin_boundaries(
+    boxes_lo: Any,
+    boxes_hi: Any,
+    enter: Any,
+    leave: Any,
+    axis: int,
+    num_bins: int,
+    n: int,
+    best_cost: wp.float64,
+    best_axis: int,
+    best_bin: int,
+    best_left: int,
+    best_right: int,
+):
+    """Price the boundaries j = 1 .. num_bins - 1 of one axis's bins (slots axis * num_bins + j)
+    by A(L) N(L) + A(R) N(R): N(L) counts `enter` of the bins below j, N(R) counts `leave` of the
+    bins from j on. An object split passes each bin's count as both; a spatial split's
+    references enter at the bin of their lower corner and leave at their upper corner's. Both
+    sides non-empty and smaller than n. Returns the best so far, updated: the first cheapest in
+    axis-then-boundary order."""
+    right_area = sweep_areas()
+    right_count = sweep_counts()
+    r_lo = wp.vec3(BIG)
+    r_hi = wp.vec3(-BIG)
+    r_n = int(0)
+    for j in range(num_bins - 1, 0, -1):
+        slot = axis * num_bins + j
+        r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
+        r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
+        r_n += leave[slot]
+        right_area[j] = box_area64(r_lo, r_hi)
+        right_count[j] = r_n
+    l_lo = wp.vec3(BIG)
+    l_hi = wp.vec3(-BIG)
+    l_n = int(0)
+    for j in range(1, num_bins):
+        slot = axis * num_bins + j - 1
+        l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
+        l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
+        l_n += enter[slot]
+        r_n = right_count[j]
+        if l_n > 0 and r_n > 0 and l_n < n and r_n < n:
+            cost = box_area64(l_lo, l_hi) * wp.float64(l_n) + right_area[j] * wp.float64(r_n)
+            if best_axis < 0 or cost < best_cost:
+                best_cost = cost
+                best_axis = axis
+                best_bin = j
+                best_left = l_n
+                best_right = r_n
+    return best_cost, best_axis, best_bin, best_left, best_right
 
 
 @wp.struct

@@ -22,16 +22,16 @@ from, so a reference's box always contains its part of the triangle and its pare
 
 import warp as wp
 
-from .metrics import box_area64, clip_polygon, mat93d
+from .metrics import box_area64, clip_polygon, mat93d, triangle_in_box
+from .recursive_sah import bin_of as centroid_bin
+from .sah import BIG, MAX_SWEEP_BINS, sweep_bin_boundaries
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
-MAX_BINS = 64
+MAX_BINS = MAX_SWEEP_BINS
 bin_counts = wp.types.vector(length=3 * MAX_BINS, dtype=wp.int32)
 bin_boxes = wp.types.matrix(shape=(3 * MAX_BINS, 3), dtype=wp.float32)
-bin_areas = wp.types.vector(length=MAX_BINS, dtype=wp.float64)
-BIG = wp.constant(3.0e38)
 
 #: The kinds of node the host may choose; the distribution kernel takes the host's choice.
 KIND_LEAF = wp.constant(0)
@@ -42,12 +42,6 @@ KIND_HALVE = wp.constant(3)
 # for values near zero.
 OUTWARD = wp.constant(2.4e-7)
 TINY = wp.constant(1.0e-30)
-
-
-@wp.func
-def centroid_bin(c: float, lower: float, extent: float, num_bins: int) -> int:
-    b = int(float(num_bins) * (c - lower) / extent)
-    return wp.clamp(b, 0, num_bins - 1)
 
 
 @wp.func
@@ -84,23 +78,6 @@ def round_down(x: wp.float64) -> float:
 def round_up(x: wp.float64) -> float:
     f = float(x)
     return f + (wp.abs(f) * OUTWARD + TINY)
-
-
-@wp.func
-def triangle_in_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
-    """The polygon of triangle abc inside the closed box [lower, upper], in float64 (its part a
-    reference stands for): clipped once per reference, then cut by slab planes only."""
-    polygon = mat93d()
-    polygon[0] = wp.vec3d(a)
-    polygon[1] = wp.vec3d(b)
-    polygon[2] = wp.vec3d(c)
-    count = int(3)
-    for axis in range(3):
-        if count > 0:
-            polygon, count = clip_polygon(polygon, count, axis, wp.float64(lower[axis]), wp.float64(1.0))
-        if count > 0:
-            polygon, count = clip_polygon(polygon, count, axis, wp.float64(upper[axis]), wp.float64(-1.0))
-    return polygon, count
 
 
 @wp.func
@@ -215,31 +192,12 @@ def split_search_kernel(
     best_axis = int(-1)
     best_bin = int(0)
     best_left = int(0)
+    best_right = int(0)
     for axis in range(3):
         if extent[axis] > 0.0:
-            right_area = bin_areas()
-            r_lo = wp.vec3(BIG)
-            r_hi = wp.vec3(-BIG)
-            for j in range(num_bins - 1, 0, -1):
-                slot = axis * num_bins + j
-                r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
-                r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
-                right_area[j] = box_area64(r_lo, r_hi)
-            l_lo = wp.vec3(BIG)
-            l_hi = wp.vec3(-BIG)
-            left_count = int(0)
-            for j in range(1, num_bins):
-                slot = axis * num_bins + j - 1
-                l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
-                l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
-                left_count += counts[slot]
-                if left_count > 0 and left_count < n:
-                    cost = box_area64(l_lo, l_hi) * wp.float64(left_count) + right_area[j] * wp.float64(n - left_count)
-                    if best_axis < 0 or cost < best_cost:
-                        best_cost = cost
-                        best_axis = axis
-                        best_bin = j
-                        best_left = left_count
+            best_cost, best_axis, best_bin, best_left, best_right = sweep_bin_boundaries(
+                boxes_lo, boxes_hi, counts, counts, axis, num_bins, n, best_cost, best_axis, best_bin, best_left,
+                best_right)
     obj_axis[s] = best_axis
     obj_bin[s] = best_bin
     obj_left[s] = best_left
@@ -316,36 +274,10 @@ def split_search_kernel(
     sp_best_right = int(0)
     for axis in range(3):
         if size[axis] > 0.0:
-            right_area = bin_areas()
-            right_count = bin_counts()
-            r_lo = wp.vec3(BIG)
-            r_hi = wp.vec3(-BIG)
-            r_n = int(0)
-            for j in range(num_bins - 1, 0, -1):
-                slot = axis * num_bins + j
-                r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
-                r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
-                r_n += exits[slot]
-                right_area[j] = box_area64(r_lo, r_hi)
-                right_count[j] = r_n
-            l_lo = wp.vec3(BIG)
-            l_hi = wp.vec3(-BIG)
-            l_n = int(0)
-            for j in range(1, num_bins):
-                slot = axis * num_bins + j - 1
-                l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
-                l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
-                l_n += entries[slot]
-                r_n = right_count[j]
-                # Both sides strictly smaller than the node: the recursion always ends.
-                if l_n > 0 and r_n > 0 and l_n < n and r_n < n:
-                    cost = box_area64(l_lo, l_hi) * wp.float64(l_n) + right_area[j] * wp.float64(r_n)
-                    if sp_best_axis < 0 or cost < sp_best:
-                        sp_best = cost
-                        sp_best_axis = axis
-                        sp_best_bin = j
-                        sp_best_left = l_n
-                        sp_best_right = r_n
+            # Both sides strictly smaller than the node (the sweep's rule): the recursion ends.
+            sp_best, sp_best_axis, sp_best_bin, sp_best_left, sp_best_right = sweep_bin_boundaries(
+                boxes_lo, boxes_hi, entries, exits, axis, num_bins, n, sp_best, sp_best_axis, sp_best_bin,
+                sp_best_left, sp_best_right)
     sp_axis[s] = sp_best_axis
     sp_bin[s] = sp_best_bin
     sp_left[s] = sp_best_left

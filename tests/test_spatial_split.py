@@ -12,8 +12,8 @@ import trimesh
 import hlbvh_warp as hw
 from hlbvh_warp import hlbvh, query, spatial_split, wide
 from hlbvh_warp.metrics import end_point_overlap, sah_cost
-from oracles import (brute_force_closest_hit, numpy_end_point_overlap, random_rays, sbvh_root_candidates,
-                     triangle_slab_bounds)
+from oracles import (assert_hits_match, brute_force_closest_hit, numpy_end_point_overlap, random_rays,
+                     sbvh_root_candidates, triangle_slab_bounds)
 
 
 def slivers(rng, num_tris: int, length: float = 1.0, width: float = 0.01):
@@ -88,12 +88,9 @@ def test_rays_and_parts_against_brute_force(device, rng, scene):
         assert bvh.has_duplicates and bvh.num_refs > bvh.num_prims == len(faces)
     check_parts_bounded(bvh, verts, faces)
     o, d = random_rays(rng, verts, 1500)
-    t, prim = query.intersect(bvh, o, d)
     t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
-    hit = prim_ref >= 0
-    assert np.array_equal(prim >= 0, hit)
-    np.testing.assert_allclose(t[hit], t_ref[hit], rtol=1e-5)
-    assert np.array_equal(query.occluded(bvh, o, d), hit)
+    assert_hits_match(*query.intersect(bvh, o, d), t_ref, prim_ref)
+    assert np.array_equal(query.occluded(bvh, o, d), prim_ref >= 0)
     # All hits: each triangle once per ray, however many leaves hold a part of it.
     ray_id, prim_id, _ = query.intersect_all(bvh, o, d)
     pairs = ray_id * len(faces) + prim_id
@@ -185,9 +182,7 @@ def test_reference_budget(device, rng, budget):
     if budget > 0:
         assert bvh.has_duplicates
     o, d = random_rays(rng, verts, 500)
-    t, prim = query.intersect(bvh, o, d)
-    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
-    assert np.array_equal(prim >= 0, prim_ref >= 0)
+    assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
 
 
 def test_degenerate_and_coincident_triangles(device, rng):
@@ -201,31 +196,22 @@ def test_degenerate_and_coincident_triangles(device, rng):
     bvh = hw.build(verts, faces, method="sbvh", device=device, config=hw.BuildConfig(sbvh_alpha=0.0, sbvh_bins=4))
     check_parts_bounded(bvh, verts, faces)
     o, d = random_rays(rng, verts, 800)
-    t, prim = query.intersect(bvh, o, d)
-    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
-    hit = prim_ref >= 0
-    assert np.array_equal(prim >= 0, hit)
-    np.testing.assert_allclose(t[hit], t_ref[hit], rtol=1e-5)
+    assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
 
 
 def test_refit_and_wide_trees_stay_exact(device, rng):
     verts, faces = slivers(rng, 120)
     bvh = hw.build(verts, faces, method="sbvh", device=device, config=hw.BuildConfig(sbvh_alpha=0.0))
     o, d = random_rays(rng, verts, 600)
-    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
-    hit = prim_ref >= 0
+    reference = brute_force_closest_hit(verts, faces, o, d)
     for k in (4, 8):
-        t, prim = wide.intersect(wide.collapse(bvh, k), o, d)
-        assert np.array_equal(prim >= 0, hit)
-        np.testing.assert_allclose(t[hit], t_ref[hit], rtol=1e-5)
+        assert_hits_match(*wide.intersect(wide.collapse(bvh, k), o, d), *reference)
     # A refit bounds every reference by its whole triangle: looser boxes, the same hits.
     before = sah_cost(bvh)
     hlbvh.refit_bounds(bvh)
     bvh.invalidate()
     assert sah_cost(bvh) >= before
-    t, prim = query.intersect(bvh, o, d)
-    assert np.array_equal(prim >= 0, hit)
-    np.testing.assert_allclose(t[hit], t_ref[hit], rtol=1e-5)
+    assert_hits_match(*query.intersect(bvh, o, d), *reference)
 
 
 def test_bad_use_raises(device, rng):
