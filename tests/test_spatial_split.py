@@ -231,3 +231,16 @@ def test_bad_use_raises(device, rng):
     bad_verts[4, 1] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         hw.build(bad_verts, faces, method="sbvh", device=device)
+
+
+@pytest.mark.parametrize("num_small, max_leaf", [(0, 1), (1, 1), (40, 4)])
+def test_tiny_scenes_and_larger_leaves(device, rng, num_small, max_leaf):
+    verts, faces = large_and_small(rng, num_small, 1 if num_small < 2 else 6)
+    bvh = hw.build(verts, faces, method="sbvh", device=device,
+                   config=hw.BuildConfig(sbvh_alpha=0.0, max_leaf_size=max_leaf))
+    tree = bvh.to_numpy()
+    leaves = tree["node_left"] < 0
+    assert (tree["node_end"] - tree["node_begin"])[leaves].max() <= max_leaf
+    check_parts_bounded(bvh, verts, faces)
+    o, d = random_rays(rng, verts, 300)
+    assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
