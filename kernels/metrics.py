@@ -276,6 +276,16 @@ def clip_polygon(polygon: mat93d, count: int, axis: int, bound: wp.float64, sign
 
 
 @wp.func
+def clip_to_slab(polygon: mat93d, count: int, axis: int, lower: wp.float64, upper: wp.float64):
+    """The part of the polygon with lower <= p[axis] <= upper."""
+    if count > 0:
+        polygon, count = clip_polygon(polygon, count, axis, lower, wp.float64(1.0))
+    if count > 0:
+        polygon, count = clip_polygon(polygon, count, axis, upper, wp.float64(-1.0))
+    return polygon, count
+
+
+@wp.func
 def triangle_in_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
     """The polygon of triangle abc inside the closed box [lower, upper], in float64 (the EPO's
     overlap; the part of a triangle a spatial-split reference stands for)."""
@@ -285,10 +295,7 @@ def triangle_in_box(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: w
     polygon[2] = wp.vec3d(c)
     count = int(3)
     for axis in range(3):
-        if count > 0:
-            polygon, count = clip_polygon(polygon, count, axis, wp.float64(lower[axis]), wp.float64(1.0))
-        if count > 0:
-            polygon, count = clip_polygon(polygon, count, axis, wp.float64(upper[axis]), wp.float64(-1.0))
+        polygon, count = clip_to_slab(polygon, count, axis, wp.float64(lower[axis]), wp.float64(upper[axis]))
     return polygon, count
 
 

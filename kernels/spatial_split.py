@@ -22,7 +22,7 @@ from, so a reference's box always contains its part of the triangle and its pare
 
 import warp as wp
 
-from .metrics import box_area64, clip_polygon, mat93d, triangle_in_box
+from .metrics import box_area64, clip_to_slab, mat93d, triangle_in_box
 from .recursive_sah import bin_of as centroid_bin
 from .sah import BIG, MAX_SWEEP_BINS, sweep_bin_boundaries
 
@@ -86,12 +86,7 @@ def slab_part_box(polygon: mat93d, count: int, axis: int, lower: wp.vec3, upper:
     float32 and clamped to [lower, upper] (the reference's box narrowed to the slab). Where the
     cut leaves nothing (the part touches the slab only by rounding) [lower, upper] itself is
     returned: conservative, never inverted."""
-    part = polygon
-    n = count
-    if n > 0:
-        part, n = clip_polygon(part, n, axis, wp.float64(lower[axis]), wp.float64(1.0))
-    if n > 0:
-        part, n = clip_polygon(part, n, axis, wp.float64(upper[axis]), wp.float64(-1.0))
+    part, n = clip_to_slab(polygon, count, axis, wp.float64(lower[axis]), wp.float64(upper[axis]))
     if n == 0:
         return lower, upper
     lo = part[0]
