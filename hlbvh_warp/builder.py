@@ -27,6 +27,7 @@ arrays never synchronize, and on CUDA ``rebuild`` can be captured in a CUDA grap
 from __future__ import annotations
 
 import collections
+import math
 import time
 
 import numpy as np
@@ -51,6 +52,12 @@ PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 # Adjacent pairs of the previous tree's order sampled to decide whether resorting pays (the
 # estimate of M / N is within about 0.03 (one standard error) of the whole order's).
 RESORT_SAMPLES = 256
+
+
+def _finite_or_none(cost: float) -> float | None:
+    """A tree's SAH cost as the auto policy's reference, or None for a tree boxed over a NaN or
+    Inf frame, whose cost would make every later growth NaN and never exceed the limit."""
+    return cost if math.isfinite(cost) else None
 
 
 class Builder:
@@ -199,7 +206,8 @@ class Builder:
     # --------------------------------------------------------------- inputs
     @staticmethod
     def _check_points(values, name: str) -> int:
-        """Shape and dtype checks only; NaN/Inf checks for NumPy input (already on the host)."""
+        """Shape and dtype checks only; NaN/Inf and float32-range checks for NumPy input (already on
+        the host; device arrays are not read back, see `build_from_bounds`)."""
         if isinstance(values, wp.array):
             if values.dtype == wp.vec3 and values.ndim == 1:
                 return values.shape[0]
@@ -210,9 +218,7 @@ class Builder:
         arr = np.asarray(values)
         if arr.dtype.kind != "f" or arr.ndim != 2 or arr.shape[1] != 3:
             raise ValueError(f"{name} must be floats of shape (N, 3), got {arr.dtype} {arr.shape}")
-        if not np.isfinite(arr).all():
-            row = int(np.argwhere(~np.isfinite(arr))[0][0])
-            raise ValueError(f"{name} has a NaN or Inf coordinate (first at row {row})")
+        inputs.check_float32_range(arr, name)
         return arr.shape[0]
 
     def _source(self, values, name: str, rows: int) -> wp.array:
@@ -386,12 +392,15 @@ class Builder:
         self.frame = 0
         self.reports.clear()
         self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait
+        # The auto policy's refit history belongs to the previous mesh, not this one.
+        self.refits_since_rebuild = 0
+        self.previous_growth = self.last_growth = 0.0
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
         stages = self._finish(timer)
         if self.policy == "auto":
-            self.sah_reference = self.sah_cost()
+            self.sah_reference = _finite_or_none(self.sah_cost())
         self._report("rebuild", "first build", start, stages)
         return self.bvh
 
@@ -588,7 +597,12 @@ class Builder:
         measured = self._load_and_measure(sources)
         self.pipeline._launch(dynamic.root_diagonal_kernel, 1, [self.bvh.node_lowers, self.bvh.node_uppers, self.stats])
         moved, diagonal = (float(x) for x in self.stats.numpy())
-        relative = moved / diagonal if diagonal > 0.0 else (0.0 if moved == 0.0 else float("inf"))
+        if 0.0 < diagonal < math.inf:
+            relative = moved / diagonal
+        else:
+            # A zero-size scene, or a last tree boxed over NaN or Inf (a device frame that blew
+            # up): any motion counts as large, and the tree is rebuilt.
+            relative = 0.0 if moved == 0.0 else math.inf
         extra = {"max_displacement": moved, "relative_motion": relative} if measured else {}
         skipped = []
         large = False
@@ -635,7 +649,7 @@ class Builder:
             # would understate how far the refit tree has fallen behind.
             growth = sah / self.sah_reference - 1.0
             extra.update(sah_refit=sah, sah_growth=growth)
-            if growth > self.sah_growth_limit:
+            if not growth <= self.sah_growth_limit:  # NaN too: a refit over a non-finite frame
                 decision = "rebuild"
                 reason = (f"small motion ({relative:.2%} of the diagonal) but the refit SAH cost grew "
                           f"{growth:+.1%} over its best since the last rebuild (limit {self.sah_growth_limit:.0%})")
@@ -672,7 +686,8 @@ class Builder:
                     self.sah_reference = None
             else:
                 timer.stage("sah")
-                self.sah_reference = self.sah_cost()
+                # A tree over a non-finite frame has a NaN cost: no refit may be judged by it.
+                self.sah_reference = _finite_or_none(self.sah_cost())
                 extra["sah"] = self.sah_reference
         elif decision == "refit":
             extra["sah"] = extra["sah_refit"]

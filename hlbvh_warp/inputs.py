@@ -25,13 +25,19 @@ def _check_points(values, name: str) -> np.ndarray:
         raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
     if arr.dtype != np.float32:
         arr = arr.astype(np.float64, copy=False)
+    check_float32_range(arr, name)
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def check_float32_range(arr: np.ndarray, name: str):
+    """Raise if host coordinates hold a NaN or Inf, or would not fit in float32: every build
+    narrows them to float32, where 1e39 would silently become Inf."""
     if not np.isfinite(arr).all():
         row = int(np.argwhere(~np.isfinite(arr))[0][0])
         raise ValueError(f"{name} has a NaN or Inf coordinate (first at row {row}: {arr[row].tolist()})")
     # A finite float32 is in range by definition; wider input must fit before it is narrowed.
     if arr.dtype != np.float32 and arr.size and np.abs(arr).max() > np.finfo(np.float32).max:
         raise ValueError(f"{name} has a coordinate beyond the float32 range")
-    return np.ascontiguousarray(arr, dtype=np.float32)
 
 
 def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:

@@ -94,9 +94,15 @@ def load_and_measure_kernel(
     largest = float(0.0)
     for i in range(begin, end):
         p = source[i]
-        d = wp.length_sq(p - dest[i])
+        q = dest[i]
+        d = wp.length_sq(p - q)
         if d != d:
             d = 3.4e38
+        elif d == 0.0:
+            # A move below about 1e-19 squares to zero in float32 (a particle near the origin),
+            # and "nothing moved" would keep a stale tree: it counts as the smallest normal square.
+            if p[0] != q[0] or p[1] != q[1] or p[2] != q[2]:
+                d = 1.17549435e-38
         largest = wp.max(largest, d)
         dest[i] = p
     if largest > 0.0:

@@ -138,6 +138,14 @@ def test_auto_policy_forces_rebuild_after_max_refits(small_scene):
     builder.build(mesh.vertices, f)
     decisions = [builder.update(mesh.update(k * 0.005))["decision"] for k in range(1, 5)]
     assert decisions == ["refit", "refit", "rebuild", "refit"]
+    # A new build starts a new history: the previous mesh's refits do not count against it.
+    builder.update(mesh.update(0.03))
+    assert builder.refits_since_rebuild == 2
+    builder.build(v, f)
+    fresh = Builder(len(f), device="cpu", policy="auto", max_refits=2)
+    fresh.build(v, f)
+    frame = BendingMesh(v, f, device="cpu").update(0.005).numpy()
+    assert builder.update(frame)["decision"] == fresh.update(frame)["decision"] == "refit"
 
 
 def test_auto_beats_rebuild_every_frame_on_bending(device):
@@ -207,6 +215,11 @@ def test_inputs_are_validated(small_scene):
         builder.rebuild(bad)
     with pytest.raises(ValueError):
         builder.rebuild(wp.zeros(len(v), dtype=wp.float32, device="cpu"))
+    huge = v.astype(np.float64)
+    huge[3, 2] = 1e39  # finite in float64, Inf once narrowed to float32
+    for call in (builder.rebuild, builder.refit, builder.update):
+        with pytest.raises(ValueError, match="float32 range"):
+            call(huge)
     for kwargs in ({"policy": "sometimes"}, {"method": "sweep_sah"}, {"sah_growth_limit": -1.0}):
         with pytest.raises(ValueError):
             Builder(len(f), device="cpu", **kwargs)

@@ -164,6 +164,8 @@ def test_box_builder_rejects_bad_frames_and_keeps_its_tree(device, rng):
     nan[7, 1] = np.nan
     inverted = uppers.copy()
     inverted[3] = lowers[3] - 1.0
+    huge = uppers.astype(np.float64)
+    huge[9, 0] = 1e39
     bad = [
         (dict(bounds=(nan, uppers)), "NaN or Inf"),
         (dict(bounds=(lowers, inverted)), "box 3 has lowers > uppers"),
@@ -171,6 +173,9 @@ def test_box_builder_rejects_bad_frames_and_keeps_its_tree(device, rng):
         (dict(bounds=(lowers,)), "pair"),
         (dict(bounds=(lowers[:, :2], uppers)), "shape"),
         (dict(vertices=lowers), "set up with boxes"),
+        # float64 that float32 cannot hold would become Inf when narrowed for the build.
+        (dict(bounds=(lowers, huge)), "float32 range"),
+        (dict(bounds=(wp.array(lowers, dtype=wp.vec3, device=device), huge)), "float32 range"),
     ]
     for kwargs, message in bad:
         for call in (builder.update, builder.rebuild, builder.refit):
@@ -253,3 +258,48 @@ def test_non_finite_device_boxes_neither_crash_nor_stick(device, rng, policy):
                            wp.array(uppers, dtype=wp.vec3, device=device)))
     # Under `refit` the topology is still the first frame's; every box is recomputed exactly.
     check_frame(builder, lowers, uppers, rng)
+
+
+def test_auto_counts_a_move_too_small_to_square_in_float32(device, rng):
+    # A point box at the origin moving by 1e-24 (or the smallest subnormal) squares to zero in
+    # float32; the frame moved all the same, and "nothing moved" would keep a stale tree.
+    lowers = rng.random((300, 3)).astype(np.float32) * 2.0 - 1.0
+    lowers[7] = 0.0
+    uppers = lowers + np.float32(0.01)
+    uppers[7] = 0.0
+    for step in (np.float32(1e-24), np.nextafter(np.float32(0.0), np.float32(1.0))):
+        builder = Builder(300, device=device, policy="auto")
+        builder.build_from_bounds(lowers, uppers)
+        moved_lo, moved_hi = lowers.copy(), uppers.copy()
+        moved_lo[7] = moved_hi[7] = step
+        report = builder.update(bounds=(moved_lo, moved_hi))
+        assert report["decision"] != "none", report
+        assert report["max_displacement"] > 0.0
+        check_frame(builder, moved_lo, moved_hi, rng)
+
+
+def test_auto_sets_no_sah_reference_from_a_non_finite_frame(device, rng):
+    # Two frames with the same infinite corners: the second moved by Inf - Inf = NaN over a root
+    # diagonal of Inf, which read as no motion relative to the scene, so it rebuilt and priced its
+    # tree at Inf / Inf = NaN. Taken as the reference, that made every later growth NaN, which
+    # never exceeds the limit, so `auto` kept refitting that tree's topology until `max_refits`
+    # ran out. A refit must only ever be judged against a finite reference.
+    particles = Particles(rng, 2000, speed=0.0005)
+    builder = Builder(2000, device=device, policy="auto", max_refits=50)
+    lowers, uppers = particles.bounds()
+    builder.build_from_bounds(lowers, uppers)
+    bad_lowers = lowers.copy()
+    bad_lowers[::5] = -np.inf
+    for _ in range(2):
+        builder.update(bounds=(wp.array(bad_lowers, dtype=wp.vec3, device=device),
+                               wp.array(uppers, dtype=wp.vec3, device=device)))
+    assert builder.sah_reference is None
+    for _ in range(6):
+        lowers, uppers = particles.step()
+        report = builder.update(bounds=(lowers, uppers))
+        assert builder.sah_reference is None or np.isfinite(builder.sah_reference)
+        if report["decision"] == "refit":
+            assert np.isfinite(report["sah_growth"]), report
+        fresh = metrics.sah_cost(hw.build_from_bounds(lowers, uppers, device=device))
+        assert metrics.sah_cost(builder.bvh) <= fresh * (1.0 + builder.sah_growth_limit) * 1.01
+        check_frame(builder, lowers, uppers, rng)
