@@ -109,6 +109,22 @@ class BuildConfig:
     global_sort_runs: float = 0.3
 
     def __post_init__(self):
+        # Types first, so a wrong one raises a ValueError naming the field, not a TypeError from a
+        # comparison or a kernel launch that cannot pack a float into an int parameter.
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if field.name in ("coarse_bits", "morton_bounds") and value is None:
+                continue
+            if field.type.startswith("int"):
+                if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                    raise ValueError(f"BuildConfig: {field.name} must be an integer (got {value!r})")
+                object.__setattr__(self, field.name, int(value))
+            elif field.type == "float":
+                if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                    raise ValueError(f"BuildConfig: {field.name} must be a number (got {value!r})")
+                object.__setattr__(self, field.name, float(value))
+            elif field.type == "str" and not isinstance(value, str):
+                raise ValueError(f"BuildConfig: {field.name} must be a string (got {value!r})")
         checks = [
             (1 <= self.bits_per_axis <= MAX_BITS_PER_AXIS, f"bits_per_axis must be in [1, {MAX_BITS_PER_AXIS}]"),
             (

@@ -69,11 +69,12 @@ def build_sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
     seg_end = np.full(1, n, np.int64)
     seg_open = np.ones(1, bool)
     arena = []  # per level: (split nodes, their left children)
-    # At most max_refs leaves of at least one reference each: 2 max_refs - 1 nodes.
-    capacity = max(2 * max_refs - 1, 1)
-    node_left = np.full(capacity, -1, np.int32)
-    node_lo = np.zeros((capacity, 3), np.float32)
-    node_hi = np.zeros((capacity, 3), np.float32)
+    # Room for the tree without duplicates (2n - 1 nodes), grown as levels need more: the budget
+    # bounds the tree at 2 max_refs - 1 nodes, but a large budget (meant as "no limit") is
+    # rarely spent, and allocating for it up front could ask for terabytes.
+    node_left = np.full(max(2 * n - 1, 1), -1, np.int32)
+    node_lo = np.zeros((len(node_left), 3), np.float32)
+    node_hi = np.zeros((len(node_left), 3), np.float32)
     num_nodes = 1
     while True:
         num_seg = len(seg_node)
@@ -134,6 +135,11 @@ def build_sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
         parents = seg_node[split]
         first_child = num_nodes + 2 * np.arange(len(parents))
         arena.append((parents, first_child))
+        if num_nodes + 2 * len(parents) > len(node_left):
+            grow = max(num_nodes + 2 * len(parents), 2 * len(node_left)) - len(node_left)
+            node_left = np.concatenate([node_left, np.full(grow, -1, np.int32)])
+            node_lo = np.concatenate([node_lo, np.zeros((grow, 3), np.float32)])
+            node_hi = np.concatenate([node_hi, np.zeros((grow, 3), np.float32)])
         node_left[parents] = first_child
         num_nodes += 2 * len(parents)
         # The next level's segments: a leaf stays one, a split node becomes its two children.

@@ -42,6 +42,17 @@ KIND_HALVE = wp.constant(3)
 # for values near zero.
 OUTWARD = wp.constant(2.4e-7)
 TINY = wp.constant(1.0e-30)
+# The float64 clip's own error is relative to the triangle's coordinates, not to its clipped
+# part's: a part near the origin cut from a triangle spanning +-1e6 is off by about 1e-11, far
+# more than one float32 unit of the part's coordinates. Parts are widened by 2^-44 (about 256
+# float64 units) of the triangle's largest coordinate.
+CLIP_MARGIN = wp.constant(5.684342e-14)
+
+
+@wp.func
+def clip_margin(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    m = wp.max(wp.max(wp.abs(a), wp.abs(b)), wp.abs(c))
+    return wp.max(wp.max(m[0], m[1]), m[2]) * CLIP_MARGIN
 
 
 @wp.func
@@ -69,44 +80,49 @@ def planes_at_or_below(x: float, lower: float, extent: float, num_bins: int, str
 
 
 @wp.func
-def round_down(x: wp.float64) -> float:
-    f = float(x)
-    return f - (wp.abs(f) * OUTWARD + TINY)
-
-
-@wp.func
-def round_up(x: wp.float64) -> float:
-    f = float(x)
-    return f + (wp.abs(f) * OUTWARD + TINY)
-
-
-@wp.func
-def slab_part_box(polygon: mat93d, count: int, axis: int, lower: wp.vec3, upper: wp.vec3):
-    """The box of the polygon's part with lower[axis] <= x[axis] <= upper[axis], rounded outward to
-    float32 and clamped to [lower, upper] (the reference's box narrowed to the slab). Where the
-    cut leaves nothing (the part touches the slab only by rounding) [lower, upper] itself is
-    returned: conservative, never inverted."""
-    part, n = clip_to_slab(polygon, count, axis, wp.float64(lower[axis]), wp.float64(upper[axis]))
-    if n == 0:
-        return lower, upper
-    lo = part[0]
-    hi = part[0]
-    for i in range(1, n):
-        lo = wp.min(lo, part[i])
-        hi = wp.max(hi, part[i])
-    out_lo = wp.vec3(round_down(lo[0]), round_down(lo[1]), round_down(lo[2]))
-    out_hi = wp.vec3(round_up(hi[0]), round_up(hi[1]), round_up(hi[2]))
-    return wp.max(out_lo, lower), wp.min(out_hi, upper)
-
-
-@wp.func
 def slab_box(lower: wp.vec3, upper: wp.vec3, axis: int, lo: float, hi: float):
-    # [lower, upper] with its extent along `axis` narrowed to [lo, hi] (which lie inside it).
+    # [lower, upper] with its extent along `axis` narrowed to [lo, hi] (clamped to it).
     l = lower
     u = upper
     l[axis] = wp.max(lower[axis], lo)
     u[axis] = wp.min(upper[axis], hi)
     return l, u
+
+
+@wp.func
+def round_down(x: wp.float64, margin: float) -> float:
+    f = float(x)
+    return f - (wp.abs(f) * OUTWARD + margin + TINY)
+
+
+@wp.func
+def round_up(x: wp.float64, margin: float) -> float:
+    f = float(x)
+    return f + (wp.abs(f) * OUTWARD + margin + TINY)
+
+
+@wp.func
+def slab_part_box(polygon: mat93d, count: int, axis: int, ref_lo: wp.vec3, ref_hi: wp.vec3, slab_lo: float,
+                  slab_hi: float, margin: float):
+    """The box of the polygon's part with slab_lo <= x[axis] <= slab_hi, widened by the clip's
+    `margin` (`clip_margin`), rounded outward to float32 and clamped to the reference's box
+    [ref_lo, ref_hi], along `axis` to the slab widened by the margin. A point of the triangle
+    that the clip's rounding put just across the plane lies in one side's part or the other's
+    (both sides cut at the same crossings), so the margin must reach across the plane too.
+    Where the cut leaves nothing (the part touches the slab only by rounding) the reference's
+    box narrowed to the slab is returned: conservative, never inverted."""
+    part, n = clip_to_slab(polygon, count, axis, wp.float64(slab_lo), wp.float64(slab_hi))
+    if n == 0:
+        return slab_box(ref_lo, ref_hi, axis, slab_lo, slab_hi)
+    lo = part[0]
+    hi = part[0]
+    for i in range(1, n):
+        lo = wp.min(lo, part[i])
+        hi = wp.max(hi, part[i])
+    out_lo = wp.vec3(round_down(lo[0], margin), round_down(lo[1], margin), round_down(lo[2], margin))
+    out_hi = wp.vec3(round_up(hi[0], margin), round_up(hi[1], margin), round_up(hi[2], margin))
+    clamp_lo, clamp_hi = slab_box(ref_lo, ref_hi, axis, slab_lo - margin, slab_hi + margin)
+    return wp.max(out_lo, clamp_lo), wp.min(out_hi, clamp_hi)
 
 
 @wp.kernel
@@ -236,6 +252,7 @@ def split_search_kernel(
         tri = ref_tri[k]
         polygon = mat93d()
         count = int(-1)  # the reference's polygon, clipped on first need
+        margin = float(0.0)
         for axis in range(3):
             if size[axis] > 0.0:
                 b0 = planes_at_or_below(lo[axis], box_lo[axis], size[axis], num_bins, 0)
@@ -248,8 +265,11 @@ def split_search_kernel(
                     boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
                 else:
                     if count < 0:
-                        polygon, count = triangle_in_box(vertices[faces[tri, 0]], vertices[faces[tri, 1]],
-                                                         vertices[faces[tri, 2]], lo, hi)
+                        a = vertices[faces[tri, 0]]
+                        bv = vertices[faces[tri, 1]]
+                        cv = vertices[faces[tri, 2]]
+                        polygon, count = triangle_in_box(a, bv, cv, lo, hi)
+                        margin = clip_margin(a, bv, cv)
                     for bb in range(b0, b1 + 1):
                         slab_lo = lo[axis]
                         slab_hi = hi[axis]
@@ -257,8 +277,7 @@ def split_search_kernel(
                             slab_lo = slab_plane(box_lo[axis], size[axis], bb, num_bins)
                         if bb < b1:
                             slab_hi = slab_plane(box_lo[axis], size[axis], bb + 1, num_bins)
-                        clip_lo, clip_hi = slab_box(lo, hi, axis, slab_lo, slab_hi)
-                        part_lo, part_hi = slab_part_box(polygon, count, axis, clip_lo, clip_hi)
+                        part_lo, part_hi = slab_part_box(polygon, count, axis, lo, hi, slab_lo, slab_hi, margin)
                         slot = axis * num_bins + bb
                         boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), part_lo)
                         boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), part_hi)
@@ -352,16 +371,17 @@ def distribute_kernel(
                 to_right = 1
         if to_left == 1 and to_right == 1:
             # Straddles the plane: each side gets the box of its part of the triangle.
-            polygon, count = triangle_in_box(vertices[faces[tri, 0]], vertices[faces[tri, 1]], vertices[faces[tri, 2]],
-                                             lo, hi)
-            clip_lo, clip_hi = slab_box(lo, hi, axis, lo[axis], plane)
-            part_lo, part_hi = slab_part_box(polygon, count, axis, clip_lo, clip_hi)
+            a = vertices[faces[tri, 0]]
+            bv = vertices[faces[tri, 1]]
+            cv = vertices[faces[tri, 2]]
+            polygon, count = triangle_in_box(a, bv, cv, lo, hi)
+            margin = clip_margin(a, bv, cv)
+            part_lo, part_hi = slab_part_box(polygon, count, axis, lo, hi, lo[axis], plane, margin)
             out_tri[left] = tri
             out_lo[left] = part_lo
             out_hi[left] = part_hi
             left += 1
-            clip_lo, clip_hi = slab_box(lo, hi, axis, plane, hi[axis])
-            part_lo, part_hi = slab_part_box(polygon, count, axis, clip_lo, clip_hi)
+            part_lo, part_hi = slab_part_box(polygon, count, axis, lo, hi, plane, hi[axis], margin)
             out_tri[right] = tri
             out_lo[right] = part_lo
             out_hi[right] = part_hi

@@ -146,6 +146,25 @@ def test_cluster_min_prims_validated():
         hw.BuildConfig(cluster_min_prims=-1.0)
 
 
+@pytest.mark.parametrize("field, value", [("sbvh_bins", 8.0), ("max_leaf_size", 2.5), ("cpu_threads", True),
+                                          ("coarse_bits", "3"), ("sbvh_alpha", None), ("sah_bins", None),
+                                          ("global_sort_runs", "0.3"), ("emission", 3)])
+def test_config_types_are_checked(field, value):
+    # A float where a kernel takes an int failed only at launch ("unable to pack kernel
+    # parameter"), and None or a string in a numeric field raised a TypeError from a comparison.
+    with pytest.raises(ValueError, match=field):
+        hw.BuildConfig(**{field: value})
+
+
+def test_config_takes_numpy_scalars_as_plain_numbers(device, rng):
+    config = hw.BuildConfig(sah_bins=np.int64(8), max_leaf_size=np.int32(2), sbvh_alpha=0)
+    assert type(config.sah_bins) is int and type(config.sbvh_alpha) is float
+    assert config == hw.BuildConfig(sah_bins=8, max_leaf_size=2, sbvh_alpha=0.0)
+    verts, faces = random_soup(rng, 200)
+    bvh = hw.build(verts, faces, method="binned_sah", device=device, config=config)
+    check_tree_invariants(bvh.to_numpy(), len(faces), 2)
+
+
 def test_hlbvh_sah_binned_top_costs_little(device, rng, monkeypatch):
     # The cluster tree bins its largest nodes; pricing every position instead must not be
     # noticeably better (and the binned tree must still be a valid tree).

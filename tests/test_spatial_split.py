@@ -185,6 +185,18 @@ def test_reference_budget(device, rng, budget):
     assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
 
 
+def test_a_budget_meant_as_no_limit_allocates_only_the_tree(device, rng):
+    # Node storage grows with the tree: a budget of 1e12 references per triangle once asked for
+    # terabytes up front. Where neither budget is spent, both give the same tree.
+    verts, faces = large_and_small(rng, 200, 8)
+    trees = [hw.build(verts, faces, method="sbvh", device=device,
+                      config=hw.BuildConfig(sbvh_alpha=0.0, sbvh_max_duplication=budget)).to_numpy()
+             for budget in (3.0, 1e12)]
+    assert len(trees[0]["prim_order"]) < 4 * len(faces)
+    for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order", "node_lowers", "node_uppers"):
+        np.testing.assert_array_equal(trees[0][name], trees[1][name], err_msg=name)
+
+
 def test_degenerate_and_coincident_triangles(device, rng):
     verts, faces = slivers(rng, 60)
     tris = verts.reshape(-1, 3, 3).copy()
@@ -243,4 +255,51 @@ def test_tiny_scenes_and_larger_leaves(device, rng, num_small, max_leaf):
     assert (tree["node_end"] - tree["node_begin"])[leaves].max() <= max_leaf
     check_parts_bounded(bvh, verts, faces)
     o, d = random_rays(rng, verts, 300)
+    assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
+
+
+def test_parts_cut_far_from_their_triangles_vertices_keep_every_point(device, rng):
+    # Long triangles spanning +-1e6 in the plane y = -x, cut by spatial splits down to parts near
+    # the origin among small triangles along the same line. The float64 clip is accurate to the
+    # triangle's coordinates (about 1e-10 here), not to the part's (1e-5): rounded outward by the
+    # part's own float32 unit, two parts of a triangle left gaps of about 4e-11 between their
+    # boxes, and rays through them missed a triangle they hit 0.2 inside its edges.
+    radius, num_long, num_small = 1e6, 12, 4000
+    z = np.arange(num_long) * 2.0
+    long_tris = np.stack([np.stack([np.full(num_long, -radius), np.full(num_long, radius), z], 1),
+                          np.stack([np.full(num_long, radius), np.full(num_long, -radius), z], 1),
+                          np.stack([np.full(num_long, -radius), np.full(num_long, radius), z + 1.0], 1)], 1)
+    size = 10.0 ** rng.uniform(-5, 6, num_small) * rng.choice([-1.0, 1.0], num_small)
+    centers = np.stack([size, -size, rng.uniform(0, 2 * num_long, num_small)], 1)
+    small = centers[:, None] + (np.abs(size)[:, None, None] * 0.05 + 1e-7) * rng.normal(size=(num_small, 3, 3))
+    verts = np.concatenate([long_tris, small]).astype(np.float32).reshape(-1, 3)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    bvh = hw.build(verts, faces, method="sbvh", device=device,
+                   config=hw.BuildConfig(sbvh_alpha=0.0, sbvh_max_duplication=3.0))
+    assert bvh.has_duplicates
+    # Points (x, -x, z) of each long triangle (exactly on it) a few float32 units either side of
+    # every edge of its leaves' boxes near the origin, at heights inside the box and the triangle:
+    # each must lie in some leaf box that references the triangle, compared exactly.
+    tree = bvh.to_numpy()
+    leaves = np.nonzero(tree["node_left"] < 0)[0]
+    order, begin, end = tree["prim_order"], tree["node_begin"], tree["node_end"]
+    leaf_of = np.repeat(leaves, end[leaves] - begin[leaves])
+    ref_tri = np.concatenate([order[begin[leaf]:end[leaf]] for leaf in leaves])
+    steps = np.array([-32, -16, -8, -4, -2, -1, 1, 2, 4, 8, 16, 32], np.float64)
+    for k in range(num_long):
+        holding = leaf_of[ref_tri == k]
+        lo, hi = tree["node_lowers"][holding].astype(np.float64), tree["node_uppers"][holding].astype(np.float64)
+        edges = np.concatenate([lo[:, 0], hi[:, 0], -lo[:, 1], -hi[:, 1]])
+        z_lo = np.tile(np.maximum(lo[:, 2], z[k] + 0.01), 4)  # the triangle's height at |x| << 1e6:
+        z_hi = np.tile(np.minimum(hi[:, 2], z[k] + 0.49), 4)  # from z to z + 0.5
+        keep = (np.abs(edges) < 100.0) & (z_lo < z_hi)
+        edges, z_lo, z_hi = edges[keep], z_lo[keep], z_hi[keep]
+        unit = np.spacing(np.abs(edges).astype(np.float32)).astype(np.float64)
+        xs = (edges[:, None] + steps[None] * unit[:, None]).ravel()
+        zs = (z_lo[:, None] + (z_hi - z_lo)[:, None] * rng.random((len(edges), len(steps)))).ravel()
+        points = np.stack([xs, -xs, zs], 1)
+        inside = ((points[:, None] >= lo[None]) & (points[:, None] <= hi[None])).all(-1).any(1)
+        assert inside.all(), f"{int((~inside).sum())} points of triangle {k} lie in none of its leaves"
+    # And random rays against the brute force.
+    o, d = random_rays(rng, verts, 500)
     assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
