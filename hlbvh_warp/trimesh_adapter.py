@@ -40,9 +40,23 @@ class RayMeshIntersector:
         return self._bvh
 
     def _locations(self, index_ray, index_tri, t, ray_origins, ray_directions):
+        """Hit points in float64, each on its triangle's plane, as trimesh computes them. The
+        traversal's float32 t of two triangles meeting at an edge the ray crosses can differ by a
+        unit in the last place, which puts o + d t about 6e-8 apart on a unit mesh, past the 1e-8
+        at which trimesh merges a ray's equal locations: the edge crossing was listed twice. Where
+        the plane's distance is ill-conditioned (a ray nearly in the plane, a degenerate
+        triangle) the traversal's t stands."""
         o = np.asarray(ray_origins, dtype=np.float64)[index_ray]
         d = np.asarray(ray_directions, dtype=np.float64)[index_ray]
-        return o + d * np.asarray(t, dtype=np.float64)[:, None]
+        t = np.asarray(t, dtype=np.float64)
+        tri = np.asarray(self.mesh.vertices, dtype=np.float64)[np.asarray(self.mesh.faces)[index_tri]]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_plane = np.einsum("ij,ij->i", normal, tri[:, 0] - o) / np.einsum("ij,ij->i", normal, d)
+        # Within float32's error of the traversal's t (a few units of 2^-24): the same crossing.
+        close = np.isfinite(t_plane) & (np.abs(t_plane - t) <= 1e-5 * np.abs(t))
+        t = np.where(close, t_plane, t)
+        return o + d * t[:, None]
 
     def intersects_id(self, ray_origins, ray_directions, return_locations=False, multiple_hits=True, **kwargs):
         """Triangles hit by each ray, as trimesh's.
@@ -94,4 +108,5 @@ class RayMeshIntersector:
         """Whether each point is inside the (watertight) mesh, by trimesh's ray-parity test."""
         from trimesh.ray.ray_util import contains_points
 
+        self.bvh  # an empty mesh raises our ValueError here, not a TypeError inside trimesh
         return contains_points(self, points)

@@ -39,6 +39,8 @@ vec64f = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.float32)
 # Ize 2013: 1 + 2 * gamma(3), gamma(n) = n * eps / (1 - n * eps), eps = 2^-24.
 FAR_PAD = wp.constant(1.0 + 2.0 * (3.0 * 5.960464477539063e-08) / (1.0 - 3.0 * 5.960464477539063e-08))
 INF = wp.constant(float("inf"))
+# Below this the float32 determinant is near the subnormals (2^-126 = 1.2e-38): decided in float64.
+DET_FLOOR = wp.constant(1.0e-35)
 STACK_SIZE = wp.constant(TRAVERSAL_STACK_SIZE)
 
 
@@ -173,9 +175,11 @@ def intersect_triangle_watertight(
     t = float(0.0)
     bary_b = float(0.0)
     bary_c = float(0.0)
-    if u == 0.0 or v == 0.0 or w == 0.0 or not wp.isfinite(det):
+    if u == 0.0 or v == 0.0 or w == 0.0 or not wp.isfinite(det) or wp.abs(det) < DET_FLOOR:
         # An edge function of exactly zero is decided in float64 so that neighbours agree; the
-        # same path keeps coordinates near 1e19 (products overflow float32) finite.
+        # same path keeps coordinates near 1e19 (products overflow float32) finite, and those
+        # near 1e-19 exact: their products fall among float32's subnormals, where 1 / det
+        # overflows and the edge functions lose their digits.
         u64 = wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx)
         v64 = wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx)
         w64 = wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax)

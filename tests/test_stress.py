@@ -129,6 +129,23 @@ def test_traversal_exact_on_a_chain_deeper_than_the_stack(device, rng):
     assert (counts >= 1).all()
 
 
+def test_tiny_triangles_at_every_scale(device, rng):
+    # Between about 1e-19 and 1e-22 the float32 edge functions and their sum fall among the
+    # subnormals: 1 / det overflowed and every ray missed, while 1e-18 (the tiny scene family)
+    # and 1e-25 (products of exactly zero, decided in float64) were hit.
+    for exponent in range(-26, -14):
+        scale = 10.0**exponent
+        verts, faces = stress_report._soup(rng, 40, scale=scale, offset=rng.normal() * scale)
+        bvh = api.build(verts, faces, method="hlbvh", device=device)
+        for kind, (o, d) in stress_report.ray_families(rng, verts, faces, num_rays=60).items():
+            t, prim = query.intersect(bvh, o, d)
+            t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+            assert (prim_ref >= 0).any() or kind != "random"
+            _, unexplained = stress_report.classify(verts, faces, o, d, t, prim, t_ref, prim_ref)
+            assert unexplained == 0, (scale, kind)
+            assert np.array_equal(query.occluded(bvh, o, d), prim >= 0), (scale, kind)
+
+
 def test_nan_inf_rays_miss_and_bad_shapes_raise(device, rng):
     verts, faces = stress_report.scene_soup(rng)
     bvh = api.build(verts, faces, device=device)

@@ -76,6 +76,32 @@ def test_intersects_id_and_location(device, rng, reference):
     assert np.allclose(loc[key], loc_ref[key_ref], atol=1e-5)
 
 
+def test_edge_and_vertex_crossings_are_one_location(device, rng, reference):
+    # Rays from inside a closed convex mesh through its edges' midpoints and its vertices: one
+    # crossing each, where two (or five, six) triangles' float32 t differ by a unit in the last
+    # place. trimesh merges a ray's locations within 1e-8, so ours must be that close too.
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    targets = np.concatenate([mesh.vertices[mesh.edges_unique].mean(axis=1), mesh.vertices])
+    o = rng.uniform(-0.05, 0.05, size=(len(targets), 3))
+    d = targets - o
+    loc, ray, _ = ours.intersects_location(o, d)
+    loc_ref, ray_ref, _ = ref.intersects_location(o, d)
+    assert np.array_equal(np.bincount(ray_ref, minlength=len(o)), np.ones(len(o), int))
+    assert np.array_equal(np.sort(ray), np.arange(len(o)))
+    assert np.allclose(loc[np.argsort(ray)], targets, atol=1e-6)
+
+
+def test_empty_mesh_raises_on_every_call(device):
+    mesh = trimesh.Trimesh(vertices=[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    ours = RayMeshIntersector(mesh, device=device)
+    o, d = np.array([[0.2, 0.2, -1.0]]), np.array([[0.0, 0.0, 1.0]])
+    for call, args in (("intersects_first", (o, d)), ("intersects_any", (o, d)), ("intersects_id", (o, d)),
+                       ("intersects_location", (o, d)), ("contains_points", (o,))):
+        with pytest.raises(ValueError, match="empty"):
+            getattr(ours, call)(*args)
+
+
 def test_empty_results_and_contains(device, rng, reference):
     mesh = trimesh.creation.icosphere(subdivisions=2)
     ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
