@@ -320,7 +320,8 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
     Works on every BVH, built from a mesh (triangle boxes) or from bare boxes.
 
     Args:
-        lowers, uppers: ``(Q, 3)`` query boxes.
+        lowers, uppers: ``(Q, 3)`` query boxes. A box with lowers > uppers on an axis is empty
+            and overlaps nothing, as does one with a NaN bound; infinite bounds are fine.
         return_pairs: also return the ``(P, 2)`` int64 ``(query, prim)`` pairs, sorted.
 
     Returns:
