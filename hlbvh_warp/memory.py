@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import threading
 import weakref
-from collections import OrderedDict, defaultdict
+from collections import OrderedDict
 
 import warp as wp
 
@@ -46,8 +46,11 @@ class HostBufferPool:
     def __init__(self, limit: int = DEFAULT_LIMIT_BYTES):
         self.limit = int(limit)
         self.idle_bytes = 0
-        self._idle: dict[int, list] = defaultdict(list)
-        self._lock = threading.Lock()
+        self._idle: dict[int, list] = {}
+        # Re-entrant: `_give_back` runs as a finalizer, and the garbage collector may run one on
+        # this thread while it holds the lock (an allocation under it collecting a dropped cycle
+        # that held a pooled array); a plain lock waited on itself there, and the process hung.
+        self._lock = threading.RLock()
 
     def empty(self, shape, dtype, device) -> wp.array:
         device = wp.get_device(device)
@@ -74,9 +77,10 @@ class HostBufferPool:
         return view
 
     def _give_back(self, size: int, block: wp.array):
+        fresh = []  # allocated before the lock, so that the usual case allocates nothing under it
         with self._lock:
             if self.idle_bytes + size <= self.limit:
-                self._idle[size].append(block)
+                self._idle.setdefault(size, fresh).append(block)
                 self.idle_bytes += size
 
     def clear(self):

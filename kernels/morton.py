@@ -119,9 +119,15 @@ def quantize(c: float, lo: float, hi: float, cells: int):
     extent = wp.float64(hi) - wp.float64(lo)
     q = int(0)
     if extent > wp.float64(0.0):
-        t = (wp.float64(c) - wp.float64(lo)) / extent
-        q = int(t * wp.float64(cells))
-    return wp.clamp(q, 0, cells - 1)
+        x = (wp.float64(c) - wp.float64(lo)) / extent * wp.float64(cells)
+        # Clamped before the conversion: a centroid millions of cells outside a fixed grid
+        # (`BuildConfig.morton_bounds`) is past int32, where the conversion is undefined (INT_MIN
+        # on x86, clamped to cell 0, not the border cell); a NaN takes cell 0.
+        if x >= wp.float64(cells - 1):
+            q = cells - 1
+        elif x > wp.float64(0.0):
+            q = int(x)
+    return q
 
 
 @wp.func

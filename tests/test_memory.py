@@ -187,3 +187,39 @@ def test_scratch_cache_sets_setting(pool, device, rng):
             memory.set_scratch_cache_sets(-1)
     finally:
         memory.set_scratch_cache_sets(old)
+
+
+GC_REENTRY_SCRIPT = """
+import gc
+import warp as wp
+wp.config.quiet = True
+from hlbvh_warp import memory
+
+class Scene:  # a user object in a reference cycle, holding a pooled array
+    def __init__(self, size):
+        self.buf = memory.empty(size, dtype=wp.uint8, device="cpu")
+        self.me = self
+
+gc.set_threshold(1)  # a collection at nearly every allocation, the pool's own included
+for i in range(1500):
+    a = memory.empty((1 << 16) * (i + 2), dtype=wp.uint8, device="cpu")  # a new size class
+    s = Scene((1 << 16) * (5000 + i))
+    del s  # cyclic garbage holding a pooled block
+    del a  # its finalizer gives a block back; a collection inside may give back the other
+    if i % 200 == 0:
+        memory.clear_host_cache()
+print("done")
+"""
+
+
+def test_a_collection_inside_the_pool_does_not_deadlock():
+    # The pool gives blocks back from finalizers. The garbage collector may run one on a thread
+    # that holds the pool's lock (an allocation under it collecting a cycle that held a pooled
+    # array): with a plain lock the process hung there. In a subprocess, so a regression fails
+    # by timeout instead of hanging the suite.
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", GC_REENTRY_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip().endswith("done")

@@ -57,6 +57,34 @@ def test_centroids_outside_the_box_clamp_to_border_cells(device, rng):
     assert_hits_match(t, prim, *brute_force_closest_hit(v, f, origins, directions))
 
 
+def test_centroids_millions_of_cells_outside_take_the_border_cells(device, rng):
+    # Debris flown 1e7 grid widths past a fixed grid: its cell index passed int32 before the
+    # clamp, and the conversion (undefined there; INT_MIN on x86) put it in cell 0 of an axis
+    # where it lies past the upper border. The codes must be those of the clamped cells.
+    from hlbvh_warp.hlbvh import HlbvhPipeline
+    import warp as wp
+
+    n, bits = 1000, 10
+    lo = rng.random((n, 3)).astype(np.float32)
+    lo[: n // 2] *= np.float32(1e7)
+    lo[n // 2: n // 2 + 50] -= np.float32(1e7)
+    hi = lo + np.float32(0.01)
+    cfg = hw.BuildConfig(morton_bounds=((0, 0, 0), (1, 1, 1)), global_sort_runs=1.0)
+    pipe = HlbvhPipeline(n, cfg, device, wp.array(lo, dtype=wp.vec3, device=device),
+                         wp.array(hi, dtype=wp.vec3, device=device))
+    pipe.compute_morton_codes()
+    # Reference: float64 cell positions clamped to the grid before they become integers.
+    c = (np.float32(0.5) * (lo + hi)).astype(np.float64)
+    q = np.clip(np.floor(c * (1 << bits)), 0, (1 << bits) - 1).astype(np.int64)
+    code = np.zeros(n, np.int64)
+    for bit in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
+    np.testing.assert_array_equal(pipe.morton_codes.numpy(), code)
+    tree = hw.build_from_bounds(lo, hi, config=cfg, device=device).to_numpy()
+    np.testing.assert_array_equal(tree["prim_order"], np.argsort(code, kind="stable"))
+
+
 def test_resorted_rebuilds_on_a_fixed_grid_equal_scratch(device):
     # Bending frames over one grid for the whole sequence: every resorted rebuild has the SAH
     # cost of a build from scratch with the same config.
