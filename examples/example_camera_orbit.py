@@ -23,6 +23,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import query, reference, render, scenes, wide
+from hlbvh_warp.cli import mesh_file, positive_int
 from hlbvh_warp.kernels import traversal
 from hlbvh_warp.kernels import wide as wide_kernels
 
@@ -111,19 +112,22 @@ class Example:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
-    parser.add_argument("--num-frames", type=int, default=36, help="Frames of the orbit.")
-    parser.add_argument("--mesh", type=str, default=None, help="A mesh file (default: the generated scene).")
-    parser.add_argument("--num-tris", type=int, default=20000, help="Triangles of the generated scene.")
+    parser.add_argument("--num-frames", type=positive_int, default=36, help="Frames of the orbit.")
+    parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file (default: the generated scene).")
+    parser.add_argument("--num-tris", type=positive_int, default=20000, help="Triangles of the generated scene.")
     parser.add_argument("--methods", type=str, default="hlbvh,hlbvh_sah,sweep_sah,median", help="Builders.")
     parser.add_argument("--widths", type=str, default="2,4,8,16", help="Branching factors.")
-    parser.add_argument("--resolution", type=int, default=128, help="Image width and height in pixels.")
+    parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
     parser.add_argument("--out", type=str, default="camera_orbit_out", help="Where the PNG and GIF go.")
     args = parser.parse_known_args()[0]
+    widths = tuple(int(k) for k in args.widths.split(",") if k.strip().isdigit())
+    if len(widths) != len(args.widths.split(",")) or not all(k in wide.WIDTHS for k in widths):
+        parser.error(f"--widths takes branching factors from {wide.WIDTHS[0]} to {wide.WIDTHS[-1]}, got {args.widths}")
 
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, tuple(args.methods.split(",")),
-                          tuple(int(k) for k in args.widths.split(",")), args.resolution, args.num_frames,
+                          widths, args.resolution, args.num_frames,
                           args.headless)
         for _ in range(args.num_frames):
             example.step()

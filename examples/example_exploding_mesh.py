@@ -9,6 +9,7 @@ import argparse
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
+from hlbvh_warp.cli import mesh_file, positive_int
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
 from hlbvh_warp.render import Camera
 from hlbvh_warp.scenes import scene
@@ -40,13 +41,13 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Build only: no ray-cast images.")
-    parser.add_argument("--num-frames", type=int, default=24, help="Total number of frames.")
-    parser.add_argument("--mesh", type=str, default=None, help="Mesh file; the generated default scene if absent.")
-    parser.add_argument("--num-tris", type=int, default=60000, help="Size of the generated scene.")
+    parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
+    parser.add_argument("--mesh", type=mesh_file, default=None, help="Mesh file; the generated default scene if absent.")
+    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Size of the generated scene.")
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
-    parser.add_argument("--image-size", type=int, default=256)
+    parser.add_argument("--image-size", type=positive_int, default=256)
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
     args = parser.parse_known_args()[0]
 

@@ -18,6 +18,7 @@ import warp as wp
 
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.cli import mesh_file, non_negative_int, positive_int
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import scene, subdivide
@@ -179,9 +180,9 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No per-frame progress lines.")
-    parser.add_argument("--num-frames", type=int, default=24, help="Total number of frames.")
-    parser.add_argument("--mesh", type=str, default=None, help="Mesh file; the generated default scene if absent.")
-    parser.add_argument("--num-tris", type=int, default=60000, help="Size of the generated scene.")
+    parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
+    parser.add_argument("--mesh", type=mesh_file, default=None, help="Mesh file; the generated default scene if absent.")
+    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Size of the generated scene.")
     parser.add_argument("--sequences", type=str, default="explode,bend",
                         help="Comma-separated: explode, bend, static (the mesh at rest every frame).")
     parser.add_argument("--modes", type=str, default=",".join(MODES), help="Comma-separated subset of the modes.")
@@ -192,11 +193,17 @@ if __name__ == "__main__":
     parser.add_argument("--face-order", choices=("file", "shuffled"), default="file",
                         help="The mesh's faces in their file order, or shuffled (a mesh without a spatial "
                              "face order).")
-    parser.add_argument("--cpu-threads", type=int, default=0,
+    parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
-    parser.add_argument("--subdivide", type=int, default=0,
+    parser.add_argument("--subdivide", type=non_negative_int, default=0,
                         help="Split every triangle into four this many times (a mesh at the paper's sizes).")
     args = parser.parse_known_args()[0]
+    unknown = [m for m in args.modes.split(",") if m not in MODES]
+    if unknown:
+        parser.error(f"unknown mode(s) {unknown}; the modes are {list(MODES)}")
+    unknown = [q for q in args.sequences.split(",") if q not in ("explode", "bend", "static")]
+    if unknown:
+        parser.error(f"unknown sequence(s) {unknown}; the sequences are explode, bend, static")
 
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, args.num_frames, args.sequences.split(","),

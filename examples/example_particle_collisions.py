@@ -18,6 +18,7 @@ import warp as wp
 from hlbvh_warp import query
 from hlbvh_warp.bench import collector_paused
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
+from hlbvh_warp.cli import positive_int
 
 
 @wp.kernel
@@ -203,8 +204,8 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No picture.")
-    parser.add_argument("--num-frames", type=int, default=24, help="Total number of frames.")
-    parser.add_argument("--num-particles", type=int, default=100000)
+    parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
+    parser.add_argument("--num-particles", type=positive_int, default=100000)
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
     parser.add_argument("--no-peer", action="store_true", help="Do not time wp.Bvh beside it.")

@@ -22,6 +22,7 @@ import hlbvh_warp
 from hlbvh_warp import memory
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.cli import mesh_file, positive_int
 from hlbvh_warp.scenes import scene
 
 MODES = ("hlbvh_warp.build", "Builder", "Builder, plain launches", "wp.Bvh sah")
@@ -118,9 +119,9 @@ class Example:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
-    parser.add_argument("--mesh", action="append", default=None, help="a mesh file (repeatable); default: "
+    parser.add_argument("--mesh", action="append", default=None, type=mesh_file, help="a mesh file (repeatable); default: "
                         "four generated meshes of 40k, 20k, 6k and 1k triangles")
-    parser.add_argument("--num-frames", type=int, default=24, help="Total number of frames.")
+    parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--headless", action="store_true", help="Run without printing every frame.")
     parser.add_argument("--scratch-sets", type=int, default=None,
                         help="one-shot pipeline scratch sets kept (default: the library's, 16)")

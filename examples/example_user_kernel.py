@@ -17,6 +17,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import query
+from hlbvh_warp.cli import positive_int
 
 
 @wp.kernel
@@ -103,8 +104,8 @@ class Example:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
-    parser.add_argument("--num-frames", type=int, default=8, help="Total number of frames.")
-    parser.add_argument("--resolution", type=int, default=128, help="Image width and height in pixels.")
+    parser.add_argument("--num-frames", type=positive_int, default=8, help="Total number of frames.")
+    parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
     args = parser.parse_known_args()[0]
 

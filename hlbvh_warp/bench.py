@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from . import api, inputs, reference, scenes
+from .cli import mesh_file, non_negative_int, positive_int
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -375,22 +376,22 @@ def plot(rows: list[dict], path: pathlib.Path):
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", action="append", default=[],
+    parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--subdivide", type=int, default=0,
+    parser.add_argument("--subdivide", type=non_negative_int, default=0,
                         help="split every triangle of each mesh into four this many times (the paper's sizes)")
-    parser.add_argument("--scene-tris", type=int, default=60000, help="triangles of the generated scene")
+    parser.add_argument("--scene-tris", type=positive_int, default=60000, help="triangles of the generated scene")
     parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
                         help="comma-separated builders and peers (default: all)")
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per builder")
-    parser.add_argument("--warmup", type=int, default=1, help="untimed runs first (kernel compilation, caches)")
-    parser.add_argument("--rays", type=int, default=128, help="rays checked against the brute force")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder")
+    parser.add_argument("--warmup", type=non_negative_int, default=1, help="untimed runs first (kernel compilation, caches)")
+    parser.add_argument("--rays", type=non_negative_int, default=128, help="rays checked against the brute force")
     parser.add_argument("--sweep", action="store_true", help="also sweep m, p, n, bins and leaf size")
     parser.add_argument("--json", default="out/bench.json", help="where to write the rows")
     parser.add_argument("--plot", default=None, help="PNG of time vs SAH ratio (default: beside the JSON)")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--cpu-threads", type=int, default=0,
+    parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads of our builders (0: every core; 1: one thread, like wp.Bvh)")
     args = parser.parse_args(argv)
     args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]

@@ -5,7 +5,9 @@ Each command lives in its own module with a ``main(argv)``; this file only dispa
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import os
 import sys
 
 COMMANDS = {
@@ -18,15 +20,46 @@ COMMANDS = {
 }
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (frames, triangles, pixels, repeats)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0 (warm-up runs, thread counts, subdivisions)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
+def mesh_file(text: str) -> str:
+    """argparse type: a path to an existing file (read later by trimesh)."""
+    if not os.path.isfile(text):
+        raise argparse.ArgumentTypeError(f"no such mesh file: {text}")
+    return text
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+        if argv and argv[0] not in ("-h", "--help"):
+            print(f"hlbvh_warp: unknown command {argv[0]!r}", file=sys.stderr)
         print("usage: python -m hlbvh_warp <command> [options]\n\ncommands:")
         for name, (_, text) in COMMANDS.items():
             print(f"  {name:12s} {text}")
         return 0 if not argv or argv[0] in ("-h", "--help") else 2
     module = importlib.import_module(COMMANDS[argv[0]][0])
-    return int(module.main(argv[1:]) or 0)
+    try:
+        return int(module.main(argv[1:]) or 0)
+    except (ValueError, OSError, NotImplementedError) as error:
+        # Bad input the library names (a file that is not a mesh, an unknown builder or device,
+        # an empty scene): one line, not a traceback. Anything else is a bug and keeps its trace.
+        print(f"hlbvh_warp {argv[0]}: error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

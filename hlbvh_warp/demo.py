@@ -12,6 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
+from .cli import mesh_file, non_negative_int, positive_int
 from .reference import brute_force_closest_hit
 
 
@@ -43,11 +44,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp demo", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Warp device (default: Warp's default).")
-    parser.add_argument("--num-tris", type=int, default=60000, help="Triangles of the generated scene.")
-    parser.add_argument("--mesh", type=str, default=None, help="A mesh file instead of the generated scene.")
-    parser.add_argument("--rays", type=int, default=256, help="Rays checked against the float64 brute force.")
-    parser.add_argument("--num-frames", type=int, default=12, help="Frames of the exploding-mesh animation.")
-    parser.add_argument("--image-size", type=int, default=256, help="Rendered frames are this many pixels square.")
+    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Triangles of the generated scene.")
+    parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
+    parser.add_argument("--rays", type=non_negative_int, default=256, help="Rays checked against the float64 brute force.")
+    parser.add_argument("--num-frames", type=positive_int, default=12, help="Frames of the exploding-mesh animation.")
+    parser.add_argument("--image-size", type=positive_int, default=256, help="Rendered frames are this many pixels square.")
     parser.add_argument("--methods", type=str, default=None, help="Comma-separated subset of the build methods.")
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
     args = parser.parse_args(argv)

@@ -23,6 +23,7 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
+from .cli import mesh_file, non_negative_int, positive_int
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -159,19 +160,19 @@ def format_row(row: dict) -> str:
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp quality", description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", action="append", default=[],
+    parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=int, default=20000, help="triangles of the generated scene")
+    parser.add_argument("--scene-tris", type=positive_int, default=20000, help="triangles of the generated scene")
     parser.add_argument("--scene", default="knot", choices=["knot", "knot+large"],
                         help="the generated scene: the torus knot, or with 8 large triangles across it")
     parser.add_argument("--builders", default=",".join(BUILDERS),
                         help="comma-separated builders (default: all but the offline recursive_sah and sbvh)")
-    parser.add_argument("--views", type=int, default=8, help="cameras on the orbit")
-    parser.add_argument("--side", type=int, default=64, help="pixels per image side")
+    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit")
+    parser.add_argument("--side", type=positive_int, default=64, help="pixels per image side")
     parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")
     parser.add_argument("--ci", type=float, default=1.0, help="intersection cost c_i (Wodniok & Goesele: 1.0)")
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
-    parser.add_argument("--cpu-threads", type=int, default=0, help="BuildConfig.cpu_threads (0: every core)")
+    parser.add_argument("--cpu-threads", type=non_negative_int, default=0, help="BuildConfig.cpu_threads (0: every core)")
     parser.add_argument("--json", default="out/quality.json", help="where to write the rows")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)

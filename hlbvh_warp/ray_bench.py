@@ -16,6 +16,8 @@ import time
 import numpy as np
 import warp as wp
 
+from .cli import positive_int
+
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 
@@ -143,12 +145,12 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-rays", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", type=pathlib.Path,
                         help="a mesh file (repeatable); default: bunny and armadillo from ../shared/meshes")
-    parser.add_argument("--rays", type=int, default=1_000_000, help="rays per kind (default 1M)")
+    parser.add_argument("--rays", type=positive_int, default=1_000_000, help="rays per kind (default 1M)")
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
-    parser.add_argument("--repeats", type=int, default=3, help="launches timed per kernel; the best is kept")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="launches timed per kernel; the best is kept")
     parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--max-leaf-size", type=int, default=1,
+    parser.add_argument("--max-leaf-size", type=positive_int, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
     args = parser.parse_args(argv)
     if args.rays < 1 or args.repeats < 1:

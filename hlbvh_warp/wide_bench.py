@@ -24,6 +24,8 @@ import time
 import numpy as np
 import warp as wp
 
+from .cli import mesh_file, non_negative_int, positive_int
+
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
 
@@ -115,17 +117,17 @@ def parse_args(argv):
     from . import wide
 
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-wide", description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", action="append", default=[],
+    parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=int, default=20000, help="triangles of the generated scene")
+    parser.add_argument("--scene-tris", type=positive_int, default=20000, help="triangles of the generated scene")
     parser.add_argument("--method", action="append", default=None,
                         help="binary builder to collapse (repeatable; default hlbvh_sah)")
     parser.add_argument("--widths", default="2,4,8,16", help="comma-separated branching factors, 2 to 16")
-    parser.add_argument("--views", type=int, default=8, help="cameras on the orbit")
-    parser.add_argument("--side", type=int, default=128, help="pixels per image side")
-    parser.add_argument("--repeats", type=int, default=5, help="launches timed per traversal; the best is kept")
+    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit")
+    parser.add_argument("--side", type=positive_int, default=128, help="pixels per image side")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="launches timed per traversal; the best is kept")
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
-    parser.add_argument("--cpu-threads", type=int, default=0, help="BuildConfig.cpu_threads (0: every core)")
+    parser.add_argument("--cpu-threads", type=non_negative_int, default=0, help="BuildConfig.cpu_threads (0: every core)")
     parser.add_argument("--json", default="out/bench_wide.json", help="where to write the rows")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)

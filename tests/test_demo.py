@@ -15,3 +15,25 @@ def test_demo_runs_and_writes_outputs(tmp_path, capsys):
     assert "average" in text and "worst" in text
     for name in ("exploding_mesh.png", "exploding_mesh.gif", "exploding_frame_ms.png"):
         assert (out / name).stat().st_size > 0, name
+
+
+def test_bad_arguments_end_in_one_line_errors(tmp_path, capsys):
+    # Each exits with status 2 and a message naming the problem on stderr, never a traceback.
+    not_a_mesh = tmp_path / "notes.txt"
+    not_a_mesh.write_text("not a mesh")
+    cases = [
+        (["demo", "--mesh", str(tmp_path / "missing.ply")], "no such mesh file"),
+        (["demo", "--num-frames", "-3"], "--num-frames: must be at least 1"),
+        (["bench", "--scene-tris", "-5"], "--scene-tris: must be at least 1"),
+        (["bench", "--warmup", "-2"], "--warmup: must be at least 0"),
+        (["quality", "--mesh", str(not_a_mesh)], "hlbvh_warp quality: error: file_type 'txt' not supported"),
+        (["nosuch"], "unknown command 'nosuch'"),
+    ]
+    for argv, message in cases:
+        try:
+            rc = cli.main(argv)
+        except SystemExit as exit_:  # argparse's own errors
+            rc = exit_.code
+        err = capsys.readouterr().err
+        assert rc == 2 and message in err, (argv, rc, err)
+        assert "Traceback" not in err
