@@ -113,13 +113,19 @@ def test_box_refit_and_in_place_frames(device, rng):
     check_frame(builder, lowers, uppers, rng)
 
 
+def slow_particles_under_auto(rng, device, max_refits: int):
+    """2,000 slowly moving particles and an `auto` builder set up on their first frame."""
+    particles = Particles(rng, 2000, speed=0.0005)
+    builder = Builder(2000, device=device, policy="auto", max_refits=max_refits)
+    lowers, uppers = particles.bounds()
+    builder.build_from_bounds(lowers, uppers)
+    return particles, builder, lowers, uppers
+
+
 def test_auto_policy_on_boxes(device, rng):
     # `auto` measures how far a box corner moved (checked against NumPy), does nothing when no
     # box moved, refits slow motion and rebuilds fast motion; every tree stays right.
-    particles = Particles(rng, 2000, speed=0.0005)
-    builder = Builder(2000, device=device, policy="auto", max_refits=3)
-    lowers, uppers = particles.bounds()
-    builder.build_from_bounds(lowers, uppers)
+    particles, builder, lowers, uppers = slow_particles_under_auto(rng, device, max_refits=3)
     decisions = []
     for frame in range(8):
         if frame == 5:
@@ -284,10 +290,7 @@ def test_auto_sets_no_sah_reference_from_a_non_finite_frame(device, rng):
     # tree at Inf / Inf = NaN. Taken as the reference, that made every later growth NaN, which
     # never exceeds the limit, so `auto` kept refitting that tree's topology until `max_refits`
     # ran out. A refit must only ever be judged against a finite reference.
-    particles = Particles(rng, 2000, speed=0.0005)
-    builder = Builder(2000, device=device, policy="auto", max_refits=50)
-    lowers, uppers = particles.bounds()
-    builder.build_from_bounds(lowers, uppers)
+    particles, builder, lowers, uppers = slow_particles_under_auto(rng, device, max_refits=50)
     bad_lowers = lowers.copy()
     bad_lowers[::5] = -np.inf
     for _ in range(2):
