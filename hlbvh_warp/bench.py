@@ -399,12 +399,6 @@ def parse_args(argv):
     unknown = [b for b in args.builders if b not in api.BUILDERS and b not in PEERS]
     if unknown:
         parser.error(f"unknown builders {unknown}; choose from {sorted(api.BUILDERS) + list(PEERS)}")
-    if args.repeats < 1:
-        parser.error("--repeats must be >= 1")
-    if args.subdivide < 0:
-        parser.error("--subdivide must be >= 0")
-    if args.cpu_threads < 0:
-        parser.error("--cpu-threads must be >= 0")
     return args
 
 

@@ -182,8 +182,6 @@ def parse_args(argv):
         parser.error(f"unknown builders {unknown}; choose from {list(BUILDERS + SLOW_BUILDERS)}")
     if REFERENCE not in args.builders:
         args.builders.append(REFERENCE)
-    if args.views < 1 or args.side < 1:
-        parser.error("--views and --side must be >= 1")
     if args.ct < 0 or args.ci <= 0:
         parser.error("need --ct >= 0 and --ci > 0")
     return args

@@ -153,8 +153,6 @@ def main(argv=None) -> int:
     parser.add_argument("--max-leaf-size", type=positive_int, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
     args = parser.parse_args(argv)
-    if args.rays < 1 or args.repeats < 1:
-        parser.error("--rays and --repeats must be >= 1")
     wp.config.quiet = True
     wp.init()
     paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]

@@ -143,8 +143,6 @@ def parse_args(argv):
     unknown = [m for m in args.method if m not in api.BUILDERS]
     if unknown:
         parser.error(f"unknown methods {unknown}; choose from {sorted(api.BUILDERS)}")
-    if args.views < 1 or args.side < 1 or args.repeats < 1:
-        parser.error("--views, --side and --repeats must be >= 1")
     return args
 
 

@@ -20,7 +20,7 @@ so the stack holds at most log2(N) deferred siblings.
 import warp as wp
 
 from .metrics import box_area64
-from .sah import BIG, sweep_bin_boundaries
+from .sah import BIG, best_bin_split
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -103,16 +103,8 @@ def temp_bvh_cost(
                     boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                     boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
         # Sweep the bin boundaries of every axis (an object split: a bin's count on both sides).
-        best_cost = wp.float64(-1.0)
-        best_axis = int(-1)
-        best_bin = int(0)
-        best_left = int(0)
-        best_right = int(0)
-        for axis in range(3):
-            if extent[axis] > 0.0:
-                best_cost, best_axis, best_bin, best_left, best_right = sweep_bin_boundaries(
-                    boxes_lo, boxes_hi, counts, counts, axis, num_bins, n, best_cost, best_axis, best_bin, best_left,
-                    best_right)
+        best_cost, best_axis, best_bin, best_left, best_right = best_bin_split(
+            boxes_lo, boxes_hi, counts, counts, extent, num_bins, n)
         mid = b + n // 2
         if best_axis >= 0:
             # Partition in place: the items of bins below best_bin first.

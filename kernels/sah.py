@@ -160,6 +160,23 @@ def sweep_bin_boundaries(
     return best_cost, best_axis, best_bin, best_left, best_right
 
 
+@wp.func
+def best_bin_split(boxes_lo: Any, boxes_hi: Any, enter: Any, leave: Any, extent: wp.vec3, num_bins: int, n: int):
+    """The first cheapest bin boundary over the axes of nonzero `extent` (`sweep_bin_boundaries`
+    per axis): ``(cost, axis, boundary, left count, right count)``, axis -1 where none splits."""
+    best_cost = wp.float64(0.0)
+    best_axis = int(-1)
+    best_bin = int(0)
+    best_left = int(0)
+    best_right = int(0)
+    for axis in range(3):
+        if extent[axis] > 0.0:
+            best_cost, best_axis, best_bin, best_left, best_right = sweep_bin_boundaries(
+                boxes_lo, boxes_hi, enter, leave, axis, num_bins, n, best_cost, best_axis, best_bin, best_left,
+                best_right)
+    return best_cost, best_axis, best_bin, best_left, best_right
+
+
 @wp.struct
 class SplitInputs:
     """What a split decision reads: the presorted orders, the items, the rule and its scratch.

@@ -24,7 +24,7 @@ import warp as wp
 
 from .metrics import box_area64, clip_to_slab, mat93d, triangle_in_box
 from .recursive_sah import bin_of as centroid_bin
-from .sah import BIG, MAX_SWEEP_BINS, sweep_bin_boundaries
+from .sah import BIG, MAX_SWEEP_BINS, best_bin_split
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -199,16 +199,8 @@ def split_search_kernel(
                 counts[slot] = counts[slot] + 1
                 boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                 boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
-    best_cost = wp.float64(0.0)
-    best_axis = int(-1)
-    best_bin = int(0)
-    best_left = int(0)
-    best_right = int(0)
-    for axis in range(3):
-        if extent[axis] > 0.0:
-            best_cost, best_axis, best_bin, best_left, best_right = sweep_bin_boundaries(
-                boxes_lo, boxes_hi, counts, counts, axis, num_bins, n, best_cost, best_axis, best_bin, best_left,
-                best_right)
+    best_cost, best_axis, best_bin, best_left, best_right = best_bin_split(
+        boxes_lo, boxes_hi, counts, counts, extent, num_bins, n)
     obj_axis[s] = best_axis
     obj_bin[s] = best_bin
     obj_left[s] = best_left
@@ -281,17 +273,9 @@ def split_search_kernel(
                         slot = axis * num_bins + bb
                         boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), part_lo)
                         boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), part_hi)
-    sp_best = wp.float64(0.0)
-    sp_best_axis = int(-1)
-    sp_best_bin = int(0)
-    sp_best_left = int(0)
-    sp_best_right = int(0)
-    for axis in range(3):
-        if size[axis] > 0.0:
-            # Both sides strictly smaller than the node (the sweep's rule): the recursion ends.
-            sp_best, sp_best_axis, sp_best_bin, sp_best_left, sp_best_right = sweep_bin_boundaries(
-                boxes_lo, boxes_hi, entries, exits, axis, num_bins, n, sp_best, sp_best_axis, sp_best_bin,
-                sp_best_left, sp_best_right)
+    # Both sides strictly smaller than the node (the sweep's rule): the recursion ends.
+    sp_best, sp_best_axis, sp_best_bin, sp_best_left, sp_best_right = best_bin_split(
+        boxes_lo, boxes_hi, entries, exits, size, num_bins, n)
     sp_axis[s] = sp_best_axis
     sp_bin[s] = sp_best_bin
     sp_left[s] = sp_best_left
