@@ -21,7 +21,10 @@ simulation's broad phase).
 Only ``"auto"`` reads values back to the host (the displacement every frame, the SAH cost of the
 trees a refit may compare with): it has to, to decide. ``rebuild`` and ``refit`` given device
 arrays never synchronize, and on CUDA ``rebuild`` can be captured in a CUDA graph
-(``wp.ScopedCapture``): there it runs the pipeline's ``sync_free`` build.
+(``wp.ScopedCapture``): there it runs the pipeline's ``sync_free`` build. A replay runs no Python:
+call ``builder.bvh.invalidate()`` after each ``wp.capture_launch``, before host reads of the tree
+or ray queries (their host copies and, unless made before the capture, the traversal layout are
+refreshed there, not by the graph).
 """
 
 from __future__ import annotations
@@ -52,6 +55,14 @@ PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 # Adjacent pairs of the previous tree's order sampled to decide whether resorting pays (the
 # estimate of M / N is within about 0.03 (one standard error) of the whole order's).
 RESORT_SAMPLES = 256
+
+
+def _count(value, name: str, minimum: int) -> int:
+    # A count given as 2.5 (or True) is a caller's mistake, not 2 (or 1): refused as BuildConfig's
+    # integer fields are; NumPy integers are counts like any other.
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
 def _finite_or_none(cost: float) -> float | None:
@@ -114,7 +125,7 @@ class Builder:
             raise ValueError(f"sah_growth_limit must be >= 0, got {sah_growth_limit}")
         if not large_motion > 0.0:
             raise ValueError(f"large_motion must be > 0, got {large_motion}")
-        self.num_prims = n = int(num_prims)
+        self.num_prims = n = _count(num_prims, "num_prims", 1)
         self.config = config
         self.device = device = wp.get_device(device)
         self.method = method
@@ -122,9 +133,7 @@ class Builder:
         self.policy = policy
         self.sah_growth_limit = float(sah_growth_limit)
         self.large_motion = float(large_motion)
-        if int(max_refits) < 0:
-            raise ValueError(f"max_refits must be >= 0, got {max_refits}")
-        self.max_refits = int(max_refits)
+        self.max_refits = _count(max_refits, "max_refits", 0)
         self.refits_since_rebuild = 0
         # SAH growth of the latest refit frame (over the best cost since the last rebuild).
         self.last_growth = 0.0
@@ -199,9 +208,7 @@ class Builder:
         self.frame = 0
         self.sah_reference = None
         self.last_report: dict = {}
-        if int(keep_reports) < 1:
-            raise ValueError(f"keep_reports must be >= 1, got {keep_reports}")
-        self.reports: collections.deque = collections.deque(maxlen=int(keep_reports))
+        self.reports: collections.deque = collections.deque(maxlen=_count(keep_reports, "keep_reports", 1))
 
     # --------------------------------------------------------------- inputs
     @staticmethod
@@ -216,8 +223,9 @@ class Builder:
             raise ValueError(f"{name} must be a wp.array of vec3 or float32 (N, 3), got {values.dtype} "
                              f"with shape {values.shape}")
         arr = np.asarray(values)
-        if arr.dtype.kind != "f" or arr.ndim != 2 or arr.shape[1] != 3:
-            raise ValueError(f"{name} must be floats of shape (N, 3), got {arr.dtype} {arr.shape}")
+        # Integers as `build` takes them (a voxel grid's corners); booleans and objects are not points.
+        if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 3:
+            raise ValueError(f"{name} must be numbers of shape (N, 3), got {arr.dtype} {arr.shape}")
         inputs.check_float32_range(arr, name)
         return arr.shape[0]
 
@@ -536,9 +544,12 @@ class Builder:
         """
         self._require_built()
         sources = self._frame_sources(vertices, bounds)
-        if not self.sync_free and self.device.is_cuda and self.device.is_capturing:
-            raise RuntimeError(f"a {self.method!r} rebuild reads counts on the host and cannot be captured in a "
-                               "CUDA graph; capture a Builder with method='hlbvh' or 'lbvh'")
+        # Also a CPU graph capture (Warp 1.19 records those): the CPU rebuild reads counts on the
+        # host, which a recording (kernels not run) would bake in; Warp itself refuses its run-length
+        # encoding there, and launches from the CPU's worker threads crashed the process.
+        if not self.sync_free and self.device.is_capturing:
+            raise RuntimeError(f"a {self.method!r} rebuild on {self.device} reads counts on the host and cannot be "
+                               "captured in a graph; capture a CUDA Builder with method='hlbvh' or 'lbvh'")
         start = time.perf_counter()
         self._load(sources)
         timer = StageTimer(self.device, self.timings)

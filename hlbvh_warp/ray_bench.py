@@ -69,15 +69,13 @@ def best_times(fns, repeats: int, device) -> list[float]:
 
 def run(mesh_path: pathlib.Path, method: str, num_rays: int, repeats: int, device, seed: int = 0,
         max_leaf_size: int = 1) -> list[dict]:
-    import trimesh
-
     from . import api, query
     from .config import BuildConfig
     from .kernels import traversal
+    from .scenes import load_mesh
 
-    mesh = trimesh.load(mesh_path, process=False)
-    vertices = np.asarray(mesh.vertices, dtype=np.float32)
-    faces = np.asarray(mesh.faces, dtype=np.int32)
+    # As every other command reads a mesh: a file of several objects is one mesh, an empty one an error.
+    vertices, faces = load_mesh(mesh_path)
     config = BuildConfig(max_leaf_size=max_leaf_size)
     bvh = api.build(vertices, faces, method=method, device=device, config=config)
     wmesh = wp.Mesh(

@@ -102,7 +102,12 @@ def load_mesh(path):
     import trimesh
 
     mesh = trimesh.load(path, process=False, force="mesh")
-    return np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int32).reshape(-1, 3)
+    if faces.shape[0] == 0:
+        # Named here, before a command computes bounds or rays over it (NumPy's reductions over
+        # no rows end in an error about reductions, not about the file).
+        raise ValueError(f"{path}: the mesh has no triangles")
+    return np.asarray(mesh.vertices, dtype=np.float32), faces
 
 
 def scene(mesh_path=None, num_tris: int = 60000):

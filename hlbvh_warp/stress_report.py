@@ -284,7 +284,7 @@ def main(argv=None) -> int:
 
     from . import api
 
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp.stress_report", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp stress", description=__doc__.splitlines()[0])
     parser.add_argument("--device", action="append", help="Warp device (repeatable); default: every device")
     parser.add_argument("--family", action="append", choices=sorted(SCENE_FAMILIES), help="default: all")
     parser.add_argument("--method", action="append", help="default: every builder in api.BUILDERS")

@@ -8,7 +8,7 @@ The same kernel refits a tree whose primitives moved (topology unchanged).
 
 import warp as wp
 
-from .metrics import weighted_term
+from .metrics import device_fence, weighted_term
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -105,9 +105,12 @@ def node_bounds_kernel(
 
     parent = node_parent[node]
     while parent >= 0:
-        # The first child to arrive leaves; the second sees its sibling's box written.
+        # The first child to arrive leaves; the second sees its sibling's box written (the
+        # fences order this thread's box before its visit and the visit before the reads).
+        device_fence()
         if wp.atomic_add(node_visits, parent, 1) == 0:
             return
+        device_fence()
         left = node_left[parent]
         right = node_right[parent]
         node_lowers[parent] = wp.min(node_lowers[left], node_lowers[right])

@@ -22,6 +22,24 @@ from .traversal import box_overlap
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    __threadfence();
+#endif
+"""
+)
+def device_fence():
+    """``__threadfence()`` on CUDA (nothing on the CPU, whose launches run their threads in
+    sequence). The climbs below publish a box through an atomic visit counter, Karras 2012: the
+    first child to arrive writes its box and leaves, the second reads it. Without a fence between
+    the first one's stores and its atomic, and between the second one's atomic and its loads, the
+    second may read the box from before the store (stores and relaxed atomics to other addresses
+    are not ordered across SMs, and the reader's L1 may hold the line); Warp's own BVH refit
+    (native/bvh.cu) fences the same way."""
+    ...
+
+
 @wp.func
 def box_area64(lower: wp.vec3, upper: wp.vec3) -> wp.float64:
     # Surface area 2 (dx dy + dy dz + dz dx); differences taken in float64 so they cannot overflow.
@@ -138,9 +156,12 @@ def sah_cost_kernel(
     node_cost[node] = t_intersect * wp.float64(node_end[node] - node_begin[node])
     parent = node_parent[node]
     while parent >= 0:
-        # The first child to arrive leaves; the second sees its sibling's cost written.
+        # The first child to arrive leaves; the second sees its sibling's cost written (fenced
+        # as in bounds.node_bounds_kernel).
+        device_fence()
         if wp.atomic_add(node_visits, parent, 1) == 0:
             return
+        device_fence()
         left = node_left[parent]
         right = node_right[parent]
         node_cost[parent] = interior_cost(node_lowers, node_uppers, node_cost, left, right, node_lowers[parent],
@@ -185,8 +206,10 @@ def bounds_and_cost_kernel(
     node_cost[node] = t_intersect * wp.float64(node_end[node] - b)
     parent = node_parent[node]
     while parent >= 0:
+        device_fence()
         if wp.atomic_add(node_visits, parent, 1) == 0:
             return
+        device_fence()
         left = node_left[parent]
         right = node_right[parent]
         lower = wp.min(node_lowers[left], node_lowers[right])

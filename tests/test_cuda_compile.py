@@ -74,3 +74,28 @@ def test_the_kernel_list_is_complete():
     """A new kernel module must join the list above, or it would go unchecked."""
     on_disk = {p.stem for p in (REPO_ROOT / "kernels").glob("*.py") if p.stem != "__init__"}
     assert on_disk == set(KERNEL_MODULES)
+
+
+# The bottom-up climbs (Karras 2012): the first child to reach a parent writes its box (or cost)
+# and leaves through an atomic visit counter; the second reads it. On CUDA that needs a fence
+# before the atomic (the writer's stores ordered before its visit) and one after it (the
+# reader's loads after the visit, not from a stale L1 line), as Warp's own refit (bvh.cu) has.
+CLIMB_KERNELS = [("bounds", "node_bounds_kernel"), ("metrics", "sah_cost_kernel"),
+                 ("metrics", "bounds_and_cost_kernel")]
+
+
+@pytest.mark.parametrize("arch", ARCHES)
+@pytest.mark.parametrize("name,kernel", CLIMB_KERNELS)
+def test_climb_kernels_fence_around_their_visit_counters(name, kernel, arch, tmp_path):
+    import re
+
+    module = importlib.import_module(f"hlbvh_warp.kernels.{name}")
+    ptx = compile_for_cuda(module, arch, tmp_path)
+    body = re.search(r"\.entry %s_[0-9a-f]+_cuda_kernel_forward\(.*?\n}\n" % kernel, ptx, re.S)
+    assert body is not None, kernel
+    lines = body.group(0).splitlines()
+    fence = re.compile(r"\b(membar\.gl|fence\.(sc|acq_rel)\.gpu)\b")
+    atoms = [i for i, line in enumerate(lines) if "atom.global.add" in line]
+    assert len(atoms) == 1, kernel
+    assert any(fence.search(line) for line in lines[: atoms[0]]), f"{kernel}: no fence before the visit counter"
+    assert any(fence.search(line) for line in lines[atoms[0] + 1 :]), f"{kernel}: no fence after the visit counter"

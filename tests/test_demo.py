@@ -37,3 +37,23 @@ def test_bad_arguments_end_in_one_line_errors(tmp_path, capsys):
         err = capsys.readouterr().err
         assert rc == 2 and message in err, (argv, rc, err)
         assert "Traceback" not in err
+
+
+def test_mesh_files_with_several_objects_or_none_read_alike_in_every_command(tmp_path, capsys):
+    # A file trimesh loads as a Scene (several objects) is one mesh for every command, bench-rays
+    # included; a file with no triangles is one line naming it, not NumPy's error about
+    # reductions over no rows (demo) or an AttributeError traceback (bench-rays).
+    import trimesh
+
+    two = tmp_path / "two.glb"
+    trimesh.Scene([trimesh.creation.box(), trimesh.creation.icosphere(1).apply_translation((3, 0, 0))]).export(two)
+    empty = tmp_path / "empty.obj"
+    empty.write_text("")
+    rc = cli.main(["bench-rays", "--mesh", str(two), "--rays", "64", "--repeats", "1"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "disagreements in total: 0" in out, out
+    for argv in (["demo", "--mesh", str(empty), "--num-frames", "1", "--out", str(tmp_path / "out")],
+                 ["bench-rays", "--mesh", str(empty), "--rays", "8", "--repeats", "1"]):
+        rc = cli.main(argv)
+        err = capsys.readouterr().err
+        assert rc == 2 and "the mesh has no triangles" in err and "Traceback" not in err, (argv, err)

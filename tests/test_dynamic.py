@@ -282,13 +282,51 @@ def test_hlbvh_sah_rebuild_refuses_graph_capture(small_scene, rng):
     device = wp.get_cuda_devices()[0]
     builder = Builder(len(f), device=device, method="hlbvh_sah")
     builder.build(v, f)
-    with pytest.raises(RuntimeError, match="CUDA graph"):
+    with pytest.raises(RuntimeError, match="captured in a graph"):
         with wp.ScopedCapture(device):
             builder.rebuild()
     moved = v * np.float32(1.25)
     builder.rebuild(moved)
     check_tree_invariants(builder.bvh.to_numpy(), len(f))
     check_rays(builder.bvh, moved, f, rng)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah"])
+def test_cpu_rebuild_refuses_graph_capture(method, rng):
+    # Warp records CPU graphs too, running nothing while it records: the CPU rebuild's host reads
+    # of its counts would be baked into the graph (Warp's run-length encoding refuses, and an lbvh
+    # frame of 8192 or more on several cores crashed the process). A clear error instead,
+    # before any launch, and the builder still works afterwards.
+    v, f = default_scene(2000)
+    builder = Builder(len(f), device="cpu", method=method)
+    builder.build(v, f)
+    with pytest.raises(RuntimeError, match="captured in a graph"):
+        with wp.ScopedCapture(device="cpu"):
+            builder.rebuild()
+    moved = v * np.float32(1.25)
+    builder.rebuild(moved)
+    check_tree_invariants(builder.bvh.to_numpy(), len(f))
+    check_rays(builder.bvh, moved, f, rng)
+
+
+def test_replayed_rebuild_with_invalidate_answers_queries_of_each_frame(rng):
+    # The README's graph-capture procedure, checked on Warp's CPU graph capture with the builder
+    # in its CUDA per-frame mode (sync-free, treelet passes). A replay runs no Python: the tree's
+    # host copies and a traversal layout made after the capture are stale until invalidate().
+    v, f = default_scene(2000)
+    builder = Builder(len(f), BuildConfig(emission="treelets", cpu_threads=1), device="cpu")
+    builder.sync_free = builder.pipeline.sync_free = True
+    builder.build(v, f)
+    builder.rebuild()
+    with wp.ScopedCapture(device="cpu") as capture:
+        builder.rebuild()
+    for k in range(3):
+        moved = (v + np.float32(2.0 * (k % 2))).astype(np.float32)
+        builder.vertices.assign(moved)
+        wp.capture_launch(capture.graph)
+        builder.bvh.invalidate()
+        check_tree_invariants(builder.bvh.to_numpy(), len(f))
+        check_rays(builder.bvh, moved, f, rng)
 
 
 def test_reports_keep_the_latest_frames(device):
@@ -301,6 +339,32 @@ def test_reports_keep_the_latest_frames(device):
     assert [r["frame"] for r in builder.reports] == [3, 4, 5]
     with pytest.raises(ValueError, match="keep_reports"):
         Builder(len(f), device=device, keep_reports=0)
+
+
+@pytest.mark.parametrize("field,value", [("num_prims", 2.5), ("num_prims", True), ("num_prims", 0),
+                                         ("num_prims", "100"), ("max_refits", 1.5), ("max_refits", -1),
+                                         ("keep_reports", 2.0)])
+def test_builder_counts_must_be_integers(field, value):
+    # Builder(2.5) used to set up a builder for 2 triangles without a word; counts are refused as
+    # BuildConfig's integer fields are, naming the argument.
+    args = {"num_prims": 100, field: value}
+    with pytest.raises(ValueError, match=field):
+        Builder(args.pop("num_prims"), device="cpu", **args)
+    assert Builder(np.int64(100), device="cpu", max_refits=np.int32(2)).num_prims == 100
+
+
+def test_frames_take_integer_vertices_as_build_does(device, rng):
+    # `build` takes integer coordinates; a later frame of the same kind used to be refused.
+    v, f = default_scene(500)
+    grid = np.round(v * 1000).astype(np.int64)
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(grid, f)
+    moved = grid + np.array([3, -2, 5], dtype=np.int64)
+    builder.update(moved)
+    check_tree_invariants(builder.bvh.to_numpy(), len(f))
+    check_rays(builder.bvh, moved.astype(np.float32), f, rng)
+    with pytest.raises(ValueError, match="vertices must be numbers"):
+        builder.update(np.zeros_like(grid, dtype=bool))
 
 
 def test_auto_measures_the_motion_while_loading(device, small_scene):
