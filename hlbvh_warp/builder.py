@@ -347,8 +347,13 @@ class Builder:
                 threads_module.launch_parts(dynamic.load_and_measure_kernel, self.device, parts, threads)
                 used = max(used, threads)
             else:
-                self.pipeline._launch(dynamic.load_and_measure_kernel, num_chunks,
-                                      [count, chunk, 0, source, dest, self.largest_sq])
+                args = [count, chunk, 0, source, dest, self.largest_sq]
+                if self.pipeline.launches is None:
+                    wp.launch(dynamic.load_and_measure_kernel, dim=num_chunks, inputs=args, device=self.device)
+                else:
+                    # The source is often the caller's array, a new one every frame: swapped into one
+                    # record, not recorded anew (each record kept its array alive with the builder).
+                    self.pipeline.launches.launch(dynamic.load_and_measure_kernel, num_chunks, args, vary=(3,))
         self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_sq, used, self.stats])
 
     # ---------------------------------------------------------------- build

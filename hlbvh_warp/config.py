@@ -33,7 +33,10 @@ class BuildConfig:
         block_capacity: voxel segments are grouped into blocks of about this many primitives
             for the block-local sort by the low 3(n - m) bits (paper: 2000).
         max_leaf_size: segments of at most this many primitives become leaves. 1 gives the
-            paper's setup of exactly 2N - 1 nodes.
+            paper's setup of exactly 2N - 1 nodes. ``hlbvh_sah`` applies it inside its clusters
+            only: its cluster tree splits down to one cluster per node whatever the primitive
+            count, so its leaves can be smaller and its nodes more than the other builders' (with
+            ``max_leaf_size >= N`` they give one leaf, it gives 2C - 1 nodes over C clusters).
         sah_traversal_cost: T1 of the paper's SAH cost (eq. 1), per child visited.
         sah_intersection_cost: T2 of the paper's SAH cost, per primitive in a leaf.
         sah_bins: bins per axis of the ``binned_sah`` builder.

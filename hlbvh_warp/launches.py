@@ -60,13 +60,16 @@ class RecordedLaunches:
         # Records made per kernel since the record last started over.
         self.made: dict = {}
 
-    def launch(self, kernel, dim, inputs: list):
+    def launch(self, kernel, dim, inputs: list, vary: tuple = ()):
+        """`vary`: positions of arguments that may be another array every call (a caller's input):
+        left out of the key and set on the record before each replay. A record keeps its
+        arguments alive, so one record per such array held every new one it was given."""
         if dim == 0:
             return
         if threads.side_by_side():
             wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
             return
-        key = (kernel, *map(_arg_key, inputs))
+        key = (kernel, *(None if i in vary else _arg_key(a) for i, a in enumerate(inputs)))
         entry = self.records.get(key)
         if entry is None:
             if self.made.get(kernel, 0) >= MAX_RECORDS_PER_KERNEL:
@@ -78,7 +81,10 @@ class RecordedLaunches:
             self.made[kernel] = self.made.get(kernel, 0) + 1
             cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
             entry = self.records[key] = [cmd, dim]
-        elif entry[1] != dim:
-            entry[0].set_dim(dim)
-            entry[1] = dim
+        else:
+            if entry[1] != dim:
+                entry[0].set_dim(dim)
+                entry[1] = dim
+            for i in vary:
+                entry[0].set_param_at_index(i, inputs[i])
         entry[0].launch()

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
@@ -76,6 +76,10 @@ def run(jobs, threads: int):
             for job in mine:
                 job()
         finally:
+            # Every job has finished before run returns or raises: re-raising the first failed
+            # job's error at once left the pool's other jobs running after the caller went on
+            # (writing its buffers, outside the side-by-side stretch that `side_by_side` reports).
+            wait(futures)
             for future in futures:
                 future.result()
     finally:

@@ -87,7 +87,7 @@ def check_tree_invariants(tree: dict, num_prims: int, max_leaf_size: int = 1, ex
     lb = np.sort(begin[leaves])
     le = np.sort(end[leaves])
     assert lb[0] == 0 and le[-1] == num_prims and np.array_equal(lb[1:], le[:-1]), "leaf ranges do not partition"
-    assert (end[leaves] - begin[leaves] <= max_leaf_size).all() or exact_node_count is None, "leaf too large"
+    assert (end[leaves] - begin[leaves] <= max_leaf_size).all(), "leaf too large"
     # Boxes: children inside parents; leaves contain their primitives.
     for child in (left[interior], right[interior]):
         assert (lo[child] >= lo[interior]).all() and (hi[child] <= hi[interior]).all(), "child box outside parent"

@@ -320,3 +320,14 @@ def test_presort_keys_order_like_the_floats(device, rng):
     for axis in range(3):
         keys = np.float32(0.5) * (lowers[:, axis] + lowers[:, axis]) + np.float32(0.0)
         np.testing.assert_array_equal(order[axis], np.argsort(keys, kind="stable"), err_msg=f"axis {axis}")
+
+
+def test_hlbvh_sah_max_leaf_size_applies_inside_clusters_only(device, rng):
+    # Documented (BuildConfig.max_leaf_size): the cluster tree splits down to single clusters,
+    # so with one primitive per cluster the leaf size has no effect, while the top-down builders
+    # keep a node of at most max_leaf_size primitives as a leaf.
+    lo = rng.random((64, 3)).astype(np.float32)
+    cfg = hw.BuildConfig(max_leaf_size=64, coarse_bits=10)
+    assert hw.build_from_bounds(lo, lo + 0.01, method="sweep_sah", device=device, config=cfg).num_nodes == 1
+    tree = hw.build_from_bounds(lo, lo + 0.01, method="hlbvh_sah", device=device, config=cfg).to_numpy()
+    check_tree_invariants(tree, 64, 64, exact_node_count=2 * 64 - 1)

@@ -159,6 +159,31 @@ def test_auto_policy_on_boxes(device, rng):
     check_frame(builder, lowers, uppers, rng)
 
 
+@pytest.mark.parametrize("given", ["numpy", "warp"])
+def test_auto_keeps_no_reference_to_a_callers_frame(device, rng, given):
+    # `auto` measures the motion straight from the caller's arrays; a new record of that measure
+    # for every new array kept the first four frames' boxes alive for as long as the builder lived.
+    # At most the latest frame's arrays may stay referenced (set on the one record).
+    import gc
+    import weakref
+
+    particles = Particles(rng, 500, speed=0.0005)
+    builder = Builder(500, device=device, policy="auto")
+    builder.build_from_bounds(*particles.bounds())
+    refs = []
+    for _ in range(6):
+        lowers, uppers = particles.step()
+        given_bounds = (lowers, uppers) if given == "numpy" else (
+            wp.array(lowers, dtype=wp.vec3, device=device), wp.array(uppers, dtype=wp.vec3, device=device))
+        refs += [weakref.ref(array) for array in given_bounds]
+        builder.update(bounds=given_bounds)
+        check_frame(builder, lowers, uppers, rng, exact_boxes=True)
+        del given_bounds
+    del lowers, uppers
+    gc.collect()
+    assert sum(ref() is not None for ref in refs[:-2]) == 0
+
+
 def test_box_builder_rejects_bad_frames_and_keeps_its_tree(device, rng):
     # Bad input raises a ValueError naming the problem before anything is loaded: the tree and
     # the next good frame are unaffected.

@@ -55,6 +55,27 @@ def test_replays_match_plain_launches(device, rng):
     assert len(rec.records) == 4
 
 
+def test_varying_argument_is_swapped_into_one_record(device, rng):
+    # An argument named in `vary` may be another array every call: one record, its argument set
+    # before each replay (and only the latest one kept alive), every result right.
+    import gc
+    import weakref
+
+    rec = RecordedLaunches(device)
+    y = wp.zeros(16, dtype=wp.vec3, device=device)
+    refs = []
+    for k in range(5):
+        values = rng.random((16, 3))
+        x = wp.array(values, dtype=wp.vec3, device=device)
+        refs.append(weakref.ref(x))
+        rec.launch(_axpy_kernel, 16, [2.0, x, wp.vec3(), wp.float64(0.0), 0, y], vary=(1,))
+        np.testing.assert_allclose(y.numpy(), 2.0 * values, rtol=1e-6)
+        del x
+    gc.collect()
+    assert len(rec.records) == 1
+    assert sum(ref() is not None for ref in refs[:-1]) == 0
+
+
 @pytest.mark.parametrize("limit", ["MAX_RECORDED", "MAX_RECORDS_PER_KERNEL"])
 def test_records_stay_bounded(device, monkeypatch, limit):
     # A scalar that changes every call makes a new argument set every call. Past MAX_RECORDED the

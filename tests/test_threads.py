@@ -91,6 +91,26 @@ def test_run_reraises_and_runs_every_job():
     assert sorted(done)[-3:] == [4, 5, 6] and {0, 2, 3} <= set(done)
 
 
+def test_run_returns_only_after_every_job_finished():
+    # A failed job's error is re-raised only once the other jobs have finished: raised at once,
+    # run() returned while a pool job still ran, outside the side-by-side stretch.
+    import time
+
+    events = []
+
+    def bad():
+        raise RuntimeError("job failed")
+
+    def slow():
+        time.sleep(0.3)
+        events.append(("slow", threads.side_by_side()))
+
+    # The caller takes the first job, the pool the failing one and the slow one.
+    with pytest.raises(RuntimeError, match="job failed"):
+        threads.run([lambda: None, bad, slow], 3)
+    assert events == [("slow", True)]
+
+
 def test_bad_thread_count():
     with pytest.raises(ValueError, match="cpu_threads"):
         hw.BuildConfig(cpu_threads=-1)
