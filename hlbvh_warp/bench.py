@@ -118,6 +118,41 @@ def collector_paused():
             gc.enable()
 
 
+class _RecordingLogger:
+    """A Warp logger that keeps the warnings (Warp 1.19 sends them through its logger, whose
+    default prints them past ``warnings.catch_warnings(record=True)``) and passes the rest on."""
+
+    def __init__(self, inner):
+        self.inner, self.messages = inner, []
+
+    def debug(self, message):
+        self.inner.debug(message)
+
+    def info(self, message):
+        self.inner.info(message)
+
+    def warning(self, message, category=None, stacklevel=1):
+        self.messages.append(str(message))
+
+    def error(self, message):
+        self.inner.error(message)
+
+
+@contextlib.contextmanager
+def _warp_warnings_recorded():
+    """The messages of Warp's logger inside the block (none recorded where Warp has no logger)."""
+    if not (hasattr(wp, "get_logger") and hasattr(wp, "set_logger")):
+        yield []
+        return
+    previous = wp.get_logger()
+    recorder = _RecordingLogger(previous)
+    wp.set_logger(recorder)
+    try:
+        yield recorder.messages
+    finally:
+        wp.set_logger(previous)
+
+
 def _time_interleaved(fns, device, repeats: int, warmup: int) -> list[list[float]]:
     """Times of every callable in `fns`, `repeats` rounds of one run each, in turn. Interleaving
     puts every builder and peer under the same machine load: on a shared machine whose speed
@@ -193,12 +228,16 @@ def _rebuild_runner(builder, lowers, uppers, config, device):
     return run
 
 
-def _bytes_per_tri(bvh, num_tris: int, config: BuildConfig, device) -> float:
-    """Device buffers of the build (pipeline scratch and the tree) plus the primitive boxes."""
+def _bytes_per_tri(bvh, builder: str, num_tris: int, config: BuildConfig, device) -> float | None:
+    """Device buffers of the build (pipeline scratch and the tree) plus the primitive boxes, each
+    counted once (a builder's ``buffer_bytes`` leaves out the boxes it reads); None for a builder
+    that does not count its buffers."""
     from .builders import pipeline_buffer_bytes
 
     total = getattr(bvh, "buffer_bytes", None)
     if total is None:
+        if builder not in ("hlbvh", "lbvh"):
+            return None
         total = pipeline_buffer_bytes(num_tris, config, device)
     return (total + 2 * 12 * num_tris) / num_tris
 
@@ -217,6 +256,8 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
     ours = [b for b in args.builders if b in api.BUILDERS]
     settings = sweep_settings(ours) if args.sweep else [(b, "default", {}) for b in ours]
     peers = [b for b in args.builders if b in PEERS]
+    # Builders that cut triangles (sbvh) take the mesh as well as the boxes, on the device once.
+    triangles = (wp.array(verts, dtype=wp.vec3, device=device), wp.array(tris, dtype=wp.int32, device=device))
     rows = []
     reference_cost = {}
     # The reference first, at every leaf size a setting uses, so each ratio has its denominator.
@@ -240,16 +281,17 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
             rows.append({"mesh": name, "builder": builder, "setting": label, "error": f"{mismatches} ray mismatches"})
             continue
         fn = api.BUILDERS[builder]
+        extra = {"triangles": triangles} if getattr(fn, "needs_triangles", False) else {}
 
-        def run(fn=fn, config=config):
-            fn(lowers, uppers, config, device, StageTimer(device, False))
+        def run(fn=fn, config=config, extra=extra):
+            fn(lowers, uppers, config, device, StageTimer(device, False), **extra)
 
         cost = sah_cost(bvh, config.sah_traversal_cost, config.sah_intersection_cost)
         row = {
             "mesh": name, "num_tris": n, "builder": builder, "setting": label, "config": overrides,
             "stages_ms": {k: v for k, v in bvh.timings.items() if k != "skipped"},
             "sah": cost, "sah_ratio": cost / reference_cost[config.max_leaf_size],
-            "num_nodes": bvh.num_nodes, "bytes_per_tri": _bytes_per_tri(bvh, n, config, device),
+            "num_nodes": bvh.num_nodes, "bytes_per_tri": _bytes_per_tri(bvh, builder, n, config, device),
             "rays_checked": int(len(t)),
         }
         entries.append((row, run, _rebuild_runner(builder, lowers, uppers, config, device)))
@@ -271,7 +313,7 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
         row = {"mesh": name, "num_tris": n, "builder": peer, "setting": "default", "config": {}, "stages_ms": {},
                "sah": None, "sah_ratio": None, "num_nodes": None, "bytes_per_tri": None, "rays_checked": 0}
         try:
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, _warp_warnings_recorded() as logged:
                 warnings.simplefilter("always")
                 run()
                 if peer != "wp.Mesh":
@@ -286,7 +328,7 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
             rows.append({"mesh": name, "builder": peer, "setting": "default", "error": str(exc)})
             continue
         # e.g. wp.Bvh's lbvh constructor falls back to sah on the CPU: say so in the row.
-        row["notes"] = sorted({str(w.message) for w in caught})
+        row["notes"] = sorted({str(w.message) for w in caught} | set(logged))
         entries.append((row, run, rebuild))
 
     progress(f"[{name}] timing {len(entries)} builders in turn, {args.repeats} rounds")

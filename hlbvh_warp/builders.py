@@ -594,14 +594,18 @@ def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
         node_count=pipe.node_count,
         timings=timings,
     )
-    bvh.buffer_bytes = pipe.held_bytes()
+    # The caller's boxes, which the pipeline only reads, are not the build's: left out, as
+    # build_top_down leaves them out.
+    bvh.buffer_bytes = pipe.held_bytes() - pipe.prim_lowers.capacity - pipe.prim_uppers.capacity
     pipe.give_back()
     return bvh
 
 
 def pipeline_buffer_bytes(num_prims: int, config: BuildConfig, device) -> int:
-    """Bytes the plain HLBVH / LBVH pipeline allocates for `num_prims` primitives."""
-    return array_bytes(HlbvhPipeline(num_prims, config, device))
+    """Bytes the plain HLBVH / LBVH pipeline allocates for `num_prims` primitives, besides the
+    primitive boxes it reads (the caller's in a one-shot build)."""
+    pipe = HlbvhPipeline(num_prims, config, device)
+    return array_bytes(pipe) - pipe.prim_lowers.capacity - pipe.prim_uppers.capacity
 
 
 for _name in TOP_DOWN_MODES:

@@ -128,7 +128,9 @@ def measure_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
         row["sah_ratio"] = row["sah"] / ref["sah"]
         row["epo_ratio"] = row["epo"] / ref["epo"] if ref["epo"] > 0 else float("nan")
         for kind in ("primary", "diffuse"):
-            row[kind]["m_ratio"] = row[kind]["m"] / ref[kind]["m"]
+            # No ray of the kind entered the reference's root box (a flat mesh's diffuse rays
+            # leave its plane): m = 0, and there is no ratio.
+            row[kind]["m_ratio"] = row[kind]["m"] / ref[kind]["m"] if ref[kind]["m"] > 0 else float("nan")
     return rows
 
 
@@ -138,7 +140,9 @@ def epo_weight(rows: list, kind: str, steps: int = 101) -> dict:
     the one whose p correlates best (Pearson) with the measured cost m of `kind` rays across the
     builders of one mesh. Also the correlation of the SAH alone (alpha = 0). Trees that tie on
     every measure (hlbvh and lbvh build the same one) count once."""
-    distinct = {(r["sah"], r["epo"], r[kind]["m"]): r for r in rows}
+    # Keyed to 12 significant digits: the same tree summed in another node order (sbvh without a
+    # spatial split against sweep_sah) differs in the last bits of its SAH and EPO.
+    distinct = {tuple(float(f"{x:.12g}") for x in (r["sah"], r["epo"], r[kind]["m"])): r for r in rows}
     sah, epo, m = (np.array(v, dtype=np.float64) for v in zip(*distinct))
     if len(m) < 3 or np.ptp(m) == 0:
         return {"alpha": float("nan"), "r": float("nan"), "r_sah": float("nan"), "trees": int(len(m))}

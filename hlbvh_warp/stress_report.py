@@ -223,7 +223,16 @@ def classify(vertices, faces, origins, directions, t, prim, t_ref, prim_ref):
     t = np.asarray(t, dtype=np.float64)
     hit, hit_ref = prim >= 0, prim_ref >= 0
     same_t = np.isclose(t, t_ref, rtol=T_RTOL, atol=0.0)
-    agree = (~hit & ~hit_ref) | (hit & hit_ref & ((prim == prim_ref) | same_t))
+    # The same triangle is the same answer only at the same distance: within the float32 rounding
+    # of the coordinates (the distance along the ray against NEAR_TIE_TOL * scale, as near-ties
+    # are measured), not at any t.
+    v = np.asarray(vertices, dtype=np.float64)
+    far_t = np.zeros(len(t), dtype=bool)
+    for r in np.nonzero(hit & hit_ref & (prim == prim_ref) & ~same_t)[0]:
+        o, d = np.asarray(origins[r], dtype=np.float64), np.asarray(directions[r], dtype=np.float64)
+        scale = max(np.abs(o).max(), np.abs(v[faces[prim[r]]]).max(), 1e-300)
+        far_t[r] = abs(t[r] - t_ref[r]) * np.linalg.norm(d) > NEAR_TIE_TOL * scale
+    agree = (~hit & ~hit_ref) | (hit & hit_ref & (((prim == prim_ref) & ~far_t) | same_t))
     unexplained = 0
     for r in np.nonzero(~agree)[0]:
         involved = []

@@ -36,12 +36,16 @@ HEADER = (f"{'mesh':>10s} {'method':>10s} {'k':>3s} {'inner':>7s} {'depth':>5s} 
 def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
     from . import api, quality, reference, wide
     from .ray_bench import best_times
-    from .config import BuildConfig
+    from .config import TRAVERSAL_STACK_SIZE, BuildConfig
     from .kernels import traversal
     from .kernels import wide as wide_kernels
     from .query import intersect, view
 
     bvh = api.build(vertices, faces, method=method, device=device, config=BuildConfig(cpu_threads=args.cpu_threads))
+    tree = bvh.to_numpy()
+    leaves = tree["node_left"] < 0
+    single_leaves = bool((tree["node_end"][leaves] - tree["node_begin"][leaves] == 1).all()) and \
+        bvh.depth <= TRAVERSAL_STACK_SIZE
     rng = np.random.default_rng(args.seed)
     primary = quality.orbit_rays(vertices, args.views, args.side)
     widths = sorted(set(args.widths) | {2})
@@ -90,10 +94,17 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         fns.append(lambda: wp.launch(traversal.closest_hit_kernel, dim=n, device=device,
                                      inputs=[bvh_view, o, d, float("inf"), out_t, out_p]))
         summary = stats.summary(1.0, 1.0)
+        # Interior nodes visited and child boxes tested, as the wide rows count them: the binary
+        # traversal's n_s also counts every leaf it pops, which tests no box. Where every leaf
+        # holds one triangle and the stack never overflows, the leaves popped are the triangles
+        # tested; elsewhere the split is not known and the row leaves both out.
+        n_s = boxes = None
+        if single_leaves:
+            n_s = float((stats.nodes_visited - stats.prims_tested).mean()) if len(t) else 0.0
+            boxes = 2.0 * n_s
         # Interior nodes, as the wide rows count them: a full binary tree has (nodes - 1) / 2.
         entries.append({"k": "bin", "nodes": (bvh.num_nodes - 1) // 2, "depth": None, "collapse_ms": None, "sah": None,
-                        "n_s": summary["mean_nodes_visited"], "boxes": 2 * summary["mean_nodes_visited"],
-                        "n_t": summary["mean_prims_tested"],
+                        "n_s": n_s, "boxes": boxes, "n_t": summary["mean_prims_tested"],
                         "disagree": reference.count_mismatches(t, prim, ref_t, ref_p)})
         progress(f"[{name} {method}] timing {kind} rays")
         times = best_times(fns, args.repeats, device)
@@ -110,7 +121,7 @@ def format_row(r: dict) -> str:
 
     return (f"{r['mesh']:>10s} {r['method']:>10s} {str(r['k']):>3s} {r['nodes']:7d} {opt(r['depth'], 'd'):>5s} "
             f"{opt(r['collapse_ms'], '.1f'):>8s} {opt(r['sah'], '.2f'):>7s} {r['rays']:>7s} {r['mrays_per_s']:8.3f} "
-            f"{r['speedup']:6.2f} {r['n_s']:6.1f} {r['boxes']:6.1f} {r['n_t']:5.2f} {r['disagree']:8d}")
+            f"{r['speedup']:6.2f} {opt(r['n_s'], '6.1f'):>6s} {opt(r['boxes'], '6.1f'):>6s} {r['n_t']:5.2f} {r['disagree']:8d}")
 
 
 def parse_args(argv):

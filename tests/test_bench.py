@@ -38,6 +38,21 @@ def test_bench_rejects_bad_arguments():
         bench.parse_args(["--subdivide", "-1"])
 
 
+def test_bench_notes_say_when_a_peer_falls_back(tmp_path):
+    """wp.Bvh's "lbvh" constructor runs "sah" on the CPU: its row must say so (Warp reports it
+    through its logger, which warnings.catch_warnings does not record)."""
+    import warp as wp
+
+    out = tmp_path / "b.json"
+    code = bench.main(["--scene-tris", "500", "--builders", "hlbvh,wp.Bvh:lbvh,wp.Bvh:sah", "--repeats", "1",
+                       "--warmup", "0", "--device", "cpu", "--rays", "8", "--json", str(out)])
+    assert code in (0, None)
+    rows = {r["builder"]: r for r in json.loads(out.read_text())["rows"]}
+    assert any("Falling back to SAH" in note for note in rows["wp.Bvh:lbvh"]["notes"])
+    assert rows["wp.Bvh:sah"]["notes"] == []
+    assert type(wp.get_logger()).__name__ != "_RecordingLogger"
+
+
 def test_bench_table_keeps_long_mesh_names(tmp_path, capsys):
     # Names past the old 12-character column were cut ("armadillo_x16" printed as "armadillo_x1").
     import trimesh
@@ -57,3 +72,42 @@ def test_bench_table_keeps_long_mesh_names(tmp_path, capsys):
     assert row.split()[:3] == [name, str(num_tris), "hlbvh"]
     assert header.index("mesh") + len("mesh") == len(name)
     assert header.index("tris") + len("tris") == row.index(f" {num_tris} ") + 1 + len(str(num_tris))
+
+
+def test_bench_bytes_count_the_boxes_once_and_time_every_builder(tmp_path):
+    """B/tri counts each device array once (the HLBVH pipelines read the caller's primitive boxes;
+    those used to be added a second time), builders without a count of their own get none (not the
+    HLBVH pipeline's), and the triangle-cutting sbvh is timed on the mesh it needs."""
+    import numpy as np
+    import trimesh
+    import warp as wp
+
+    from hlbvh_warp import memory
+    from hlbvh_warp.builders import HlbvhSahPipeline
+    from hlbvh_warp.config import BuildConfig
+    from hlbvh_warp.hlbvh import HlbvhPipeline, StageTimer
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    path = tmp_path / "sphere.ply"
+    mesh.export(path)
+    out = tmp_path / "b.json"
+    code = bench.main(["--mesh", str(path), "--builders", "hlbvh,hlbvh_sah,sweep_sah,sbvh,recursive_sah",
+                       "--repeats", "1", "--warmup", "1", "--device", "cpu", "--rays", "8", "--json", str(out)])
+    assert code in (0, None)
+    rows = {r["builder"]: r for r in json.loads(out.read_text())["rows"]}
+    assert all("error" not in r and r["time_ms"]["median"] > 0 for r in rows.values())
+    n = len(mesh.faces)
+    tri = np.asarray(mesh.vertices, np.float32)[np.asarray(mesh.faces)]
+    lowers = wp.array(tri.min(axis=1), dtype=wp.vec3, device="cpu")
+    uppers = wp.array(tri.max(axis=1), dtype=wp.vec3, device="cpu")
+    config = BuildConfig()
+    # A one-shot pipeline over the caller's boxes: every array it holds, the boxes among them, once.
+    plain = HlbvhPipeline(n, config, "cpu", lowers, uppers)
+    assert rows["hlbvh"]["bytes_per_tri"] == pytest.approx(memory.array_bytes(plain) / n)
+    sah = HlbvhSahPipeline(n, config, "cpu", lowers, uppers)
+    sah.build_sah(StageTimer("cpu", False))
+    assert rows["hlbvh_sah"]["bytes_per_tri"] == pytest.approx(sah.held_bytes() / n)
+    # The top-down arena does not hold the boxes: they are added once.
+    swept = bench.api.build_from_bounds(tri.min(axis=1), tri.max(axis=1), method="sweep_sah", device="cpu")
+    assert rows["sweep_sah"]["bytes_per_tri"] == pytest.approx((swept.buffer_bytes + 24 * n) / n)
+    assert rows["sbvh"]["bytes_per_tri"] is None and rows["recursive_sah"]["bytes_per_tri"] is None

@@ -117,3 +117,25 @@ def test_spatial_splits_in_the_quality_table(tmp_path):
     assert row["disagree"] == 0
     assert row["sah_ratio"] < 0.95 and row["epo_ratio"] < 0.5
     assert row["primary"]["m_ratio"] < 1.0 and row["diffuse"]["m_ratio"] < 1.0
+
+
+def test_quality_on_a_flat_mesh_and_ties_in_the_last_bits(tmp_path):
+    """A flat mesh: every diffuse ray leaves its plane and no ray enters the root box (m = 0), so
+    there is no diffuse ratio, not a ZeroDivisionError. And the same tree whose SAH and EPO were
+    summed in another order (differing in the last bits) counts once in the EPO fit."""
+    path = tmp_path / "square.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4\n")
+    out = tmp_path / "quality.json"
+    code = quality.main(["--mesh", str(path), "--builders", "hlbvh", "--views", "2", "--side", "8",
+                         "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    rows = {r["builder"]: r for r in json.loads(out.read_text())["rows"]}
+    for row in rows.values():
+        assert row["diffuse"]["m"] == 0.0 and np.isnan(row["diffuse"]["m_ratio"])
+        assert row["primary"]["m_ratio"] == pytest.approx(1.0)
+
+    rng = np.random.default_rng(5)
+    sah, epo = rng.uniform(50, 90, 7), rng.uniform(4, 16, 7)
+    rows = [{"sah": a, "epo": b, "diffuse": {"m": 3.0 + 0.4 * a + 0.6 * b * 7.0}} for a, b in zip(sah, epo)]
+    twin = {"sah": np.nextafter(sah[0], np.inf), "epo": np.nextafter(epo[0], -np.inf), "diffuse": rows[0]["diffuse"]}
+    assert quality.epo_weight(rows + [twin], "diffuse")["trees"] == 7

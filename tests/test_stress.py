@@ -224,3 +224,22 @@ def test_fuzzed_soups(device, seed, num_tris, exponent, duplicate, flat_axis, me
         t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
         _, unexplained = stress_report.classify(verts, faces, o, d, t, prim, t_ref, prim_ref)
         assert unexplained == 0
+
+
+def test_classifier_flags_the_right_triangle_at_a_wrong_distance():
+    """A hit on the reference's triangle is only the same answer at the same distance: a traversal
+    that reported the right triangle with another triangle's (or a stale) t must be flagged."""
+    rng = np.random.default_rng(0)
+    verts, faces = stress_report.scene_closed(rng)
+    o, d = stress_report.ray_families(rng, verts, faces)["random"]
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    hit = prim_ref >= 0
+    assert hit.sum() > 20
+    # The right answers pass; float32 rounding of them passes.
+    assert stress_report.classify(verts, faces, o, d, t_ref.astype(np.float32), prim_ref, t_ref, prim_ref) == (0, 0)
+    # The right triangles at 1.5x their distance: every hit ray is wrong, and only a ray that grazes
+    # its triangle (decided within rounding either way) may pass for a near-tie.
+    wrong = np.where(hit, 1.5 * t_ref, t_ref)
+    disagree, unexplained = stress_report.classify(verts, faces, o, d, wrong, prim_ref, t_ref, prim_ref)
+    assert disagree == int(hit.sum())
+    assert unexplained >= 0.9 * disagree

@@ -224,3 +224,29 @@ def test_bench_wide_rejects_bad_arguments():
     for argv in (["--widths", "1"], ["--widths", "4,x"], ["--widths", "32"], ["--method", "nope"], ["--repeats", "0"]):
         with pytest.raises(SystemExit):
             wide_bench.parse_args(argv)
+
+
+def test_bench_wide_binary_row_counts_as_the_wide_rows(tmp_path):
+    """The binary traversal's row counts interior nodes visited and child boxes tested, as the wide
+    rows do: over the same tree, front to back, it visits the nodes k = 2 visits (up to ties in
+    the order), and a one-triangle tree (a single leaf) has no child box to test."""
+    import json
+
+    from hlbvh_warp import wide_bench
+
+    out = tmp_path / "wide.json"
+    code = wide_bench.main(["--scene-tris", "2000", "--widths", "2", "--views", "2", "--side", "16",
+                            "--repeats", "1", "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    rows = json.loads(out.read_text())["rows"]
+    for kind in ("primary", "diffuse"):
+        ks = {r["k"]: r for r in rows if r["rays"] == kind}
+        assert ks["bin"]["n_s"] == pytest.approx(ks[2]["n_s"], rel=0.03)
+        assert ks["bin"]["boxes"] == pytest.approx(ks[2]["boxes"], rel=0.03)
+    path = tmp_path / "one.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0.2\nf 1 2 3\n")
+    code = wide_bench.main(["--mesh", str(path), "--method", "hlbvh", "--widths", "2", "--views", "2", "--side", "8",
+                            "--repeats", "1", "--device", "cpu", "--json", str(out)])
+    assert code == 0
+    rows = [r for r in json.loads(out.read_text())["rows"] if r["k"] == "bin"]
+    assert rows and all(r["n_s"] == 0.0 and r["boxes"] == 0.0 and r["n_t"] > 0 for r in rows)
