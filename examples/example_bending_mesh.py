@@ -15,6 +15,14 @@ from hlbvh_warp.dynamic import Animation, BendingMesh
 from hlbvh_warp.scenes import scene
 
 
+def sah_growth_limit(text: str) -> float:
+    """argparse type: the auto policy's SAH growth limit, a number >= 0."""
+    value = float(text)
+    if not value >= 0.0:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return value
+
+
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, method="hlbvh", policy="auto", resort=True,
                  image_size=256, headless=False, compare=True, sah_growth_limit=0.10):
@@ -47,10 +55,10 @@ if __name__ == "__main__":
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="auto")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
-    parser.add_argument("--sah-growth-limit", type=float, default=0.10)
+    parser.add_argument("--sah-growth-limit", type=sah_growth_limit, default=0.10)
     parser.add_argument("--image-size", type=positive_int, default=256)
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
-    args = parser.parse_known_args()[0]
+    args = parser.parse_args()
 
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, args.num_frames, args.method, args.policy,

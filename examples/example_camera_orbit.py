@@ -120,7 +120,7 @@ if __name__ == "__main__":
     parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
     parser.add_argument("--out", type=str, default="camera_orbit_out", help="Where the PNG and GIF go.")
-    args = parser.parse_known_args()[0]
+    args = parser.parse_args()
     widths = tuple(int(k) for k in args.widths.split(",") if k.strip().isdigit())
     if len(widths) != len(args.widths.split(",")) or not all(k in wide.WIDTHS for k in widths):
         parser.error(f"--widths takes branching factors from {wide.WIDTHS[0]} to {wide.WIDTHS[-1]}, got {args.widths}")

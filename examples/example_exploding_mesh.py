@@ -49,7 +49,7 @@ if __name__ == "__main__":
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
     parser.add_argument("--image-size", type=positive_int, default=256)
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
-    args = parser.parse_known_args()[0]
+    args = parser.parse_args()
 
     with wp.ScopedDevice(args.device):
         example = Example(args.mesh, args.num_tris, args.method, args.policy, not args.no_resort,

@@ -197,7 +197,7 @@ if __name__ == "__main__":
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
     parser.add_argument("--subdivide", type=non_negative_int, default=0,
                         help="Split every triangle into four this many times (a mesh at the paper's sizes).")
-    args = parser.parse_known_args()[0]
+    args = parser.parse_args()
     unknown = [m for m in args.modes.split(",") if m not in MODES]
     if unknown:
         parser.error(f"unknown mode(s) {unknown}; the modes are {list(MODES)}")

@@ -210,7 +210,7 @@ if __name__ == "__main__":
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
     parser.add_argument("--no-peer", action="store_true", help="Do not time wp.Bvh beside it.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the picture.")
-    args = parser.parse_known_args()[0]
+    args = parser.parse_args()
 
     with wp.ScopedDevice(args.device):
         example = Example(args.num_particles, args.method, args.policy, peer=not args.no_peer,

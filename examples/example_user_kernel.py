@@ -107,7 +107,7 @@ if __name__ == "__main__":
     parser.add_argument("--num-frames", type=positive_int, default=8, help="Total number of frames.")
     parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
-    args = parser.parse_known_args()[0]
+    args = parser.parse_args()
 
     with wp.ScopedDevice(args.device):
         example = Example(resolution=args.resolution)

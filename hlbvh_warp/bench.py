@@ -32,7 +32,7 @@ import numpy as np
 import warp as wp
 
 from . import api, inputs, reference, scenes
-from .cli import mesh_file, non_negative_int, positive_int
+from .cli import device_name, mesh_file, non_negative_int, positive_int
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -425,7 +425,7 @@ def parse_args(argv):
     parser.add_argument("--scene-tris", type=positive_int, default=60000, help="triangles of the generated scene")
     parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
                         help="comma-separated builders and peers (default: all)")
-    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder")
     parser.add_argument("--warmup", type=non_negative_int, default=1, help="untimed runs first (kernel compilation, caches)")
     parser.add_argument("--rays", type=non_negative_int, default=128, help="rays checked against the brute force")

@@ -36,6 +36,20 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def device_name(text: str) -> str:
+    """argparse type: a Warp device this machine has ("cpu", "cuda", "cuda:1"). Warp names an
+    unknown one with a ValueError but a CUDA device on a machine without CUDA with a
+    RuntimeError, which left ``--device cuda`` a traceback on CPU-only machines."""
+    import warp as wp
+
+    wp.config.quiet = True
+    try:
+        wp.get_device(text)
+    except (RuntimeError, ValueError) as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
 def mesh_file(text: str) -> str:
     """argparse type: a path to an existing file (read later by trimesh)."""
     if not os.path.isfile(text):

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import mesh_file, non_negative_int, positive_int
+from .cli import device_name, mesh_file, non_negative_int, positive_int
 from .reference import brute_force_closest_hit
 
 
@@ -43,7 +43,7 @@ def rays_at(vertices, count: int, seed: int = 0):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp demo", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Warp device (default: Warp's default).")
+    parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default).")
     parser.add_argument("--num-tris", type=positive_int, default=60000, help="Triangles of the generated scene.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
     parser.add_argument("--rays", type=non_negative_int, default=256, help="Rays checked against the float64 brute force.")

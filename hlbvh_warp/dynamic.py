@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .inputs import mesh_arrays
 from .kernels import dynamic
 
 
@@ -26,8 +27,9 @@ class ExplodingMesh:
 
     def __init__(self, vertices, faces, device=None, seed: int = 0, speed: float = 0.5, spin: float = 6.0):
         self.device = wp.get_device(device)
-        v = np.asarray(vertices, dtype=np.float64)
-        f = np.asarray(faces, dtype=np.int64)
+        # The checks of `hlbvh_warp.build`: NumPy would wrap a face index of -1 and truncate 2.7.
+        v, f = mesh_arrays(vertices, faces)
+        v, f = v.astype(np.float64), f.astype(np.int64)
         corners = v[f]  # (F, 3, 3)
         centroids = corners.mean(axis=1)
         offsets = corners - centroids[:, None, :]
@@ -68,11 +70,20 @@ class ExplodingMesh:
 
 class BendingMesh:
     """A mesh bent around an axis, progressively: ``update(amount)`` bends the mesh's longest
-    extent into an arc of ``amount * max_angle`` radians (0 is the rest pose)."""
+    extent into an arc of ``amount * max_angle`` radians (0 is the rest pose).
+
+    The surface that keeps its length is the mesh's face on the inside of the bend; every other
+    layer lies farther from the arc's centre and is stretched along the arc by
+    ``1 + depth * curvature``. With the neutral surface through the middle, the layers on the
+    inside farther from it than the radius (past about two thirds of the bend for the bunny, the
+    armadillo and the generated knot) were folded through the arc's centre: pinched to a line
+    and turned inside out.
+    """
 
     def __init__(self, vertices, faces, device=None, max_angle: float = np.pi):
         self.device = wp.get_device(device)
-        v = np.asarray(vertices, dtype=np.float64)
+        v, faces = mesh_arrays(vertices, faces)  # the checks of `hlbvh_warp.build`
+        v = v.astype(np.float64)
         lo, hi = v.min(axis=0), v.max(axis=0)
         extent = hi - lo
         order = np.argsort(extent)[::-1]
@@ -80,6 +91,9 @@ class BendingMesh:
         self.bend_axis = np.eye(3)[order[1]]
         self.length = float(extent[order[0]]) or 1.0
         self.origin = 0.5 * (lo + hi)
+        # Where the neutral surface crosses the bend axis, for a bend towards +bend_axis (positive
+        # amounts) and towards -bend_axis (negative): the mesh's face on the inside of the bend.
+        self._inner = (float(hi[order[1]]), float(lo[order[1]]))
         self.max_angle = float(max_angle)
         self.faces = np.ascontiguousarray(faces, dtype=np.int32)
         self._rest = wp.array(np.ascontiguousarray(v, dtype=np.float32), dtype=wp.vec3, device=self.device)
@@ -89,8 +103,11 @@ class BendingMesh:
     def update(self, amount: float) -> wp.array:
         """Bend by ``amount`` (0..1) of ``max_angle``; returns ``self.vertices``."""
         curvature = float(amount) * self.max_angle / self.length
+        # Every point then lies at least the radius from the arc's centre: none folds through it.
+        inner = self._inner[0 if curvature >= 0.0 else 1]
+        origin = self.origin + (inner - self.origin @ self.bend_axis) * self.bend_axis
         wp.launch(dynamic.bend_kernel, dim=self.vertices.shape[0],
-                  inputs=[self._rest, wp.vec3(*self.origin), wp.vec3(*self.length_axis), wp.vec3(*self.bend_axis),
+                  inputs=[self._rest, wp.vec3(*origin), wp.vec3(*self.length_axis), wp.vec3(*self.bend_axis),
                           curvature, self.vertices], device=self.device)
         return self.vertices
 

@@ -23,7 +23,7 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
-from .cli import mesh_file, non_negative_int, positive_int
+from .cli import device_name, mesh_file, non_negative_int, positive_int
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -175,7 +175,7 @@ def parse_args(argv):
     parser.add_argument("--side", type=positive_int, default=64, help="pixels per image side")
     parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")
     parser.add_argument("--ci", type=float, default=1.0, help="intersection cost c_i (Wodniok & Goesele: 1.0)")
-    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0, help="BuildConfig.cpu_threads (0: every core)")
     parser.add_argument("--json", default="out/quality.json", help="where to write the rows")
     parser.add_argument("--seed", type=int, default=1)

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import positive_int
+from .cli import device_name, positive_int
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rays", type=positive_int, default=1_000_000, help="rays per kind (default 1M)")
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
     parser.add_argument("--repeats", type=positive_int, default=3, help="launches timed per kernel; the best is kept")
-    parser.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-leaf-size", type=positive_int, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")

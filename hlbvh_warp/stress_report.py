@@ -26,6 +26,7 @@ import argparse
 
 import numpy as np
 
+from .cli import device_name
 from .reference import brute_force_closest_hit
 
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
@@ -294,7 +295,8 @@ def main(argv=None) -> int:
     from . import api
 
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp stress", description=__doc__.splitlines()[0])
-    parser.add_argument("--device", action="append", help="Warp device (repeatable); default: every device")
+    parser.add_argument("--device", action="append", type=device_name,
+                        help="Warp device (repeatable); default: every device")
     parser.add_argument("--family", action="append", choices=sorted(SCENE_FAMILIES), help="default: all")
     parser.add_argument("--method", action="append", help="default: every builder in api.BUILDERS")
     parser.add_argument("--seed", type=int, default=0)

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import mesh_file, non_negative_int, positive_int
+from .cli import device_name, mesh_file, non_negative_int, positive_int
 
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
@@ -137,7 +137,7 @@ def parse_args(argv):
     parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit")
     parser.add_argument("--side", type=positive_int, default=128, help="pixels per image side")
     parser.add_argument("--repeats", type=positive_int, default=5, help="launches timed per traversal; the best is kept")
-    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0, help="BuildConfig.cpu_threads (0: every core)")
     parser.add_argument("--json", default="out/bench_wide.json", help="where to write the rows")
     parser.add_argument("--seed", type=int, default=1)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import pytest
+import warp as wp
+
 from hlbvh_warp import cli
 
 
@@ -57,3 +60,16 @@ def test_mesh_files_with_several_objects_or_none_read_alike_in_every_command(tmp
         rc = cli.main(argv)
         err = capsys.readouterr().err
         assert rc == 2 and "the mesh has no triangles" in err and "Traceback" not in err, (argv, err)
+
+
+@pytest.mark.skipif(bool(wp.get_cuda_devices()), reason="needs a machine without CUDA")
+@pytest.mark.parametrize("command", ["demo", "bench", "bench-rays", "bench-wide", "quality", "stress"])
+def test_cuda_device_without_cuda_is_a_one_line_error(command, capsys):
+    # Warp raises a RuntimeError for "cuda" where there is none (a ValueError for "cuda:0"):
+    # every command's --device names it in one line, before any work.
+    try:
+        rc = cli.main([command, "--device", "cuda"])
+    except SystemExit as exit_:  # argparse's own errors
+        rc = exit_.code
+    err = capsys.readouterr().err
+    assert rc == 2 and "--device" in err and "CUDA" in err, (command, rc, err)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib.util
 import pathlib
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -124,6 +126,20 @@ def test_scene_builds(device):
             np.testing.assert_allclose(arrays["node_uppers"][leaves], verts[prims].max(axis=1), rtol=0, atol=1e-6)
 
 
+def test_scene_builds_moves_the_meshes_every_timed_frame(device):
+    """No timed frame rebuilds the vertices of the frame before it (the warm-up included)."""
+    module = load_example("example_scene_builds")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=(1000, 400), num_frames=3, headless=True)
+        previous = [obj["vertices"].numpy().copy() for obj in example.objects]
+        for _ in range(3):
+            example.step()
+            current = [obj["vertices"].numpy().copy() for obj in example.objects]
+            for before, after in zip(previous, current):
+                assert not np.array_equal(before, after), f"frame {example.frame} did not move the meshes"
+            previous = current
+
+
 @pytest.mark.parametrize("headless", [True, False])
 def test_particle_collisions(device, headless, tmp_path):
     """The broad phase through the per-frame box BVH finds exactly the touching sphere pairs a
@@ -178,3 +194,31 @@ def test_camera_orbit(device, headless, tmp_path):
         assert all(p.stat().st_size > 0 for p in paths)
         # Something was hit: the image is not all sky.
         assert (example.image[..., 0] != example.image[0, 0, 0]).any()
+
+
+# Small runs of each script, so that one which ignores a bad option still ends quickly.
+TINY_ARGS = {
+    "example_exploding_mesh": ["--headless", "--num-frames", "1", "--num-tris", "500"],
+    "example_bending_mesh": ["--headless", "--num-frames", "1", "--num-tris", "500"],
+    "example_frame_timing": ["--headless", "--num-frames", "1", "--num-tris", "500", "--modes", "hlbvh scratch",
+                             "--sequences", "explode"],
+    "example_scene_builds": ["--headless", "--num-frames", "1"],
+    "example_user_kernel": ["--headless", "--num-frames", "1", "--resolution", "8"],
+    "example_particle_collisions": ["--headless", "--num-frames", "1", "--num-particles", "100"],
+    "example_camera_orbit": ["--headless", "--num-frames", "1", "--num-tris", "300", "--resolution", "8",
+                             "--methods", "hlbvh", "--widths", "2"],
+}
+
+
+@pytest.mark.parametrize("name,extra,message", [
+    *[(name, ["--num-frame-count", "2"], "unrecognized arguments: --num-frame-count") for name in TINY_ARGS],
+    ("example_scene_builds", ["--scratch-sets", "-1"], "--scratch-sets: must be at least 0"),
+    ("example_bending_mesh", ["--sah-growth-limit", "-1"], "--sah-growth-limit: must be a number >= 0"),
+])
+def test_example_scripts_reject_bad_options_in_one_line(name, extra, message, tmp_path):
+    # A misspelt option used to be ignored (the run went on with the default) and a negative
+    # count or limit ended in a library traceback.
+    run = subprocess.run([sys.executable, str(EXAMPLES / f"{name}.py"), *TINY_ARGS[name], *extra],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.returncode == 2 and message in run.stderr, (run.returncode, run.stderr[-2000:])
+    assert "Traceback" not in run.stderr
