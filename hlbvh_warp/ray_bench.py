@@ -168,4 +168,5 @@ def main(argv=None) -> int:
                     total_disagree += row["disagree"]
                     print(format_row(row), flush=True)
     print(f"ratio = wp.mesh_query_ray time / ours (> 1: ours is faster); disagreements in total: {total_disagree}")
-    return 0
+    # As bench-wide and quality: a disagreement fails the command, so a script can rely on it.
+    return 1 if total_disagree else 0

@@ -111,3 +111,20 @@ def test_bench_bytes_count_the_boxes_once_and_time_every_builder(tmp_path):
     swept = bench.api.build_from_bounds(tri.min(axis=1), tri.max(axis=1), method="sweep_sah", device="cpu")
     assert rows["sweep_sah"]["bytes_per_tri"] == pytest.approx((swept.buffer_bytes + 24 * n) / n)
     assert rows["sbvh"]["bytes_per_tri"] is None and rows["recursive_sah"]["bytes_per_tri"] is None
+
+
+def test_bench_rays_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
+    # bench-rays exits 1 when its hits disagree with wp.Mesh's, as bench-wide and quality do; it
+    # used to print the count and exit 0 whatever it was.
+    import trimesh
+
+    from hlbvh_warp import cli, ray_bench
+
+    path = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(2).export(path)
+    argv = ["bench-rays", "--mesh", str(path), "--rays", "64", "--repeats", "1"]
+    assert cli.main(argv) == 0
+    assert "disagreements in total: 0" in capsys.readouterr().out
+    monkeypatch.setattr(ray_bench, "count_disagreements", lambda *args, **kwargs: 3)
+    assert cli.main(argv) == 1
+    assert "disagreements in total: 0" not in capsys.readouterr().out
