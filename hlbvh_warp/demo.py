@@ -72,6 +72,10 @@ def main(argv=None) -> int:
         api._load_optional_builders()
         methods = (args.methods.split(",") if args.methods
                    else [m for m in api.BUILDERS if m not in api.OFFLINE_BUILDERS])
+        # Every name checked before the first build, not when the loop reaches it.
+        unknown = [m for m in methods if m not in api.BUILDERS]
+        if unknown:
+            raise ValueError(f"unknown method(s) {unknown} in --methods; choose from {sorted(api.BUILDERS)}")
         origins, directions = rays_at(vertices, args.rays)
         reference = brute_force_closest_hit(vertices, faces, origins, directions)
         for method in methods:

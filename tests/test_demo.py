@@ -73,3 +73,17 @@ def test_cuda_device_without_cuda_is_a_one_line_error(command, capsys):
         rc = exit_.code
     err = capsys.readouterr().err
     assert rc == 2 and "--device" in err and "CUDA" in err, (command, rc, err)
+
+
+def test_demo_checks_every_method_name_before_building(tmp_path, monkeypatch, capsys):
+    # A trailing comma or a misspelt name used to fail only once the builds before it had run.
+    from hlbvh_warp import api
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("built before the names were checked")
+
+    monkeypatch.setattr(api, "build", no_build)
+    for methods in ("hlbvh,", "hlbvh,nosuch"):
+        rc = cli.main(["demo", "--methods", methods, "--num-frames", "1", "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err
+        assert rc == 2 and "unknown method" in err and "Traceback" not in err, (methods, err)
