@@ -331,3 +331,37 @@ def test_hlbvh_sah_max_leaf_size_applies_inside_clusters_only(device, rng):
     assert hw.build_from_bounds(lo, lo + 0.01, method="sweep_sah", device=device, config=cfg).num_nodes == 1
     tree = hw.build_from_bounds(lo, lo + 0.01, method="hlbvh_sah", device=device, config=cfg).to_numpy()
     check_tree_invariants(tree, 64, 64, exact_node_count=2 * 64 - 1)
+
+
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
+@pytest.mark.parametrize("leaf", [1, 4])
+def test_hlbvh_sah_subtree_costs_match_numpy(device, rng, emission, leaf):
+    """The SAH costs the cluster subtrees are weighted by (eq. 1: T2 N at a leaf of N
+    primitives, 2 T1 + the children's costs x area ratios at an interior node), against a
+    float64 NumPy evaluation over the finished tree, with T1 != T2 and leaves of several."""
+    from hlbvh_warp.builder import Builder
+
+    v, f = random_soup(rng, 2000)
+    cfg = hw.BuildConfig(coarse_bits=2, max_leaf_size=leaf, emission=emission, sah_traversal_cost=0.7,
+                         sah_intersection_cost=1.3)
+    builder = Builder(len(f), cfg, device=device, method="hlbvh_sah", resort=False)
+    tree = builder.build(v, f).to_numpy()
+    pipe = builder.pipeline
+    num_clusters = pipe.top.num_clusters
+    assert 1 < num_clusters <= 64
+    cost = pipe.node_cost.numpy()
+    lo, hi = tree["node_lowers"].astype(np.float64), tree["node_uppers"].astype(np.float64)
+    d = hi - lo
+    area = 2.0 * (d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0])
+    left, right = tree["node_left"], tree["node_right"]
+    expected = np.zeros(len(left))
+    # Below the cluster roots the nodes keep their ids, children after parents.
+    for i in range(len(left) - 1, 2 * num_clusters - 2, -1):
+        if left[i] < 0:
+            expected[i] = 1.3 * (tree["node_end"][i] - tree["node_begin"][i])
+        else:
+            ratio = (lambda c: area[c] / area[i]) if area[i] > 0 else (lambda c: 1.0)
+            expected[i] = 2 * 0.7 + expected[left[i]] * ratio(left[i]) + expected[right[i]] * ratio(right[i])
+    below = np.arange(2 * num_clusters - 1, len(left))
+    assert (left[below] < 0).sum() > 100
+    np.testing.assert_allclose(cost[below], expected[below], rtol=1e-9)

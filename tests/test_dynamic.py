@@ -13,7 +13,7 @@ from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import default_scene
 
-from oracles import assert_hits_match, brute_force_closest_hit, check_tree_invariants, random_rays
+from oracles import assert_hits_match, brute_force_closest_hit, check_tree_invariants, random_rays, random_soup
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
 
@@ -572,3 +572,35 @@ def test_motion_measure_matches_numpy_on_any_core_count(threads, rng):
         expected = np.linalg.norm(moved.astype(np.float64) - vertices, axis=1).max()
         assert report["max_displacement"] == pytest.approx(expected, rel=1e-5), where
         vertices = moved
+
+
+@pytest.mark.parametrize("case", ["on_course", "second_refit_fails", "first_refit_fails", "chaotic_wait"])
+def test_auto_rules_from_a_set_history(device, rng, case):
+    """Each documented rule of `auto` from a history set by hand, on a frame that moved a
+    little (a translation: a refit keeps the SAH cost): the projection is the last growth plus
+    the larger of the last and the mean step; only a refit failing on its first frame starts a
+    chaotic wait; a rebuild during such a wait is not priced."""
+    v, f = random_soup(rng, 1500)
+    builder = Builder(len(f), device=device, policy="auto", sah_growth_limit=0.10, max_refits=8)
+    builder.build(v, f)
+    cost = builder.sah_cost()
+    if case == "on_course":
+        # Growths 0.01 then 0.06: last step 0.05, mean step 0.03 -> on course for 0.11 > 0.10.
+        builder.refits_since_rebuild, builder.previous_growth, builder.last_growth = 2, 0.01, 0.06
+    elif case in ("second_refit_fails", "first_refit_fails"):
+        builder.refits_since_rebuild = 1 if case == "second_refit_fails" else 0
+        builder.sah_reference = cost / 2.0  # the refit's growth is then about +100%
+    else:
+        builder.chaotic_frames = 2
+    reference = builder.sah_reference
+    report = builder.update(v + np.float32(1e-4))
+    assert report["decision"] == "rebuild", report
+    if case == "on_course":
+        assert "on course" in report["reason"] and "sah_refit" not in report, report
+    elif case == "second_refit_fails":
+        assert report["sah_growth"] > 0.10 and builder.chaotic_frames == 0, report
+    elif case == "first_refit_fails":
+        assert report["sah_growth"] > 0.10 and builder.chaotic_frames == 8, report
+    else:
+        assert report["reason"].startswith("chaotic motion") and builder.chaotic_frames == 1, report
+        assert "sah" in report["stages_skipped"] and builder.sah_reference == reference, report

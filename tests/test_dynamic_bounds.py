@@ -331,3 +331,41 @@ def test_auto_sets_no_sah_reference_from_a_non_finite_frame(device, rng):
         fresh = metrics.sah_cost(hw.build_from_bounds(lowers, uppers, device=device))
         assert metrics.sah_cost(builder.bvh) <= fresh * (1.0 + builder.sah_growth_limit) * 1.01
         check_frame(builder, lowers, uppers, rng)
+
+
+def test_auto_counts_a_nan_corner_as_motion(device, rng):
+    """A device frame in which nothing moved but one corner turned NaN: the motion measure
+    must count it as the largest move (not as none), so `auto` does not keep the old tree."""
+    lowers = rng.random((400, 3)).astype(np.float32)
+    uppers = lowers + np.float32(0.01)
+    builder = Builder(400, device=device, policy="auto")
+    builder.build_from_bounds(lowers, uppers)
+    bad = lowers.copy()
+    bad[17, 1] = np.nan
+    report = builder.update(bounds=(wp.array(bad, dtype=wp.vec3, device=device),
+                                    wp.array(uppers, dtype=wp.vec3, device=device)))
+    assert report["decision"] == "rebuild", report
+    assert report["max_displacement"] > 1e18
+
+
+def test_auto_reports_motion_relative_to_the_root_diagonal(device, rng):
+    """`relative_motion` is the largest corner move over the previous tree's root diagonal,
+    both from NumPy, in a scene far from the unit size."""
+    lowers = (rng.random((500, 3)) * [40.0, 10.0, 5.0]).astype(np.float32)
+    uppers = lowers + np.float32(0.1)
+    builder = Builder(500, device=device, policy="auto", large_motion=0.5)
+    builder.build_from_bounds(lowers, uppers)
+    moved_lo, moved_hi = lowers.copy(), uppers.copy()
+    moved_lo[42] += np.float32([0.3, -0.4, 0.0])
+    moved_hi[42] += np.float32([0.3, -0.4, 0.0])
+    report = builder.update(bounds=(moved_lo, moved_hi))
+    diagonal = np.linalg.norm(uppers.astype(np.float64).max(0) - lowers.astype(np.float64).min(0))
+    assert report["max_displacement"] == pytest.approx(0.5, rel=1e-5)
+    assert report["relative_motion"] == pytest.approx(0.5 / diagonal, rel=1e-5)
+    # A scene of zero size: any motion is large, whatever the distance.
+    points = np.full((500, 3), 3.0, np.float32)
+    builder.build_from_bounds(points, points)
+    nudged = points.copy()
+    nudged[7] += np.float32(1e-3)
+    report = builder.update(bounds=(nudged, nudged))
+    assert report["relative_motion"] == np.inf and report["decision"] == "rebuild", report

@@ -418,6 +418,140 @@ def test_sync_free_matches_across_emissions(device, rng, emission):
     assert sah_reference(a) == pytest.approx(sah_reference(b), rel=1e-9)
 
 
+# --------------------------------------------------------------------------- crafted codes and boxes
+def sort_crafted_codes(pipe, codes):
+    """Sort given Morton codes with the pipeline (no boxes needed) and return the order."""
+    pipe.morton_codes.assign(wp.array(np.asarray(codes, np.int32), dtype=wp.int32, device=pipe.device))
+    pipe.build("hlbvh", inputs_ready="codes")
+    return pipe.sorted_prim_ids.numpy()[: pipe.num_prims].copy()
+
+
+def crafted_voxel_codes(case, rng):
+    # 10 bits per axis with coarse_bits=6: a code's coarse voxel is code >> 12.
+    fine = lambda k: rng.permutation(1 << 12)[:k]  # distinct low bits
+    if case == "budget_runs_out_at_a_voxel_end":
+        # A reversed voxel of 30 in a block of 100: the insertion sort's budget (4 moves per
+        # element, 400) runs out inserting its 29th element (1 + 2 + ... + 28 = 406 moves), one
+        # before the voxel's end.
+        a = (5 << 12) | np.sort(fine(30))[::-1]
+        b = (9 << 12) | np.sort(fine(70))
+        return np.concatenate([a, b])
+    if case == "two_element_voxel_after_the_budget":
+        # The budget runs out in a reversed voxel of 40; a later voxel holds just two, descending.
+        a = (5 << 12) | np.sort(fine(40))[::-1]
+        b = (7 << 12) | np.sort(fine(2))[::-1]
+        c = (9 << 12) | np.sort(fine(58))
+        return np.concatenate([a, b, c])
+    raise ValueError(case)
+
+
+@pytest.mark.parametrize("case", ["budget_runs_out_at_a_voxel_end", "two_element_voxel_after_the_budget"])
+def test_voxel_sort_when_the_insertion_budget_runs_out(device, rng, case):
+    codes = crafted_voxel_codes(case, rng)
+    pipe = HlbvhPipeline(len(codes), hb.BuildConfig(coarse_bits=6, global_sort_runs=1.0), device)
+    assert pipe.num_prims == 100
+    np.testing.assert_array_equal(sort_crafted_codes(pipe, codes), np.argsort(codes, kind="stable"))
+
+
+def test_voxel_sort_of_one_coarse_voxel_after_many(device, rng):
+    # A pipeline reused: first many voxels in small blocks, then every code in one coarse voxel
+    # (possible over a fixed grid, BuildConfig.morton_bounds): nothing of the first build's voxel
+    # and block counts may leak into the second.
+    n = 200
+    pipe = HlbvhPipeline(n, hb.BuildConfig(coarse_bits=6, global_sort_runs=1.0, block_capacity=7), device)
+    many = rng.integers(0, 1 << 30, n)
+    np.testing.assert_array_equal(sort_crafted_codes(pipe, many), np.argsort(many, kind="stable"))
+    one = (3 << 12) | rng.integers(0, 1 << 12, n)
+    np.testing.assert_array_equal(sort_crafted_codes(pipe, one), np.argsort(one, kind="stable"))
+
+
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
+@pytest.mark.parametrize("planes", [1, 2, 3, 4])
+@pytest.mark.parametrize("leaf", [1, 2])
+def test_reused_pipeline_topology_of_sparse_codes_matches_radix_tree(device, rng, emission, planes, leaf):
+    """One pipeline (as a Builder keeps it) over many small sets of codes made of a few bit
+    planes anywhere in the 30: neighbours whose highest differing bit lies far above the next
+    one, runs of duplicates, and split slots left over from the previous builds."""
+    if emission == "depth_first" and planes != 3:
+        pytest.skip("the depth-first schedule has no passes: p does not apply")
+    n = 32
+    pipe = HlbvhPipeline(n, hb.BuildConfig(planes_per_pass=planes, max_leaf_size=leaf, emission=emission), device)
+    pipe.prim_lowers.assign(np.zeros((n, 3), np.float32))
+    pipe.prim_uppers.assign(np.ones((n, 3), np.float32))
+    for _ in range(40):
+        planes_used = rng.choice(30, size=int(rng.integers(2, 8)), replace=False)
+        codes = np.zeros(n, np.int64)
+        for bit in planes_used:
+            codes |= (rng.random(n) < 0.5).astype(np.int64) << int(bit)
+        order = sort_crafted_codes(pipe, codes)
+        np.testing.assert_array_equal(order, np.argsort(codes, kind="stable"))
+        tree = hb.api.bvh_from_pipeline(pipe, "hlbvh", {}).to_numpy()
+        assert node_set(tree) == radix_tree_reference(codes[order], leaf), sorted(planes_used)
+
+
+@pytest.mark.parametrize("offset", [-10.0, 0.0, 10.0])
+def test_centroid_bounds_see_every_position_of_a_chunk(device, rng, offset):
+    """The chunked centroid reduction against NumPy, with the extreme centroids placed at the
+    first, second and last positions of the CPU's chunks (4096 primitives) and of the whole
+    array, in a scene that lies wholly below, across or above zero on every axis."""
+    n = 2 * 4096 + 3
+    base_lo = (rng.random((n, 3)) + offset).astype(np.float32)
+    base_hi = (base_lo + 0.01 * rng.random((n, 3))).astype(np.float32)
+    pipe = make_pipeline(base_lo, base_hi, device)
+    for low_at, high_at in ((0, 1), (1, 4097), (4095, 4096), (4097, n - 1), (n - 1, 2), (8192, 4095)):
+        lo, hi = base_lo.copy(), base_hi.copy()
+        lo[low_at], hi[low_at] = offset - 1.0, offset - 0.5
+        lo[high_at], hi[high_at] = offset + 2.0, offset + 2.5
+        pipe.prim_lowers.assign(lo)
+        pipe.prim_uppers.assign(hi)
+        pipe.compute_centroid_bounds()
+        c = np.float32(0.5) * (lo + hi)
+        bounds = pipe.scene_bounds.numpy()
+        np.testing.assert_array_equal(bounds[0], c.min(axis=0), err_msg=f"lowest centroid at {low_at}")
+        np.testing.assert_array_equal(bounds[1], c.max(axis=0), err_msg=f"highest centroid at {high_at}")
+
+
+def test_repeated_climb_refits_match_numpy(device, rng):
+    """Climbing refits, one after another with one visit-counter array (as a CUDA Builder
+    keeps it), box the moved primitives exactly, and the host copies follow each refit."""
+    lo = rng.random((1500, 3)).astype(np.float32)
+    hi = (lo + 0.01).astype(np.float32)
+    bvh = hb.build_from_bounds(lo, hi, device=device)
+    visits = wp.zeros(bvh.node_left.shape[0], dtype=wp.int32, device=device)
+    for step in range(3):
+        moved = (lo + np.float32(0.1 * step) * rng.random((1500, 3)).astype(np.float32)).astype(np.float32)
+        bvh.prim_lowers.assign(moved)
+        bvh.prim_uppers.assign(moved + np.float32(0.01))
+        hb.hlbvh.refit_bounds(bvh, node_visits=visits, strategy="climb")
+        tree = bvh.to_numpy()
+        nlo, nhi = numpy_bottom_up_boxes(tree, moved, moved + np.float32(0.01))
+        np.testing.assert_array_equal(tree["node_lowers"], nlo)
+        np.testing.assert_array_equal(tree["node_uppers"], nhi)
+
+
+def test_hlbvh_sah_of_input_already_in_code_order(device, rng):
+    """Input whose codes already ascend (a static frame fed in tree order) must still get the
+    voxel sort's clusters: the one-shot pipeline reused from a build over other boxes keeps
+    none of that build's clusters."""
+
+    n = 3000
+    lo, hi = (x.astype(np.float32) for x in (rng.random((n, 3)), rng.random((n, 3)) * 0.01))
+    hi = lo + hi
+    cfg = hb.BuildConfig(coarse_bits=3, sah_bins=13)
+    other = rng.random((n, 3)).astype(np.float32) ** 3
+    hb.build_from_bounds(other, other + np.float32(0.01), method="hlbvh_sah", device=device, config=cfg)
+    order = np.argsort(morton_reference(lo, hi, 10), kind="stable")
+    s_lo, s_hi = lo[order], hi[order]
+    tree = hb.build_from_bounds(s_lo, s_hi, method="hlbvh_sah", device=device, config=cfg).to_numpy()
+    check_tree_invariants(tree, n)
+    nlo, nhi = numpy_bottom_up_boxes(tree, s_lo, s_hi)
+    np.testing.assert_array_equal(tree["node_lowers"], nlo)
+    np.testing.assert_array_equal(tree["node_uppers"], nhi)
+    shuffled = hb.build_from_bounds(lo, hi, method="hlbvh_sah", device=device, config=cfg).to_numpy()
+    assert sah_reference(tree) == pytest.approx(sah_reference(shuffled), rel=1e-6)
+
+
+
 # --------------------------------------------------------------------------- rays
 def _bumpy_mesh():
     import trimesh
