@@ -308,3 +308,30 @@ def test_resorting_by_method(device, method, kind, small_scene):
     tree, ref = builder.bvh.to_numpy(), scratch.bvh.to_numpy()
     for name in TOPOLOGY:
         np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
+
+
+def test_resort_sample_spans_the_whole_previous_order(device, rng):
+    """The sampled M / N reads pairs from every part of the previous order: one whose first half is
+    in tree order and whose second half is scattered samples about half of its pairs as breaks,
+    as NumPy's count over every pair says (a sample of the first half alone would read almost
+    none)."""
+    v, f = default_scene(20000)
+    config = BuildConfig(coarse_bits=4)
+    builder = Builder(len(f), config, device=device, resort=True)
+    scratch = Builder(len(f), config, device=device, resort=False)
+    builder.build(v, f)
+    scratch.build(v, f)
+    if builder.sync_free:
+        pytest.skip("sync-free builds always resort and take no sample")
+    order = builder.bvh.prim_order.numpy().copy()
+    half = len(order) // 2
+    order[half:] = rng.permutation(order[half:])
+    builder.prim_order.assign(order)
+    builder.rebuild(v)
+    shift = 3 * (config.bits_per_axis - builder.pipeline.coarse_bits)
+    codes = face_codes(scratch)
+    exact = numpy_run_fraction(codes, order, shift)
+    first_half = numpy_run_fraction(codes, order[:half], shift)
+    assert exact - first_half > 0.3, (exact, first_half)  # the scene does what the test means
+    sampled = builder.last_report["sampled_run_fraction"]
+    assert abs(sampled - exact) < 0.1, (sampled, exact)  # 256 samples: one standard error 0.03
