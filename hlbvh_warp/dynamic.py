@@ -74,10 +74,10 @@ class BendingMesh:
 
     The surface that keeps its length is the mesh's face on the inside of the bend; every other
     layer lies farther from the arc's centre and is stretched along the arc by
-    ``1 + depth * curvature``. With the neutral surface through the middle, the layers on the
-    inside farther from it than the radius (past about two thirds of the bend for the bunny, the
-    armadillo and the generated knot) were folded through the arc's centre: pinched to a line
-    and turned inside out.
+    ``1 + depth * curvature``. A neutral surface through the middle would fold the inner layers
+    through the arc's centre (pinched to a line, turned inside out) once the radius falls below
+    half the mesh's thickness: past about two thirds of the bend for the bunny, the armadillo and
+    the generated knot.
     """
 
     def __init__(self, vertices, faces, device=None, max_angle: float = np.pi):
