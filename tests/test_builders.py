@@ -365,3 +365,202 @@ def test_hlbvh_sah_subtree_costs_match_numpy(device, rng, emission, leaf):
     below = np.arange(2 * num_clusters - 1, len(left))
     assert (left[below] < 0).sum() > 100
     np.testing.assert_allclose(cost[below], expected[below], rtol=1e-9)
+
+
+# ----------------------------------------------------------------- pinned by the mutation audit
+def median_reference(lo, hi, max_leaf_size):
+    """Every node of the object-median tree as a frozenset: the longest centroid extent (ties to
+    the lower axis), items in centroid order (ties by index), the first size // 2 go left."""
+    cent = np.float32(0.5) * (lo + hi)
+    nodes = []
+
+    def rec(ids):
+        nodes.append(frozenset(ids))
+        if len(ids) <= max_leaf_size:
+            return
+        extent = [cent[ids, a].max() - cent[ids, a].min() for a in range(3)]
+        axis = int(np.argmax(extent))
+        ordered = sorted(ids, key=lambda i: (cent[i, axis], i))
+        rec(ordered[: len(ids) // 2])
+        rec(ordered[len(ids) // 2:])
+
+    rec(list(range(len(lo))))
+    return sorted(nodes, key=sorted)
+
+
+def _node_sets(tree):
+    order, begin, end = tree["prim_order"], tree["node_begin"], tree["node_end"]
+    return sorted((frozenset(order[b:e].tolist()) for b, e in zip(begin, end)), key=sorted)
+
+
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
+@pytest.mark.parametrize("leaf", [1, 3])
+def test_median_equals_the_numpy_median_split(device, rng, emission, leaf):
+    n = 101  # odd sizes all the way down: the middle position is pinned
+    lo = (rng.random((n, 3)) * [1.0, 7.0, 3.0]).astype(np.float32)
+    hi = lo + (rng.random((n, 3)) * 0.3).astype(np.float32)
+    cfg = hw.BuildConfig(max_leaf_size=leaf, emission=emission)
+    tree = hw.build_from_bounds(lo, hi, method="median", device=device, config=cfg).to_numpy()
+    assert _node_sets(tree) == median_reference(lo, hi, leaf)
+
+
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
+@pytest.mark.parametrize("shape", [(7, 1, 1), (3, 3, 1), (5, 2, 1)])
+def test_sweep_sah_ties_on_a_lattice_equal_the_exhaustive_greedy(device, shape, emission):
+    # Equal, evenly spaced boxes: many split positions tie exactly in cost, and the mirror
+    # positions k and n - k tie in balance too; the first most balanced one must win.
+    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    lo = cells.astype(np.float32) * np.float32(2.0)
+    hi = lo + np.float32(1.0)
+    tree = hw.build_from_bounds(lo, hi, method="sweep_sah", device=device,
+                                config=hw.BuildConfig(emission=emission)).to_numpy()
+    assert _node_sets(tree) == greedy_sweep_reference(lo, hi)
+
+
+@pytest.mark.parametrize("emission", ["treelets", "depth_first"])
+def test_sweep_sah_prices_every_position_not_bins(device, emission):
+    # 40 items in two tight clumps and a spread: more items than `sah_bins`, where pricing only
+    # bin boundaries (binned SAH) would give another tree.
+    rng = np.random.default_rng(7)
+    lo = np.concatenate([rng.random((15, 3)) * 0.05, 5 + rng.random((15, 3)) * 0.05,
+                         rng.random((10, 3)) * 5]).astype(np.float32)
+    hi = lo + (rng.random((40, 3)) * 0.2).astype(np.float32)
+    tree = hw.build_from_bounds(lo, hi, method="sweep_sah", device=device,
+                                config=hw.BuildConfig(emission=emission, sah_bins=4)).to_numpy()
+    assert _node_sets(tree) == greedy_sweep_reference(lo, hi)
+
+
+def test_presort_keys_order_neighbouring_floats(device):
+    # Adjacent float32 values (one unit in the last place apart), negative and positive.
+    values = []
+    for x in (-3.0, -1e-30, 1e-30, 2.0):
+        x = np.float32(x)
+        values += [np.nextafter(x, np.float32(-np.inf)), x, np.nextafter(x, np.float32(np.inf))]
+    values = np.array(values, np.float32)
+    perm = np.random.default_rng(0).permutation(len(values))
+    lowers = np.repeat(values[perm][:, None], 3, axis=1)
+    from hlbvh_warp.builders import TopDownBuilder
+
+    builder = TopDownBuilder(len(values), device)
+    box = wp.array(lowers, dtype=wp.vec3, device=device)
+    builder.sort_axes(box, box)
+    order = builder.order.numpy().reshape(3, -1)
+    for axis in range(3):
+        np.testing.assert_array_equal(order[axis], np.argsort(values[perm], kind="stable"))
+
+
+def terminated_greedy_reference(lo, hi, t1, t2):
+    """The greedy sweep (`greedy_sweep_reference`'s rule) where a node stays a leaf when its best
+    split costs at least as much as a leaf: 2 T1 + T2 * best / area(node) >= T2 * N."""
+    cent = np.float32(0.5) * (lo + hi)
+    nodes = []
+
+    def rec(ids):
+        nodes.append(frozenset(ids))
+        if len(ids) <= 1:
+            return
+        best = None
+        for axis in range(3):
+            ordered = sorted(ids, key=lambda i: (cent[i, axis], i))
+            for k in range(1, len(ordered)):
+                left, right = ordered[:k], ordered[k:]
+                c = area64(lo[left].min(0), hi[left].max(0)) * k + area64(lo[right].min(0), hi[right].max(0)) * (
+                    len(ordered) - k)
+                unbalance = abs(2 * k - len(ordered))
+                if best is None or c < best[0] or (c == best[0] and unbalance < best[3]):
+                    best = (c, left, right, unbalance)
+        node_area = area64(lo[ids].min(0), hi[ids].max(0))
+        if 2 * t1 + t2 * best[0] / node_area >= t2 * len(ids):
+            return
+        rec(best[1])
+        rec(best[2])
+
+    rec(list(range(len(lo))))
+    return sorted(nodes, key=sorted)
+
+
+@pytest.mark.parametrize("t1", [0.3, 1.0])
+@pytest.mark.parametrize("seed", range(3))
+def test_sah_termination_equals_the_greedy_rule(device, seed, t1):
+    rng = np.random.default_rng(50 + seed)
+    n = 12
+    lo = (rng.random((n, 3)) * 4).astype(np.float32)
+    hi = lo + (rng.random((n, 3)) * 3).astype(np.float32)
+    cfg = hw.BuildConfig(sah_traversal_cost=t1, sah_intersection_cost=1.0)
+    wl, wh = wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device)
+    bvh = build_top_down(wl, wh, cfg, device, StageTimer(device, False), method="sweep_sah", terminate_leaf_size=n)
+    expected = terminated_greedy_reference(lo, hi, t1, 1.0)
+    assert _node_sets(bvh.to_numpy()) == expected
+    if t1 == 1.0:  # the rule keeps some node of several items a leaf
+        assert any(len(node) > 1 and not any(other < node for other in expected) for node in expected)
+
+
+@pytest.mark.parametrize("method", ["sweep_sah", "median"])
+def test_large_top_down_builds_with_larger_leaves(device, rng, method):
+    # Above PARALLEL_MIN_ITEMS the CPU builds disjoint subtrees side by side, which needs the
+    # node count of each in advance: exact only with one item per leaf. Larger leaves must still
+    # give a valid tree with exactly the primitives' leaves.
+    v, f = random_soup(rng, 5000)
+    bvh = hw.build(v, f, method=method, device=device, config=hw.BuildConfig(max_leaf_size=4))
+    check_tree_invariants(bvh.to_numpy(), 5000, 4)
+
+
+def test_hlbvh_sah_top_tree_weighs_clusters_by_their_cost(device):
+    """Section 3.3 of Pantaleoni & Luebke: the top levels are a SAH sweep over the clusters with
+    each cluster weighted by its subtree's SAH cost, not counted as one item. Clusters (the
+    voxels of coarse_bits = 1) recomputed in NumPy, their costs by recursion over the built
+    subtrees, the weighted greedy sweep in float64: its nodes must be the tree's top nodes."""
+    rng = np.random.default_rng(11)
+    n = 600
+    centers = rng.random((n, 3)) ** 3  # crowded towards one corner: clusters of very unequal cost
+    v = (centers[:, None, :] + 0.02 * rng.random((n, 3, 3))).reshape(-1, 3).astype(np.float32)
+    f = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+    bvh = hw.build(v, f, method="hlbvh_sah", device=device, config=hw.BuildConfig(coarse_bits=1))
+    tree = bvh.to_numpy()
+    tri = v[f]
+    plo, phi = tri.min(1), tri.max(1)
+    c = (np.float32(0.5) * (plo + phi)).astype(np.float64)
+    lo, hi = c.min(0), c.max(0)
+    q = np.clip(np.floor((c - lo) / (hi - lo) * 1024), 0, 1023).astype(np.int64) >> 9
+    voxel = q[:, 0] * 4 + q[:, 1] * 2 + q[:, 2]
+    clusters = [np.nonzero(voxel == k)[0] for k in np.unique(voxel)]
+    assert len(clusters) >= 6
+    order, begin, end, left, right = (tree[k] for k in ("prim_order", "node_begin", "node_end", "node_left",
+                                                         "node_right"))
+    node_of = {frozenset(order[b:e].tolist()): i for i, (b, e) in enumerate(zip(begin, end))}
+
+    def cost(node):
+        if left[node] < 0:
+            return float(end[node] - begin[node])
+        ids = order[begin[node]:end[node]]
+        parent = area64(plo[ids].min(0), phi[ids].max(0))
+        total = 2.0
+        for child in (left[node], right[node]):
+            kids = order[begin[child]:end[child]]
+            total += cost(child) * area64(plo[kids].min(0), phi[kids].max(0)) / parent
+        return total
+
+    c_lo = np.array([plo[ids].min(0) for ids in clusters])
+    c_hi = np.array([phi[ids].max(0) for ids in clusters])
+    weight = np.array([cost(node_of[frozenset(ids.tolist())]) for ids in clusters])
+    cent = np.float32(0.5) * (c_lo + c_hi)
+    expected = []
+
+    def rec(items):
+        expected.append(frozenset(np.concatenate([clusters[i] for i in items]).tolist()))
+        if len(items) == 1:
+            return
+        best = None
+        for axis in range(3):
+            ordered = sorted(items, key=lambda i: (cent[i, axis], i))
+            for k in range(1, len(ordered)):
+                a, b = ordered[:k], ordered[k:]
+                price = (area64(c_lo[a].min(0), c_hi[a].max(0)) * weight[a].sum()
+                         + area64(c_lo[b].min(0), c_hi[b].max(0)) * weight[b].sum())
+                if best is None or price < best[0]:
+                    best = (price, a, b)
+        rec(best[1])
+        rec(best[2])
+
+    rec(list(range(len(clusters))))
+    assert all(node in node_of for node in expected)

@@ -165,3 +165,48 @@ def test_the_cpu_refit_sweep_prices_the_tree_and_only_the_sweep_can(rng):
     assert cost_from_sum(bvh, total, bvh.num_nodes, 1.2, 1.0) == pytest.approx(expected, rel=1e-9)
     with pytest.raises(ValueError, match="sweep"):
         compute_bounds(*args, "climb", (1.2, 1.0, cost_sum))
+
+
+# ----------------------------------------------------------------- pinned by the mutation audit
+@pytest.mark.parametrize("points", ["one point", "one segment"])
+def test_bottom_up_costs_pass_through_a_zero_area_root(device, points):
+    # `node_costs` (the climb that prices hlbvh_sah's clusters) takes P_hit = 1 under a parent of
+    # zero area, as the one-pass `sah_cost` does: C = 2 T1 (N - 1) + T2 N at the root of any
+    # binary tree of single-primitive leaves, and each node's cost is that of its own subtree.
+    from hlbvh_warp.metrics import node_costs
+
+    n = 11
+    pts = np.full((n, 3), 0.25, dtype=np.float32)
+    if points == "one segment":
+        pts[:, 0] = np.linspace(0.0, 1.0, n, dtype=np.float32)
+    bvh = hw.build_from_bounds(pts, pts, method="median", device=device)
+    tree = bvh.to_numpy()
+    costs = node_costs(bvh, 1.5, 2.0).numpy()[: bvh.num_nodes]
+    assert costs[0] == pytest.approx(2 * 1.5 * (n - 1) + 2.0 * n, rel=1e-12)
+    sizes = tree["node_end"] - tree["node_begin"]
+    np.testing.assert_allclose(costs, 2 * 1.5 * (sizes - 1) + 2.0 * sizes, rtol=1e-12)
+    assert costs[0] == pytest.approx(numpy_sah(tree, 1.5, 2.0), rel=1e-12)
+
+
+def test_tree_stats_counts_and_mean_leaf_size(device, rng):
+    v, f = random_soup(rng, 90)
+    bvh = hw.build(v, f, method="median", device=device, config=hw.BuildConfig(max_leaf_size=4))
+    tree = bvh.to_numpy()
+    leaves = tree["node_left"] < 0
+    sizes = (tree["node_end"] - tree["node_begin"])[leaves]
+    stats = tree_stats(bvh)
+    assert (stats["num_prims"], stats["num_refs"]) == (90, 90)
+    assert stats["num_interior"] == int((~leaves).sum())
+    assert stats["mean_leaf_size"] == pytest.approx(sizes.mean(), rel=1e-12)
+    assert stats["mean_leaf_size"] > 1.0
+
+
+@pytest.mark.parametrize("t1, t2", [(-0.5, 1.0), (1.0, 0.0), (1.0, -1.0)])
+def test_cost_functions_reject_bad_constants(device, t1, t2):
+    from hlbvh_warp.metrics import node_costs
+
+    lo = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
+    bvh = hw.build_from_bounds(lo, lo + 1, device=device)
+    for cost in (sah_cost, node_costs, tree_stats):
+        with pytest.raises(ValueError, match="t_intersect"):
+            cost(bvh, t1, t2)

@@ -671,3 +671,19 @@ def test_voxel_sort_of_nearly_sorted_input(device, rng):
     np.testing.assert_array_equal(
         pipe.sorted_prim_ids.numpy()[: len(lo)], np.argsort(pipe.morton_codes.numpy(), kind="stable")
     )
+
+
+# ----------------------------------------------------------------- pinned by the mutation audit
+def test_input_forms_and_their_checks(device):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    # Faces as one flat run of indices are the same mesh.
+    flat = hb.build(v, f.ravel(), device=device)
+    assert flat.num_prims == 2 and np.array_equal(flat.faces.numpy(), f)
+    # One ray as a (3,) origin and direction.
+    t, p = hb.intersect(flat, [0.2, 0.2, 1.0], [0.0, 0.0, -1.0])
+    assert p.tolist() == [0] and t[0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="differ in shape"):
+        hb.build_from_bounds(np.zeros((4, 3)), np.ones((5, 3)), device=device)
+    with pytest.raises(ValueError, match="no primitives"):
+        hb.build_from_bounds(np.zeros((0, 3)), np.zeros((0, 3)), device=device)

@@ -265,3 +265,179 @@ def test_view_stays_valid_after_refit_and_rebuild(device, rng, scene):
         t_ref, prim_ref = brute_force_closest_hit(frame, faces, o, d)
         assert_hits_match(t, prim, t_ref, prim_ref)
         assert (prim_ref >= 0).sum() > 50
+
+
+# ----------------------------------------------------------------- pinned by the mutation audit
+def _numpy_all_hits(vertices, faces, origins, directions, t_max):
+    """Every (ray, triangle) hit with t in (0, t_max), Moller-Trumbore in float64; the t of each pair,
+    and how far inside its triangle the crossing lies (the least barycentric)."""
+    v = np.asarray(vertices, np.float64)
+    a, b, c = (v[np.asarray(faces)[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    o = np.asarray(origins, np.float64)[:, None]
+    d = np.asarray(directions, np.float64)[:, None]
+    with np.errstate(all="ignore"):
+        p = np.cross(d, e2[None])
+        det = np.einsum("rfk,fk->rf", p, e1)
+        tv = o - a[None]
+        u = np.einsum("rfk,rfk->rf", tv, p) / det
+        q = np.cross(tv, e1[None])
+        w = np.einsum("rfk,rfk->rf", np.broadcast_to(d, q.shape), q) / det
+        t = np.einsum("rfk,fk->rf", q, e2) / det
+        margin = np.minimum(np.minimum(u, w), 1 - u - w)
+    hit = (det != 0) & (margin >= 0) & (t > 0) & (t < t_max)
+    return hit, t, margin
+
+
+def test_intersect_all_honours_t_max(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 150)
+    hit, t_ref, margin = _numpy_all_hits(verts, faces, o, d, np.inf)
+    t_max = float(np.median(t_ref[hit]))
+    # Leave out crossings within float32 error of t_max or of a triangle's edge (the oracle is
+    # not watertight): the rest must be listed exactly when t < t_max.
+    near = (np.abs(t_ref - t_max) < 1e-4) | (margin < 1e-6)
+    ray_id, prim, t = query.intersect_all(bvh, o, d, t_max=t_max)
+    assert (t < t_max).all() and (t > 0).all()
+    got = set(zip(ray_id.tolist(), prim.tolist()))
+    expected = set(map(tuple, np.argwhere(hit & (t_ref < t_max) & ~near).tolist()))
+    beyond = set(map(tuple, np.argwhere(hit & (t_ref > t_max) & ~near).tolist()))
+    assert len(expected) > 50 and len(beyond) > 50
+    assert expected <= got
+    assert not (beyond & got)
+
+
+def test_a_ray_starting_on_a_triangle_does_not_hit_it(device):
+    """Hits need t > 0: a ray leaving a surface (a shadow or bounce ray) skips the triangle it
+    starts on, and finds the next one (here the plane z = 1) at its true distance."""
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32)
+    faces = np.array([[0, 1, 2], [3, 4, 5]], np.int32)
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o = np.array([[0.25, 0.25, 0.0], [0.2, 0.1, 0.0], [0.25, 0.25, 0.0], [0.2, 0.2, 1.0]], np.float32)
+    d = np.array([[0, 0, 1], [0.1, 0.1, 1], [0, 0, -1], [0, 0, 1]], np.float32)
+    t, prim = query.intersect(bvh, o, d)
+    assert prim.tolist() == [1, 1, -1, -1]
+    assert t[:2] == pytest.approx([1.0, 1.0])
+    assert query.occluded(bvh, o, d).tolist() == [True, True, False, False]
+    ray_id, prim_all, _ = query.intersect_all(bvh, o, d)
+    assert list(zip(ray_id.tolist(), prim_all.tolist())) == [(0, 1), (1, 1)]
+
+
+def test_barycentrics_on_edges_and_vertices(device):
+    """Rays exactly through an edge or a vertex take the exact float64 branch of the watertight
+    test: the reported (u, v) must still weigh b and c, (1 - u - v) a + u b + v c the hit point."""
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    bvh = hlbvh_warp.build(tri, np.array([[0, 1, 2]], np.int32), device=device)
+    points = np.array([[0.25, 0.0], [0.0, 0.75], [0.25, 0.75], [0.5, 0.5], [1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+    o = np.column_stack([points, np.full(len(points), 2.0)]).astype(np.float32)
+    for sign in (-1.0, 1.0):
+        origins = o.copy()
+        origins[:, 2] *= -sign
+        d = np.tile(np.array([[0.0, 0.0, sign]], np.float32), (len(o), 1))
+        t, prim, u, v = query.intersect(bvh, origins, d, return_barycentrics=True)
+        assert (prim == 0).all() and t == pytest.approx(np.full(len(o), 2.0))
+        # For this triangle the weights of b and c are the x and y of the hit point.
+        np.testing.assert_allclose(u, points[:, 0], atol=1e-7)
+        np.testing.assert_allclose(v, points[:, 1], atol=1e-7)
+
+
+def _stacked_triangles(heights):
+    base = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    verts = np.concatenate([base + np.float32([0, 0, z]) for z in heights])
+    return verts, np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+
+
+def test_closest_hit_skips_a_deferred_node_behind_its_hit(device):
+    """Two leaves on one ray: front to back, the near leaf is entered first and its hit at t = 1
+    drops the far leaf (entered at t = 2) unvisited: 2 nodes visited, 1 triangle tested
+    (Wodniok & Goesele's n_s and n_t), whichever way the ray runs."""
+    verts, faces = _stacked_triangles([1.0, 2.0])
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    assert bvh.num_nodes == 3
+    for direction, first in ((1.0, 0), (-1.0, 1)):
+        o = np.array([[0.2, 0.2, 1.5 - 1.5 * direction]], np.float32)
+        t, prim, stats = query.intersect(bvh, o, np.array([[0, 0, direction]], np.float32), stats=True)
+        assert prim.tolist() == [first] and t[0] == pytest.approx(1.0)
+        assert stats.nodes_visited.tolist() == [2] and stats.prims_tested.tolist() == [1]
+
+
+def test_any_hit_stops_at_the_first_hit_in_a_leaf(device):
+    """Four triangles on one ray in one leaf: the any-hit query stops at the first one it finds,
+    the closest-hit query tests all four."""
+    verts, faces = _stacked_triangles([1.0, 2.0, 3.0, 4.0])
+    bvh = hlbvh_warp.build(verts, faces, device=device, config=BuildConfig(max_leaf_size=4))
+    assert bvh.num_nodes == 1
+    o, d = np.array([[0.2, 0.2, 0.0]], np.float32), np.array([[0, 0, 1]], np.float32)
+    occ, any_stats = query.occluded(bvh, o, d, stats=True)
+    _, prim, closest_stats = query.intersect(bvh, o, d, stats=True)
+    assert occ.tolist() == [True] and prim.tolist() == [0]
+    assert any_stats.prims_tested.tolist() == [1] and closest_stats.prims_tested.tolist() == [4]
+
+
+@wp.kernel
+def _box_count_kernel(bvh: query.BvhView, lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
+                      counts: wp.array(dtype=int)):
+    tid = wp.tid()
+    counts[tid] = query.bvh_aabb_count(bvh, lowers[tid], uppers[tid])
+
+
+@pytest.mark.parametrize("max_leaf_size", [1, 4])
+def test_box_queries_count_touching_boxes(device, rng, max_leaf_size):
+    """Closed boxes: a query that only touches a box (a shared face, edge or corner, from below
+    or from above) overlaps it, in `query_aabb` and in `bvh_aabb_count` from a user kernel, at
+    one primitive per leaf and at several (where a leaf's box is not its primitives' boxes)."""
+    cells = np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(5), indexing="ij"), -1).reshape(-1, 3)
+    lo = cells.astype(np.float32)
+    hi = lo + np.float32(0.5)  # gaps between the boxes: integer corners touch from below, .5 from above
+    bvh = hlbvh_warp.build_from_bounds(lo, hi, device=device, config=BuildConfig(max_leaf_size=max_leaf_size))
+    q_lo = rng.integers(-1, 5, (300, 3)).astype(np.float32) + rng.choice([0.5, 1.0], (300, 3)).astype(np.float32)
+    q_hi = q_lo + rng.integers(0, 3, (300, 3)).astype(np.float32) * np.float32(0.5)
+    ref = brute_overlaps(lo, hi, q_lo, q_hi)
+    # Many queries meet their boxes only on a boundary.
+    inner = ((lo[None] < q_hi[:, None]) & (hi[None] > q_lo[:, None])).all(-1)
+    assert (ref & ~inner).sum() > 100
+    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(counts, ref.sum(1))
+    assert np.array_equal(pairs, np.argwhere(ref))
+    out = wp.zeros(len(q_lo), dtype=int, device=device)
+    wp.launch(_box_count_kernel, dim=len(q_lo), device=device,
+              inputs=[query.view(bvh), wp.array(q_lo, dtype=wp.vec3, device=device),
+                      wp.array(q_hi, dtype=wp.vec3, device=device), out])
+    assert np.array_equal(out.numpy(), ref.sum(1))
+
+
+def test_occluded_takes_one_t_max_for_every_ray(device):
+    verts, faces = _stacked_triangles([1.0, 2.0])
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o = np.tile(np.float32([[0.2, 0.2, 0.0]]), (3, 1))
+    d = np.float32([[0, 0, 1], [0, 0, 2], [0, 0, 0.5]])  # hits at t = 1, 0.5 and 2
+    assert query.occluded(bvh, o, d, t_max=1.5).tolist() == [True, True, False]
+    assert query.occluded(bvh, o, d, t_max=np.float32(0.75)).tolist() == [False, True, False]
+    assert query.occluded(bvh, o, d, t_max=np.array(2.5)).tolist() == [True, True, True]
+
+
+def test_empty_batches(device, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    none = np.zeros((0, 3), np.float32)
+    t, prim = query.intersect(bvh, none, none)
+    assert t.shape == prim.shape == (0,)
+    assert query.occluded(bvh, none, none).shape == (0,)
+    ray_id, prim_id, t = query.intersect_all(bvh, none, none)
+    assert ray_id.shape == prim_id.shape == t.shape == (0,)
+    counts, pairs = query.query_aabb(bvh, none, none, return_pairs=True)
+    assert counts.shape == (0,) and pairs.shape == (0, 2)
+    assert query.query_aabb(bvh, none, none).shape == (0,)
+
+
+def test_query_boxes_are_validated(device, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    lo = np.zeros((4, 3), np.float32)
+    with pytest.raises(ValueError, match="differ in shape"):
+        query.query_aabb(bvh, lo, np.ones((5, 3), np.float32))
+    with pytest.raises(ValueError, match="real numbers"):
+        query.query_aabb(bvh, lo.astype(np.complex64), lo + 1)
+    with pytest.raises(ValueError, match="real numbers"):
+        query.query_aabb(bvh, lo, np.ones((4, 3), bool))

@@ -149,3 +149,30 @@ def test_subdivide_keeps_the_surface_and_quadruples_the_faces():
     np.testing.assert_array_equal(f0, faces)
     with pytest.raises(ValueError, match="times"):
         scenes.subdivide(vertices, faces, -1)
+
+
+# ----------------------------------------------------------------- pinned by the mutation audit
+def test_repeated_rays_and_triangle_zero(device, reference):
+    # Rays along the normals of triangles 0..4 (triangle 0 among the first hits), each given
+    # twice: equal locations of different rays are different hits, as in trimesh.
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    targets = mesh.triangles_center[:5]
+    o = np.repeat(targets * 3.0, 2, axis=0)
+    d = np.repeat(-targets, 2, axis=0)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    tri, ray, loc = ours.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    tri_ref, ray_ref, loc_ref = ref.intersects_id(o, d, multiple_hits=False, return_locations=True)
+    assert sorted(zip(ray.tolist(), tri.tolist())) == sorted(zip(ray_ref.tolist(), tri_ref.tolist()))
+    assert sorted(zip(ray.tolist(), tri.tolist())) == [(r, r // 2) for r in range(10)]
+    loc, ray, tri = ours.intersects_location(o, d)
+    loc_ref, ray_ref, tri_ref = ref.intersects_location(o, d)
+    assert loc.shape == loc_ref.shape and sorted(ray.tolist()) == sorted(ray_ref.tolist())
+    key = np.lexsort((loc[:, 2], loc[:, 1], loc[:, 0], ray))
+    key_ref = np.lexsort((loc_ref[:, 2], loc_ref[:, 1], loc_ref[:, 0], ray_ref))
+    assert np.allclose(loc[key], loc_ref[key_ref], atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["median", "sweep_sah"])
+def test_intersector_builds_with_the_chosen_method(device, method):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    assert RayMeshIntersector(mesh, device=device, method=method).bvh.method == method

@@ -250,3 +250,53 @@ def test_bench_wide_binary_row_counts_as_the_wide_rows(tmp_path):
     assert code == 0
     rows = [r for r in json.loads(out.read_text())["rows"] if r["k"] == "bin"]
     assert rows and all(r["n_s"] == 0.0 and r["boxes"] == 0.0 and r["n_t"] > 0 for r in rows)
+
+
+# ----------------------------------------------------------------- pinned by the mutation audit
+def test_stack_fallback_tests_the_whole_range(device):
+    """A deck of 600 equal triangles at z = 0, 1, ..., 599 in a caterpillar (the chain holds the
+    low ones). A ray going up from between two of them enters the chain first and defers every
+    leaf above it, so below the top ~250 levels both traversals run out of stack (64 binary, 256
+    wide) and test the current node's whole range [0, m): the triangle just above the origin is
+    the last position of that range for one of the rays, and the closest hit of every ray."""
+    n = 600
+    base = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    v = (base[None] + np.arange(n, dtype=np.float32)[:, None, None] * np.float32([0, 0, 1])).reshape(-1, 3)
+    f = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+    bvh = caterpillar(v, f, device)
+    o = np.column_stack([np.full(n - 1, 0.25), np.full(n - 1, 0.25), np.arange(n - 1) + 0.5]).astype(np.float32)
+    d = np.tile(np.float32([[0, 0, 1]]), (n - 1, 1))
+    expected = np.arange(1, n)
+    for width in (4, 16):
+        t, prim = wide.intersect(wide.collapse(bvh, width), o, d)
+        assert np.array_equal(prim, expected) and (t == 0.5).all()
+    t, prim = hw.intersect(bvh, o, d)
+    assert np.array_equal(prim, expected) and (t == 0.5).all()
+
+
+@pytest.mark.parametrize("width", [3, 4, 8])
+def test_collapse_breaks_area_ties_to_the_earlier_slot(device, width):
+    # Equal boxes on a lattice: the median tree's interior children tie in area everywhere, so
+    # the collapse must follow its tie rule (the earlier slot) to match the NumPy collapse.
+    cells = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    lo = cells.astype(np.float32) * np.float32(2.0)
+    bvh = hw.build_from_bounds(lo, lo + 1, method="median", device=device)
+    tree = bvh.to_numpy()
+    w = wide.collapse(bvh, width).to_numpy()
+    got = sorted(sorted((b, e) for _, b, e, _, _ in slots) for slots in wide_nodes(w, width).values())
+    assert got == sorted(numpy_collapse(tree, width).values())
+
+
+@pytest.mark.parametrize("width", [2, 4])
+def test_wide_sah_of_a_zero_area_tree(device, width):
+    # Every box one point: each child passes its cost through unscaled (P_hit = 1), so the cost
+    # is T1 per child slot of every wide node plus T2 per primitive; at width 2 that is the
+    # binary tree's 2 T1 (N - 1) + T2 N.
+    n = 13
+    pts = np.full((n, 3), 0.5, dtype=np.float32)
+    bvh = hw.build_from_bounds(pts, pts, method="median", device=device)
+    w = wide.collapse(bvh, width)
+    slots = int((w.to_numpy()["slot_child"] != -2).sum())
+    assert wide.sah_cost(w, 1.5, 2.0) == pytest.approx(1.5 * slots + 2.0 * n, rel=1e-12)
+    if width == 2:
+        assert wide.sah_cost(w, 1.5, 2.0) == pytest.approx(2 * 1.5 * (n - 1) + 2.0 * n, rel=1e-12)
