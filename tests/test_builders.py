@@ -215,11 +215,12 @@ def area64(lo, hi):
     return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
 
 
-def greedy_sweep_reference(lo, hi):
+def greedy_sweep_reference(lo, hi, t1=None, t2=None):
     """Every node of the greedy SAH tree as a frozenset of primitives. For each node, each axis
     (centroid order, ties by index) and each split position, both boxes are recomputed from
     scratch: O(N^2) per node. Lowest area(L) N(L) + area(R) N(R) wins; ties to the lower axis,
-    then the leftmost position."""
+    then the leftmost position. With the SAH constants `t1`, `t2`, a node stays a leaf when its
+    best split costs at least as much as a leaf: 2 T1 + T2 * best / area(node) >= T2 * N."""
     cent = np.float32(0.5) * (lo + hi)
     nodes = []
 
@@ -237,6 +238,8 @@ def greedy_sweep_reference(lo, hi):
                 unbalance = abs(2 * k - len(ordered))
                 if best is None or c < best[0] or (c == best[0] and unbalance < best[3]):
                     best = (c, left, right, unbalance)
+        if t1 is not None and 2 * t1 + t2 * best[0] / area64(lo[ids].min(0), hi[ids].max(0)) >= t2 * len(ids):
+            return
         rec(best[1])
         rec(best[2])
 
@@ -449,36 +452,6 @@ def test_presort_keys_order_neighbouring_floats(device):
         np.testing.assert_array_equal(order[axis], np.argsort(values[perm], kind="stable"))
 
 
-def terminated_greedy_reference(lo, hi, t1, t2):
-    """The greedy sweep (`greedy_sweep_reference`'s rule) where a node stays a leaf when its best
-    split costs at least as much as a leaf: 2 T1 + T2 * best / area(node) >= T2 * N."""
-    cent = np.float32(0.5) * (lo + hi)
-    nodes = []
-
-    def rec(ids):
-        nodes.append(frozenset(ids))
-        if len(ids) <= 1:
-            return
-        best = None
-        for axis in range(3):
-            ordered = sorted(ids, key=lambda i: (cent[i, axis], i))
-            for k in range(1, len(ordered)):
-                left, right = ordered[:k], ordered[k:]
-                c = area64(lo[left].min(0), hi[left].max(0)) * k + area64(lo[right].min(0), hi[right].max(0)) * (
-                    len(ordered) - k)
-                unbalance = abs(2 * k - len(ordered))
-                if best is None or c < best[0] or (c == best[0] and unbalance < best[3]):
-                    best = (c, left, right, unbalance)
-        node_area = area64(lo[ids].min(0), hi[ids].max(0))
-        if 2 * t1 + t2 * best[0] / node_area >= t2 * len(ids):
-            return
-        rec(best[1])
-        rec(best[2])
-
-    rec(list(range(len(lo))))
-    return sorted(nodes, key=sorted)
-
-
 @pytest.mark.parametrize("t1", [0.3, 1.0])
 @pytest.mark.parametrize("seed", range(3))
 def test_sah_termination_equals_the_greedy_rule(device, seed, t1):
@@ -489,7 +462,7 @@ def test_sah_termination_equals_the_greedy_rule(device, seed, t1):
     cfg = hw.BuildConfig(sah_traversal_cost=t1, sah_intersection_cost=1.0)
     wl, wh = wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device)
     bvh = build_top_down(wl, wh, cfg, device, StageTimer(device, False), method="sweep_sah", terminate_leaf_size=n)
-    expected = terminated_greedy_reference(lo, hi, t1, 1.0)
+    expected = greedy_sweep_reference(lo, hi, t1, 1.0)
     assert _node_sets(bvh.to_numpy()) == expected
     if t1 == 1.0:  # the rule keeps some node of several items a leaf
         assert any(len(node) > 1 and not any(other < node for other in expected) for node in expected)

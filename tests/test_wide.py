@@ -197,16 +197,21 @@ def test_bad_arguments(device):
         wide.sah_cost(w, 1.0, 0.0)
 
 
-def test_bench_wide_rows(tmp_path):
+def wide_bench_rows(tmp_path, widths: str) -> list:
+    """The rows of a small `bench-wide` run on the generated scene (which must pass)."""
+    import json
+
     from hlbvh_warp import wide_bench
 
     out = tmp_path / "wide.json"
-    code = wide_bench.main(["--scene-tris", "2000", "--widths", "4,16", "--views", "2", "--side", "16",
+    code = wide_bench.main(["--scene-tris", "2000", "--widths", widths, "--views", "2", "--side", "16",
                             "--repeats", "1", "--device", "cpu", "--json", str(out)])
     assert code == 0
-    import json
+    return json.loads(out.read_text())["rows"]
 
-    rows = json.loads(out.read_text())["rows"]
+
+def test_bench_wide_rows(tmp_path):
+    rows = wide_bench_rows(tmp_path, "4,16")
     for kind in ("primary", "diffuse"):
         ks = {r["k"]: r for r in rows if r["rays"] == kind}
         # Width 2 joins as the baseline; the binary traversal is timed beside it.
@@ -230,19 +235,16 @@ def test_bench_wide_binary_row_counts_as_the_wide_rows(tmp_path):
     """The binary traversal's row counts interior nodes visited and child boxes tested, as the wide
     rows do: over the same tree, front to back, it visits the nodes k = 2 visits (up to ties in
     the order), and a one-triangle tree (a single leaf) has no child box to test."""
-    import json
-
-    from hlbvh_warp import wide_bench
-
-    out = tmp_path / "wide.json"
-    code = wide_bench.main(["--scene-tris", "2000", "--widths", "2", "--views", "2", "--side", "16",
-                            "--repeats", "1", "--device", "cpu", "--json", str(out)])
-    assert code == 0
-    rows = json.loads(out.read_text())["rows"]
+    rows = wide_bench_rows(tmp_path, "2")
     for kind in ("primary", "diffuse"):
         ks = {r["k"]: r for r in rows if r["rays"] == kind}
         assert ks["bin"]["n_s"] == pytest.approx(ks[2]["n_s"], rel=0.03)
         assert ks["bin"]["boxes"] == pytest.approx(ks[2]["boxes"], rel=0.03)
+    import json
+
+    from hlbvh_warp import wide_bench
+
+    out = tmp_path / "one.json"
     path = tmp_path / "one.obj"
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0.2\nf 1 2 3\n")
     code = wide_bench.main(["--mesh", str(path), "--method", "hlbvh", "--widths", "2", "--views", "2", "--side", "8",
