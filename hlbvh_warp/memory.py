@@ -35,7 +35,8 @@ DEFAULT_LIMIT_BYTES = 1 << 30
 
 
 def _size_class(nbytes: int) -> int:
-    """Round up to one of 8 steps per power of two, so similar sizes share blocks (<= 12.5% waste)."""
+    """Round up to one of 8 steps per power of two, so similar sizes share blocks: at most 12.5%
+    waste from 512 KiB up; below that, to a multiple of the MIN_POOLED_BYTES step (64 KiB)."""
     step = max(1 << max(nbytes.bit_length() - 4, 0), MIN_POOLED_BYTES)
     return -(-nbytes // step) * step
 

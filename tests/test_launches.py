@@ -151,3 +151,51 @@ def test_recording_builders_survive_side_by_side_launches(tmp_path):
     )
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+
+
+@wp.kernel
+def _shape_kernel(x: wp.array(dtype=float), out: wp.array(dtype=float)):
+    i = wp.tid()
+    out[i] = float(x.shape[0]) * 1000.0 + x[i % x.shape[0]]
+
+
+def test_views_of_one_address_are_recorded_apart(device):
+    # Views that start at the same address but differ in shape or in strides pack differently:
+    # a replay of another view's record read the wrong elements or the wrong length.
+    rec = RecordedLaunches(device)
+    base = wp.array(np.arange(16, dtype=np.float32), dtype=float, device=device)
+    out = wp.zeros(4, dtype=float, device=device)
+    whole = np.arange(16, dtype=np.float64)
+    for view, values in ((base, whole), (base[:4], whole[:4]), (base[::4], whole[::4]), (base[:8], whole[:8])):
+        assert view.ptr == base.ptr
+        rec.launch(_shape_kernel, 4, [view, out])
+        expected = len(values) * 1000.0 + values[np.arange(4) % len(values)]
+        np.testing.assert_array_equal(out.numpy(), expected)
+    assert len(rec.records) == 4
+
+
+def test_replayed_launch_sizes_follow_every_change(device):
+    # One record replayed at 64, 10 and 64 again: each replay covers exactly its own size.
+    rec = RecordedLaunches(device)
+    x = wp.array(np.ones((64, 3)), dtype=wp.vec3, device=device)
+    y = wp.zeros(64, dtype=wp.vec3, device=device)
+    for count in (64, 10, 64, 64, 3, 10):
+        y.zero_()
+        rec.launch(_axpy_kernel, count, [1.0, x, wp.vec3(), wp.float64(0.0), 0, y])
+        got = y.numpy()
+        assert (got[:count] == 1.0).all() and not got[count:].any(), count
+    assert len(rec.records) == 1
+
+
+def test_starting_over_resets_the_per_kernel_counts(device, monkeypatch):
+    # Past MAX_RECORDED the record starts over, per-kernel counts included: the kernel's next
+    # argument sets are recorded again rather than launched plainly for good.
+    monkeypatch.setattr(launches, "MAX_RECORDED", 3)
+    monkeypatch.setattr(launches, "MAX_RECORDS_PER_KERNEL", 4)
+    rec = RecordedLaunches(device)
+    x = wp.ones(4, dtype=wp.vec3, device=device)
+    y = wp.zeros(4, dtype=wp.vec3, device=device)
+    for a in range(12):
+        rec.launch(_axpy_kernel, 4, [float(a), x, wp.vec3(), wp.float64(0.0), 0, y])
+        np.testing.assert_allclose(y.numpy(), np.full((4, 3), float(a)))
+        assert rec.made[_axpy_kernel] == len(rec.records) == a % 3 + 1

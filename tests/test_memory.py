@@ -223,3 +223,35 @@ def test_a_collection_inside_the_pool_does_not_deadlock():
     result = subprocess.run([sys.executable, "-c", GC_REENTRY_SCRIPT], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.strip().endswith("done")
+
+
+def test_pool_keeps_blocks_up_to_its_limit_exactly_and_drops_them_when_lowered(pool):
+    # A block whose size class fills the limit exactly is kept (at most `limit` idle bytes);
+    # one byte less and it goes back to the system; lowering the limit below what is idle
+    # drops the idle blocks at once.
+    nbytes = 400_000
+    size = memory._size_class(nbytes)
+    assert nbytes <= size < nbytes + max(nbytes // 8, memory.MIN_POOLED_BYTES)
+    memory.set_host_cache_limit(size)
+    a = memory.empty(nbytes // 4, dtype=wp.int32, device="cpu")
+    del a
+    gc.collect()
+    assert memory.host_cache_bytes() == size
+    memory.set_host_cache_limit(size - 1)
+    assert memory.host_cache_bytes() == 0
+    b = memory.empty(nbytes // 4, dtype=wp.int32, device="cpu")
+    del b
+    gc.collect()
+    assert memory.host_cache_bytes() == 0
+
+
+def test_scratch_cache_counts_a_replaced_set_once():
+    # Giving back a set under a key that is still held replaces it: its bytes are counted once.
+    cache = memory.ScratchCache(max_entries=4)
+    cache.give_back("a", object(), 100)
+    cache.give_back("a", object(), 300)
+    cache.give_back("b", object(), 50)
+    assert cache.held_bytes == 350
+    assert cache.take("a") is not None and cache.held_bytes == 50
+    cache.trim(0)
+    assert cache.held_bytes == 0 and not cache._entries

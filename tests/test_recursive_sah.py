@@ -161,3 +161,49 @@ def test_recursive_sah_config_is_checked():
     for kwargs in ({"recursive_sah_bins": 1}, {"recursive_sah_bins": 257}, {"recursive_sah_temp_bins": 33}):
         with pytest.raises(ValueError, match="recursive_sah"):
             hw.BuildConfig(**kwargs)
+
+
+def test_odd_groups_of_coincident_centroids_equal_the_python_build(device, rng):
+    # Groups of copies with no bin boundary between them, of odd sizes: halved in their current
+    # order, the first floor(n / 2) to the left, as the Python build of the rule does.
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    copies = [np.repeat(tri[None] + shift, count, axis=0) for shift, count in ((0.0, 7), (3.0, 5), (-2.0, 3))]
+    others = rng.random((6, 3, 3)).astype(np.float32) * 4.0 - 2.0
+    v = np.concatenate(copies + [others]).reshape(-1, 3)
+    f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+    bvh = hw.build(v, f, method="recursive_sah", device=device,
+                   config=hw.BuildConfig(recursive_sah_bins=16, recursive_sah_temp_bins=8))
+    check_tree_invariants(bvh.to_numpy(), len(f))
+    lo, hi = boxes(v, f)
+    assert tree_sets(bvh) == numpy_recursive_sah(lo, hi, 16, 8)
+
+
+def test_temporary_bvh_of_a_chain_stays_within_its_stack(device):
+    # Centroids 0 and 3^k with two temporary bins: every split peels off the largest box alone, a
+    # chain of depth N. Building the smaller side first keeps one deferred sibling on the stack;
+    # the other way round, the stack (64 entries) overflowed at N > 64.
+    num = 81
+    x = np.concatenate([[0.0], 3.0 ** np.arange(num - 1)])
+    lo = np.stack([x - x / 8, np.zeros(num), np.zeros(num)], 1).astype(np.float32)
+    hi = np.stack([x + x / 8, np.ones(num), np.ones(num)], 1).astype(np.float32)
+    config = hw.BuildConfig(recursive_sah_temp_bins=2, max_leaf_size=1)
+    ids = np.random.default_rng(5).permutation(num).astype(np.int32)
+    costs = _side_costs(ids, np.array([0]), np.array([num]), wp.array(lo, dtype=wp.vec3, device=device),
+                        wp.array(hi, dtype=wp.vec3, device=device), config, device)
+    np.testing.assert_allclose(costs, [temp_cost(ids, lo, hi, 2, 1, 1.0, 1.0)], rtol=1e-12)
+
+
+def test_temporary_bvh_halves_coincident_centroids_in_order(device, rng):
+    # Boxes of one centroid and different sizes: no bin boundary separates them, so the range
+    # is halved in its order, the first floor(n / 2) to the left, as the recursion does.
+    num = 7
+    half = rng.integers(1, 64, (num, 3)) / 16.0  # dyadic: the centroids are exact
+    lo, hi = (0.5 - half).astype(np.float32), (0.5 + half).astype(np.float32)
+    assert (np.float32(0.5) * (lo + hi) == np.float32(0.5)).all()
+    config = hw.BuildConfig(recursive_sah_temp_bins=4, max_leaf_size=1, sah_traversal_cost=1.2)
+    sides = [rng.permutation(num)[:k].astype(np.int32) for k in (3, 5, 7)]
+    lasts = np.cumsum([len(s) for s in sides])
+    costs = _side_costs(np.concatenate(sides), lasts - [len(s) for s in sides], lasts,
+                        wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device),
+                        config, device)
+    np.testing.assert_allclose(costs, [temp_cost(s, lo, hi, 4, 1, 1.2, 1.0) for s in sides], rtol=1e-12)

@@ -303,3 +303,100 @@ def test_parts_cut_far_from_their_triangles_vertices_keep_every_point(device, rn
     # And random rays against the brute force.
     o, d = random_rays(rng, verts, 500)
     assert_hits_match(*query.intersect(bvh, o, d), *brute_force_closest_hit(verts, faces, o, d))
+
+
+def test_a_budget_spent_exactly_gives_the_unlimited_tree(device, rng):
+    # A budget that the unlimited build's references fill exactly: every spatial split fits, the
+    # last one included, so the tree is the unlimited one.
+    verts, faces = large_and_small(rng, 200, 12)
+    config = dict(sbvh_alpha=0.0)
+    free = hw.build(verts, faces, method="sbvh", device=device,
+                    config=hw.BuildConfig(sbvh_max_duplication=1e12, **config)).to_numpy()
+    n, refs = len(faces), len(free["prim_order"])
+    assert refs > n
+    budget = (refs - n + 0.5) / n
+    assert int(np.floor((1.0 + budget) * n)) == refs
+    tight = hw.build(verts, faces, method="sbvh", device=device,
+                     config=hw.BuildConfig(sbvh_max_duplication=budget, **config)).to_numpy()
+    for name in ("node_left", "node_begin", "node_end", "prim_order", "node_lowers", "node_uppers"):
+        np.testing.assert_array_equal(tight[name], free[name], err_msg=name)
+
+
+@pytest.mark.parametrize("bins", [4, 8])
+def test_boxes_ending_on_a_plane_price_like_the_enumeration(device, rng, bins):
+    # Every coordinate on the grid of the root's bin planes: a box ending exactly on a plane
+    # stays left whole (it does not exit in the slab above), one starting on it goes right.
+    grid = rng.integers(0, bins + 1, size=(60, 3, 3)).astype(np.float32) / np.float32(bins)
+    grid[0] = [[0, 0, 0], [1, 1, 0], [0, 1, 1]]
+    grid[1] = [[1, 1, 1], [1, 0, 1], [0, 1, 0]]
+    verts = grid.reshape(-1, 3)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    candidates = sbvh_root_candidates(verts, faces, bins)
+    found = spatial_split.root_split_costs(verts, faces, hw.BuildConfig(sbvh_bins=bins, sbvh_alpha=0.0), device)
+    assert np.isfinite(candidates["spatial"])
+    assert found["object"] == pytest.approx(candidates["object"], rel=1e-12)
+    assert found["spatial"] == pytest.approx(candidates["spatial"], rel=1e-5)
+    bvh = hw.build(verts, faces, method="sbvh", device=device,
+                   config=hw.BuildConfig(sbvh_bins=bins, sbvh_alpha=0.0))
+    check_parts_bounded(bvh, verts, faces)
+
+
+def test_clipped_part_boxes_hold_the_exact_parts(device, rng):
+    # The kernels' slab_part_box on long triangles in the plane y = -x spanning +-1e6, cut into
+    # slabs near the origin: each box must hold the exact part (x in [p0, p1], y = -x, z from
+    # z0 up to the slanted edge), computed here in rationals. The float64 clip is off by about
+    # 1e-10 there, far more than a float32 unit of the part's coordinates.
+    from fractions import Fraction
+
+    import warp as wp
+
+    from hlbvh_warp.kernels import spatial_split as sk
+
+    @wp.kernel
+    def part_boxes(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), c: wp.array(dtype=wp.vec3),
+                   slab: wp.array(dtype=wp.vec2), out_lo: wp.array(dtype=wp.vec3), out_hi: wp.array(dtype=wp.vec3)):
+        i = wp.tid()
+        lo = wp.min(wp.min(a[i], b[i]), c[i])
+        hi = wp.max(wp.max(a[i], b[i]), c[i])
+        polygon, count = sk.triangle_in_box(a[i], b[i], c[i], lo, hi)
+        margin = sk.clip_margin(a[i], b[i], c[i])
+        part_lo, part_hi = sk.slab_part_box(polygon, count, 0, lo, hi, slab[i][0], slab[i][1], margin)
+        out_lo[i] = part_lo
+        out_hi[i] = part_hi
+
+    radius = np.float32(1e6)
+    num = 400
+    z0 = rng.integers(0, 8, num).astype(np.float32)
+    a = np.stack([np.full(num, -radius), np.full(num, radius), z0], 1)
+    b = np.stack([np.full(num, radius), np.full(num, -radius), z0], 1)
+    c = np.stack([np.full(num, -radius), np.full(num, radius), z0 + 1], 1)
+    p0 = (10.0 ** rng.uniform(-6, 0, num) * rng.choice([-1.0, 1.0], num)).astype(np.float32)
+    p1 = (p0 + np.abs(p0) * rng.uniform(1e-3, 1.0, num)).astype(np.float32)
+    arrays = [wp.array(x.astype(np.float32), dtype=wp.vec3, device=device) for x in (a, b, c)]
+    slab = wp.array(np.stack([p0, p1], 1), dtype=wp.vec2, device=device)
+    out_lo = wp.zeros(num, dtype=wp.vec3, device=device)
+    out_hi = wp.zeros(num, dtype=wp.vec3, device=device)
+    wp.launch(part_boxes, dim=num, inputs=[*arrays, slab, out_lo, out_hi], device=device)
+    lo, hi = out_lo.numpy(), out_hi.numpy()
+    r = Fraction(float(radius))
+    for i in range(num):
+        x0, x1 = Fraction(float(p0[i])), Fraction(float(p1[i]))
+        z_top = Fraction(float(z0[i])) + (r - x0) / (2 * r)
+        exact_lo = (x0, -x1, Fraction(float(z0[i])))
+        exact_hi = (x1, -x0, z_top)
+        for d in range(3):
+            assert Fraction(float(lo[i, d])) <= exact_lo[d], (i, d, "lower")
+            assert Fraction(float(hi[i, d])) >= exact_hi[d], (i, d, "upper")
+
+
+def test_no_spatial_search_where_the_object_split_does_not_overlap(device, rng):
+    # Two clusters far apart: the best object split's boxes are disjoint, an overlap of 0, which
+    # is not more than alpha = 0 of the root's area: the spatial search is not tried.
+    centers = np.concatenate([rng.uniform(0.0, 0.3, (30, 1, 3)), rng.uniform(0.7, 1.0, (30, 1, 3))])
+    verts = (centers + 0.02 * rng.normal(size=(60, 3, 3))).astype(np.float32).reshape(-1, 3)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    candidates = sbvh_root_candidates(verts, faces, 8)
+    assert candidates["object_overlap"] == 0.0
+    found = spatial_split.root_split_costs(verts, faces, hw.BuildConfig(sbvh_bins=8, sbvh_alpha=0.0), device)
+    assert found["object"] == pytest.approx(candidates["object"], rel=1e-12)
+    assert found["spatial"] == np.inf and found["spatial_axis"] == -1

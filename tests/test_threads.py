@@ -194,3 +194,26 @@ def test_launch_parts_compiles_a_module_once(tmp_path, monkeypatch):
     threads_module.launch_parts(module.double, "cpu", parts, 2)
     np.testing.assert_array_equal(a.numpy(), 2.0 * np.arange(2000))
     assert len(loads) == 1, loads
+
+
+def test_default_thread_count_uses_every_usable_core():
+    import warp as wp
+
+    cpu = wp.get_device("cpu")
+    assert threads.resolved_threads(hw.BuildConfig(), cpu) == threads.usable_cores()
+    assert threads.resolved_threads(hw.BuildConfig(cpu_threads=3), cpu) == 3
+    assert threads.resolved_threads(hw.BuildConfig(cpu_threads=1), cpu) == 1
+
+
+def test_two_jobs_on_two_threads_run_side_by_side():
+    # Two jobs and two threads: the pool takes the second while the caller runs the first.
+    import threading
+
+    seen = []
+
+    def job():
+        seen.append((threading.current_thread().name, threads.side_by_side()))
+
+    threads.run([job, job], 2)
+    assert len({name for name, _ in seen}) == 2 and all(flag for _, flag in seen), seen
+    assert not threads.side_by_side()
