@@ -17,35 +17,42 @@ from .bvh import Bvh  # noqa: E402
 from .config import BuildConfig  # noqa: E402
 from .query import (  # noqa: E402
     BvhView,
+    ClosestPoint,
     RayHit,
     TraversalStats,
     bvh_aabb_count,
     bvh_aabb_pairs,
     bvh_any_hit,
     bvh_closest_hit,
+    bvh_closest_point,
     bvh_occluded,
+    closest_point,
     intersect,
     intersect_all,
     occluded,
     query_aabb,
     view,
 )
-from .trimesh_adapter import RayMeshIntersector  # noqa: E402
+from .trimesh_adapter import ProximityQuery, RayMeshIntersector  # noqa: E402
 
 __all__ = [
     "Builder",
     "Bvh",
     "BvhView",
     "BuildConfig",
+    "ClosestPoint",
+    "ProximityQuery",
     "RayHit",
     "RayMeshIntersector",
     "TraversalStats",
     "build",
     "build_from_bounds",
+    "closest_point",
     "bvh_aabb_count",
     "bvh_aabb_pairs",
     "bvh_any_hit",
     "bvh_closest_hit",
+    "bvh_closest_point",
     "bvh_occluded",
     "intersect",
     "intersect_all",

@@ -1,9 +1,11 @@
-"""Ray and box queries on a built BVH: host wrappers around ``kernels/traversal.py``.
+"""Ray, box and closest-point queries on a built BVH: host wrappers around
+``kernels/traversal.py`` and ``kernels/proximity.py``.
 
-Batched calls (`intersect`, `occluded`, `intersect_all`, `query_aabb`) validate their input,
-launch one thread per ray or box on the BVH's device and return NumPy arrays. `view` hands the
-same data to user kernels, which call the ``@wp.func`` queries re-exported here
-(`bvh_closest_hit`, `bvh_any_hit`, `bvh_occluded`, `bvh_aabb_count`, `bvh_aabb_pairs`).
+Batched calls (`intersect`, `occluded`, `intersect_all`, `query_aabb`, `closest_point`) validate
+their input, launch one thread per ray, box or point on the BVH's device and return NumPy arrays.
+`view` hands the same data to user kernels, which call the ``@wp.func`` queries re-exported here
+(`bvh_closest_hit`, `bvh_any_hit`, `bvh_occluded`, `bvh_aabb_count`, `bvh_aabb_pairs`,
+`bvh_closest_point`).
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import warp as wp
 
 from . import inputs
 from .bvh import Bvh
-from .kernels import traversal
+from .kernels import proximity, traversal
+from .kernels.proximity import ClosestPoint, bvh_closest_point  # noqa: F401  (re-exported for user kernels)
 from .kernels.traversal import (  # noqa: F401  (re-exported for user kernels)
     BvhView,
     RayHit,
@@ -353,3 +356,68 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
         pairs = out.numpy().astype(np.int64).reshape(-1, 2)
         pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     return counts.numpy(), pairs
+
+
+def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_barycentrics: bool = False,
+                  stats: bool = False):
+    """The closest point on the mesh to every query point (``kernels/proximity.py``).
+
+    Args:
+        bvh: a BVH built over a mesh with `hlbvh_warp.build`; any builder, spatial splits included.
+        points: ``(P, 3)`` query points (NumPy or Warp, any real dtype; a single ``(3,)`` point is
+            accepted). A point with a NaN or Inf coordinate finds nothing.
+        max_dist: only triangles within this distance (inclusive) count; a point with none finds
+            nothing. A smaller bound is faster: boxes beyond it are never opened.
+        return_barycentrics: also return ``u, v``, the weights of the triangle's second and third
+            vertex at the closest point (0 where nothing was found).
+        stats: also return a `TraversalStats` (nodes visited, triangles tested per point).
+
+    Returns:
+        ``(closest, distance, prim_id)`` NumPy arrays: ``(P, 3)`` float32 points on the surface,
+        ``(P,)`` float32 distances and ``(P,)`` int32 triangles (trimesh's ``closest_point``
+        order); where nothing is found, NaN, inf and -1. Then ``u, v`` when asked, then the
+        stats. Equal distances go to the lowest triangle id.
+
+    Raises:
+        ValueError: a BVH over bare boxes, points of a wrong shape or dtype, or a negative or NaN
+            ``max_dist``.
+    """
+    _require_mesh(bvh, "closest_point")
+    p = _point_array(points)
+    try:
+        max_dist = float(max_dist)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"max_dist must be a number, got {max_dist!r}") from exc
+    if not max_dist >= 0.0:
+        raise ValueError(f"max_dist must be >= 0, got {max_dist}")
+    num_points = p.shape[0]
+    device = bvh.device
+    out_point = wp.empty(num_points, dtype=wp.vec3, device=device)
+    out_distance = wp.empty(num_points, dtype=float, device=device)
+    out_prim = wp.empty(num_points, dtype=wp.int32, device=device)
+    bary = num_points if return_barycentrics else 0
+    counted = num_points if stats else 0
+    out_u, out_v = _empty(float, device, bary), _empty(float, device, bary)
+    visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
+    if num_points:
+        wp.launch(proximity.closest_point_kernel, dim=num_points, device=device,
+                  inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device), max_dist, out_point, out_distance,
+                          out_prim, out_u, out_v, visits, tests])
+    out = (out_point.numpy().reshape(num_points, 3), out_distance.numpy(), out_prim.numpy())
+    if return_barycentrics:
+        out += (out_u.numpy(), out_v.numpy())
+    if stats:
+        out += (TraversalStats(visits.numpy(), tests.numpy()),)
+    return out
+
+
+def _point_array(points) -> np.ndarray:
+    """Query points: shapes and dtypes are errors; NaN or Inf points find nothing."""
+    arr = points.numpy() if isinstance(points, wp.array) else np.asarray(points)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"points must hold real numbers, got dtype {arr.dtype}")
+    if arr.shape == (3,):
+        arr = arr.reshape(1, 3)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float32)

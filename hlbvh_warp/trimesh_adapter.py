@@ -1,10 +1,14 @@
-"""A drop-in for ``trimesh.ray.ray_triangle.RayMeshIntersector`` backed by an HLBVH.
+"""Drop-ins for ``trimesh.ray.ray_triangle.RayMeshIntersector`` and
+``trimesh.proximity.ProximityQuery`` backed by an HLBVH.
 
 Same methods, arguments and return conventions as trimesh 5.2 (``intersects_id``,
 ``intersects_location``, ``intersects_first``, ``intersects_any``, ``contains_points``), with two
 documented differences that follow from the watertight test (Woop et al. 2013) instead of
 trimesh's tolerance-based one: a hit needs t > 0 (trimesh also accepts hits up to 1e-6 behind the
 origin), and rays lying in a triangle's plane or hitting zero-area triangles do not hit them.
+
+`ProximityQuery` answers ``on_surface`` and ``signed_distance`` as trimesh 5.2 does, without
+trimesh's r-tree dependency (``rtree``, which trimesh needs for them and this package does not).
 """
 
 from __future__ import annotations
@@ -110,3 +114,48 @@ class RayMeshIntersector:
 
         self.bvh  # an empty mesh raises our ValueError here, not a TypeError inside trimesh
         return contains_points(self, points)
+
+
+class ProximityQuery:
+    """Closest-point queries on a ``trimesh.Trimesh`` (trimesh's ``mesh.nearest``) through a BVH.
+
+    Args:
+        mesh: a ``trimesh.Trimesh``; the BVH is rebuilt when its vertices or faces change.
+        device: Warp device; the current default device when ``None``.
+        method: the builder (see `hlbvh_warp.api.build`).
+    """
+
+    def __init__(self, mesh, device=None, method: str = "hlbvh"):
+        self._rays = RayMeshIntersector(mesh, device=device, method=method)
+
+    @property
+    def mesh(self):
+        return self._rays.mesh
+
+    @property
+    def bvh(self):
+        return self._rays.bvh
+
+    def on_surface(self, points):
+        """The closest point on the surface to each point, as trimesh's.
+
+        Returns:
+            ``closest (m, 3) float64, distance (m,) float64, triangle_id (m,) int64``. Equal
+            distances go to the lowest triangle id; a point with a NaN or Inf coordinate gets NaN,
+            inf and -1 (trimesh has no answer for one).
+        """
+        closest, distance, prim = query.closest_point(self.bvh, np.asanyarray(points, dtype=np.float64))
+        return closest.astype(np.float64), distance.astype(np.float64), prim.astype(np.int64)
+
+    def signed_distance(self, points):
+        """Distance to the surface, positive inside the (watertight) mesh and within 1e-8
+        (trimesh's ``tol.merge``) of it, negative outside, as trimesh's: ``(m,) float64``."""
+        from trimesh.constants import tol
+
+        points = np.asanyarray(points, dtype=np.float64)
+        _, distance, _ = self.on_surface(points)
+        inside = distance <= tol.merge
+        outside = ~inside
+        if outside.any():
+            inside[outside] = self._rays.contains_points(points[outside])
+        return np.where(inside, distance, -distance)

@@ -1,0 +1,436 @@
+"""Closest-point queries on a built BVH, callable from any user ``@wp.kernel``.
+
+- Point to triangle: Ericson, "Real-Time Collision Detection", 2005, Sec. 5.1.5: the point's
+  Voronoi region of the triangle (a vertex, an edge or the face) is found from six dot products,
+  and the closest point follows from it with one division. Two things the textbook version leaves
+  to its caller are handled here. The region tests multiply dot products, which are squares of
+  coordinates, so at 1e18 (or 1e-18) their products overflow (or underflow) float32: every
+  difference is first divided by the largest of its components. And a degenerate triangle (a
+  segment or a point, valid input) has no face region and zero denominators: it is measured as its
+  three edges.
+- Traversal: nearest child first, the farther one deferred on the stack with its box distance
+  (the squared distance from the point to the box); a deferred node is dropped when popped if its
+  box lies farther than the closest triangle found since, and a box is entered only when it is
+  not farther than that. A spatial-split leaf bounds part of a triangle, and the part holding the
+  closest point lies in some leaf whose box is no farther: so spatial-split trees answer correctly
+  as well, testing the whole triangle at each of its leaves.
+- Equal distances go to the lowest primitive id, whatever the tree, so every builder gives the same
+  answer where the float32 distances are equal.
+- Stack overflow is handled as in ``traversal.py``: a node met with a full stack is tested as one
+  leaf over its whole primitive range.
+"""
+
+import warp as wp
+
+from .traversal import (
+    INF,
+    STACK_SIZE,
+    BvhView,
+    PackedNode,
+    PackedTriangle,
+    prefetch_child,
+    vec64f,
+    vec64i,
+)
+
+wp.set_module_options({"enable_backward": False})
+
+NAN = wp.constant(float("nan"))
+
+
+@wp.struct
+class ClosestPoint:
+    """Result of a closest-point query: ``prim`` is -1 and ``distance`` inf when no triangle lies
+    within the query's ``max_dist`` (or the point has a NaN or Inf coordinate).
+
+    ``point`` is the closest point on triangle ``prim``, ``(1 - u - v) * a + u * b + v * c`` for its
+    vertices a, b, c (the same weights as a `RayHit`); ``nodes_visited`` and ``prims_tested`` count
+    the traversal's steps and point-triangle tests.
+    """
+
+    point: wp.vec3
+    distance: float
+    prim: int
+    u: float
+    v: float
+    nodes_visited: int
+    prims_tested: int
+
+
+@wp.struct
+class TrianglePoint:
+    """The closest point of one triangle to a query point, its weights of ``b`` and ``c``, and
+    its squared distance in float64."""
+
+    point: wp.vec3
+    u: float
+    v: float
+    d2: wp.float64
+
+
+@wp.func
+def segment_parameter(ap: wp.vec3d, ab: wp.vec3d):
+    """Where the closest point of segment a + t * ab to a + ap lies, t in [0, 1] (0 for a point)."""
+    den = wp.dot(ab, ab)
+    t = wp.float64(0.0)
+    if den > wp.float64(0.0):
+        t = wp.clamp(wp.dot(ap, ab) / den, wp.float64(0.0), wp.float64(1.0))
+    return t
+
+
+@wp.func
+def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """The point of triangle abc closest to p, as a `TrianglePoint`.
+
+    The projection onto the plane when it falls inside the triangle, else the closest point of the
+    three edges (Ericson, "Real-Time Collision Detection", 2005, Sec. 5.1.5: the closest point lies
+    in the point's Voronoi region of the triangle). Inside or outside is decided by the signs of the
+    three edge functions n . ((v_j - v_i) x (p - v_i)), whose rounding error is a few ulps of
+    |p - v_i| whatever the triangle's shape; the textbook's products of dot products lose
+    1 / sin(angle) of that on a sliver. Computed in float64: a sliver's normal in float32 tilts by
+    2^-24 / sin(angle), which moves the projection of a point by as much times its distance
+    in the plane, and the squares of coordinates near 1e20 or 1e-20 leave the float32 range.
+    A degenerate triangle (a segment or a point, valid input) has no face and is its edges.
+    Vertices come back exactly where the closest point is one.
+    """
+    p64 = wp.vec3d(p)
+    a64 = wp.vec3d(a)
+    ab = wp.vec3d(b) - a64
+    ac = wp.vec3d(c) - a64
+    ap = p64 - a64
+    n = wp.cross(ab, ac)
+    nn = wp.dot(n, n)
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    u = zero
+    v = zero
+    face = int(0)
+    # Below sin(angle) = 1e-15 the normal is float64 noise: the triangle is its edges.
+    if nn > wp.float64(1.0e-30) * wp.dot(ab, ab) * wp.dot(ac, ac):
+        s_b = wp.dot(n, wp.cross(ap, ac))
+        s_c = wp.dot(n, wp.cross(ab, ap))
+        s_a = wp.dot(n, wp.cross(ac - ab, ap - ab))
+        if s_a >= zero and s_b >= zero and s_c >= zero:
+            face = 1
+            u = s_b / nn
+            v = s_c / nn
+    result = TrianglePoint()
+    if face == 1:
+        # The projection itself, not a + u ab + v ac: exact up to rounding however thin the triangle.
+        q = p64 - n * (wp.dot(n, ap) / nn)
+        result.point = wp.vec3(q)
+        result.d2 = wp.length_sq(p64 - q)
+    else:
+        bc = ac - ab
+        t_ab = segment_parameter(ap, ab)
+        t_ac = segment_parameter(ap, ac)
+        t_bc = segment_parameter(ap - ab, bc)
+        d_ab = wp.length_sq(ap - ab * t_ab)
+        d_ac = wp.length_sq(ap - ac * t_ac)
+        d_bc = wp.length_sq(ap - ab - bc * t_bc)
+        u = t_ab
+        best = d_ab
+        if d_ac < best:
+            best = d_ac
+            u = zero
+            v = t_ac
+        if d_bc < best:
+            best = d_bc
+            u = one - t_bc
+            v = t_bc
+        if u == zero and v == zero:
+            result.point = a
+        elif u == one and v == zero:
+            result.point = b
+        elif u == zero and v == one:
+            result.point = c
+        else:
+            result.point = wp.vec3(a64 + ab * u + ac * v)
+        result.d2 = best
+    result.u = float(u)
+    result.v = float(v)
+    return result
+
+
+@wp.func
+def box_distance_sq(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """Squared distance from p to the box (0 inside), float32. Overflow to inf only prunes boxes
+    farther than 1.8e19 when a nearer triangle is known, and underflow only keeps boxes that could
+    have been pruned: both safe."""
+    gap = wp.max(wp.max(lower - p, p - upper), wp.vec3(0.0))
+    return wp.dot(gap, gap)
+
+
+@wp.func
+def point_is_valid(p: wp.vec3, max_dist: float):
+    valid = int(1)
+    for i in range(3):
+        if not wp.isfinite(p[i]):
+            valid = 0
+    if not (max_dist >= 0.0):
+        valid = 0
+    return valid
+
+
+# A box is entered unless it is clearly farther than the best triangle: its float32 distance may
+# be a few ulps off, so a box within that margin of the best distance is still opened.
+PRUNE_MARGIN = wp.constant(1.0 - 1.0e-6)
+
+
+@wp.struct
+class PointSearch:
+    """The best triangle so far: its squared distance in float64 (the comparisons) and in float32
+    (the box tests), and its primitive id."""
+
+    best: TrianglePoint
+    d2: wp.float64
+    box_d2: float
+    prim: int
+
+
+@wp.func
+def start_search(max_dist: float):
+    s = PointSearch()
+    s.d2 = wp.float64(max_dist) * wp.float64(max_dist)
+    s.box_d2 = max_dist * max_dist
+    s.prim = -1
+    return s
+
+
+@wp.func
+def offer(s: PointSearch, tp: TrianglePoint, prim: int):
+    """`s` with the triangle taken if it is nearer, or as near with a lower id (or the first
+    within max_dist)."""
+    if tp.d2 < s.d2 or (tp.d2 == s.d2 and (s.prim < 0 or prim < s.prim)):
+        s.best = tp
+        s.d2 = tp.d2
+        s.box_d2 = float(tp.d2)
+        s.prim = prim
+    return s
+
+
+@wp.func
+def finish(p: wp.vec3, s: PointSearch, visited: int, tested: int):
+    result = ClosestPoint()
+    result.prim = s.prim
+    result.distance = INF
+    result.point = wp.vec3(NAN)
+    result.nodes_visited = visited
+    result.prims_tested = tested
+    if s.prim >= 0:
+        result.point = s.best.point
+        result.distance = float(wp.sqrt(s.d2))
+        result.u = s.best.u
+        result.v = s.best.v
+    return result
+
+
+@wp.func
+def packed_point_query(
+    nodes: wp.array(dtype=PackedNode),
+    triangles: wp.array(dtype=PackedTriangle),
+    prim_order: wp.array(dtype=wp.int32),
+    root_lower: wp.vec3,
+    root_upper: wp.vec3,
+    root_begin: int,
+    root: int,
+    p: wp.vec3,
+    max_dist: float,
+):
+    """Nearest-first traversal of the packed layout (``traversal.py``): a node reference is a
+    `PackedNode` position, or minus the primitive count for a leaf, and the traversal carries where
+    the current node's primitive range begins."""
+    s = start_search(max_dist)
+    visited = int(0)
+    tested = int(0)
+    stack = vec64i()
+    stack_begin = vec64i()
+    stack_d = vec64f()
+    top = int(0)
+    node = int(0)
+    begin = int(0)
+    active = int(0)
+    if point_is_valid(p, max_dist) == 1:
+        if box_distance_sq(p, root_lower, root_upper) * PRUNE_MARGIN <= s.box_d2:
+            active = 1
+            node = root
+            begin = root_begin
+    while active == 1:
+        visited += 1
+        if node >= 0 and top >= STACK_SIZE:
+            # No room to defer a child: test the node's whole range as one leaf.
+            full = nodes[node]
+            node = -(full.count_a + full.count_b)
+        if node < 0:
+            for k in range(begin, begin - node):
+                tested += 1
+                tri = triangles[k]
+                tp = closest_point_on_triangle(p, tri.a, tri.b, tri.c)
+                if tp.d2 <= s.d2:
+                    s = offer(s, tp, prim_order[k])
+            active = int(0)
+            # Pop the nearest deferred node not farther than the best triangle so far.
+            while top > 0 and active == 0:
+                top -= 1
+                if stack_d[top] * PRUNE_MARGIN <= s.box_d2:
+                    node = stack[top]
+                    begin = stack_begin[top]
+                    active = 1
+        else:
+            n = nodes[node]
+            begin_b = begin + n.count_a
+            prefetch_child(nodes, triangles, n.child_a, begin)
+            prefetch_child(nodes, triangles, n.child_b, begin_b)
+            da = box_distance_sq(p, n.lower_a, n.upper_a)
+            db = box_distance_sq(p, n.lower_b, n.upper_b)
+            open_a = da * PRUNE_MARGIN <= s.box_d2
+            open_b = db * PRUNE_MARGIN <= s.box_d2
+            if open_a and open_b:
+                # Visit the nearer child next, defer the farther one.
+                if da <= db:
+                    stack[top] = n.child_b
+                    stack_begin[top] = begin_b
+                    stack_d[top] = db
+                    node = n.child_a
+                else:
+                    stack[top] = n.child_a
+                    stack_begin[top] = begin
+                    stack_d[top] = da
+                    node = n.child_b
+                    begin = begin_b
+                top += 1
+            elif open_a:
+                node = n.child_a
+            elif open_b:
+                node = n.child_b
+                begin = begin_b
+            else:
+                active = int(0)
+                while top > 0 and active == 0:
+                    top -= 1
+                    if stack_d[top] * PRUNE_MARGIN <= s.box_d2:
+                        node = stack[top]
+                        begin = stack_begin[top]
+                        active = 1
+    return finish(p, s, visited, tested)
+
+
+@wp.func
+def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
+    """`packed_point_query` on the canonical arrays, for a view that carries no traversal layout."""
+    s = start_search(max_dist)
+    visited = int(0)
+    tested = int(0)
+    stack = vec64i()
+    stack_d = vec64f()
+    top = int(0)
+    node = int(-1)
+    if point_is_valid(p, max_dist) == 1:
+        if box_distance_sq(p, bvh.node_lowers[0], bvh.node_uppers[0]) * PRUNE_MARGIN <= s.box_d2:
+            node = 0
+    while node >= 0:
+        visited += 1
+        left = bvh.node_left[node]
+        if left < 0 or top >= STACK_SIZE:
+            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+                prim = bvh.prim_order[k]
+                tested += 1
+                tp = closest_point_on_triangle(p, bvh.vertices[bvh.faces[prim, 0]], bvh.vertices[bvh.faces[prim, 1]],
+                                               bvh.vertices[bvh.faces[prim, 2]])
+                if tp.d2 <= s.d2:
+                    s = offer(s, tp, prim)
+            node = int(-1)
+        else:
+            right = bvh.node_right[node]
+            dl = box_distance_sq(p, bvh.node_lowers[left], bvh.node_uppers[left])
+            dr = box_distance_sq(p, bvh.node_lowers[right], bvh.node_uppers[right])
+            open_l = dl * PRUNE_MARGIN <= s.box_d2
+            open_r = dr * PRUNE_MARGIN <= s.box_d2
+            node = int(-1)
+            if open_l and open_r:
+                if dl <= dr:
+                    node = left
+                    stack[top] = right
+                    stack_d[top] = dr
+                else:
+                    node = right
+                    stack[top] = left
+                    stack_d[top] = dl
+                top += 1
+            elif open_l:
+                node = left
+            elif open_r:
+                node = right
+        while node < 0 and top > 0:
+            top -= 1
+            if stack_d[top] * PRUNE_MARGIN <= s.box_d2:
+                node = stack[top]
+    return finish(p, s, visited, tested)
+
+
+@wp.func
+def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
+    """The closest point on the mesh to ``point`` among triangles within ``max_dist`` (inclusive),
+    as a `ClosestPoint` (prim -1 and distance inf when there is none).
+
+    Pass ``wp.inf`` (or a large number) for an unbounded query; a small ``max_dist`` is faster,
+    since every box farther than it is skipped. Points with NaN or Inf coordinates find nothing.
+    """
+    if bvh.packed_nodes.shape[0] > 0:
+        root_begin = bvh.node_begin[0]
+        root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
+        return packed_point_query(bvh.packed_nodes, bvh.packed_triangles, bvh.prim_order, bvh.node_lowers[0],
+                                  bvh.node_uppers[0], root_begin, root, point, max_dist)
+    return canonical_point_query(bvh, point, max_dist)
+
+
+@wp.kernel
+def closest_point_kernel(
+    bvh: BvhView,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    out_point: wp.array(dtype=wp.vec3),
+    out_distance: wp.array(dtype=float),
+    out_prim: wp.array(dtype=wp.int32),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+    nodes_visited: wp.array(dtype=wp.int32),
+    prims_tested: wp.array(dtype=wp.int32),
+):
+    """One point per thread; the weights and the statistics are written when their arrays are
+    not empty."""
+    tid = wp.tid()
+    r = bvh_closest_point(bvh, points[tid], max_dist)
+    out_point[tid] = r.point
+    out_distance[tid] = r.distance
+    out_prim[tid] = r.prim
+    if out_u.shape[0] > 0:
+        out_u[tid] = r.u
+        out_v[tid] = r.v
+    if nodes_visited.shape[0] > 0:
+        nodes_visited[tid] = r.nodes_visited
+        prims_tested[tid] = r.prims_tested
+
+
+@wp.kernel
+def warp_mesh_closest_point_kernel(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    out_point: wp.array(dtype=wp.vec3),
+    out_distance: wp.array(dtype=float),
+    out_prim: wp.array(dtype=wp.int32),
+):
+    """The benchmark's reference: Warp's own mesh BVH and ``wp.mesh_query_point_no_sign``."""
+    tid = wp.tid()
+    p = points[tid]
+    q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+    if q.result:
+        x = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+        out_point[tid] = x
+        out_distance[tid] = wp.length(p - x)
+        out_prim[tid] = q.face
+    else:
+        out_point[tid] = wp.vec3(NAN)
+        out_distance[tid] = INF
+        out_prim[tid] = -1
