@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 import pytest
 
 from hlbvh_warp import bench
@@ -78,7 +80,6 @@ def test_bench_bytes_count_the_boxes_once_and_time_every_builder(tmp_path):
     """B/tri counts each device array once (the HLBVH pipelines read the caller's primitive boxes;
     those used to be added a second time), builders without a count of their own get none (not the
     HLBVH pipeline's), and the triangle-cutting sbvh is timed on the mesh it needs."""
-    import numpy as np
     import trimesh
     import warp as wp
 
@@ -128,3 +129,40 @@ def test_bench_rays_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(ray_bench, "count_disagreements", lambda *args, **kwargs: 3)
     assert cli.main(argv) == 1
     assert "disagreements in total: 0" not in capsys.readouterr().out
+
+
+def test_bench_points_checks_distances_and_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
+    """bench-points compares every distance with wp.Mesh's before timing, and exits 1 on a
+    disagreement, as bench-rays does."""
+    import trimesh
+
+    from hlbvh_warp import cli, point_bench
+
+    path = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(2).export(path)
+    argv = ["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    # One row per point set, every point found (no bound, or 5% of the diagonal around vertices
+    # moved by about 1%: a miss there would be a 5-sigma offset, seed fixed).
+    rows = [line.split() for line in out.splitlines() if line.startswith("ball ")]
+    assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
+    assert all(r[5] == "64" and r[6] == "0" for r in rows), out
+    monkeypatch.setattr(point_bench, "count_disagreements", lambda *args, **kwargs: 2)
+    assert cli.main(argv) == 1
+    # Two per point set, three sets.
+    assert "disagreements in total: 6" in capsys.readouterr().out
+
+
+def test_point_bench_disagreement_rule():
+    """Distances within 1e-5 of the scale agree, further ones and found-against-none do not."""
+    from hlbvh_warp.point_bench import count_disagreements
+
+    d_a = np.array([1.0, 1.0, 2.0, np.inf, 0.5], np.float32)
+    d_b = np.array([1.0 + 0.9e-5, 1.0 + 1.1e-5, 2.0, np.inf, np.inf], np.float32)
+    p_a = np.array([0, 1, 2, -1, 3], np.int32)
+    p_b = np.array([5, 1, 2, -1, -1], np.int32)
+    # Row 0 agrees (another triangle at the same distance), row 1 is past the tolerance, row 2
+    # agrees, row 3 both found nothing, row 4 one found nothing.
+    assert count_disagreements(d_a, p_a, d_b, p_b, scale=1.0) == 2
+    assert count_disagreements(d_a, p_a, d_b, p_b, scale=10.0) == 1

@@ -20,7 +20,7 @@ KERNEL_MODULES = ["block_sort", "bounds", "compress", "dynamic", "metrics", "mor
                   "sah", "spatial_split", "traversal", "treelets", "upper_sah", "wide"]
 # The examples and tests with kernels of their own: users' kernels calling the library's queries.
 SCRIPT_MODULES = ["examples/example_user_kernel.py", "examples/example_particle_collisions.py",
-                  "examples/example_scene_builds.py"]
+                  "examples/example_scene_builds.py", "examples/example_mesh_contact.py"]
 # Turing, the oldest architecture current CUDA toolkits target, and Hopper.
 ARCHES = [75, 90]
 
