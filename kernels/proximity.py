@@ -1,13 +1,11 @@
 """Closest-point queries on a built BVH, callable from any user ``@wp.kernel``.
 
-- Point to triangle: Ericson, "Real-Time Collision Detection", 2005, Sec. 5.1.5: the point's
-  Voronoi region of the triangle (a vertex, an edge or the face) is found from six dot products,
-  and the closest point follows from it with one division. Two things the textbook version leaves
-  to its caller are handled here. The region tests multiply dot products, which are squares of
-  coordinates, so at 1e18 (or 1e-18) their products overflow (or underflow) float32: every
-  difference is first divided by the largest of its components. And a degenerate triangle (a
-  segment or a point, valid input) has no face region and zero denominators: it is measured as its
-  three edges.
+- Point to triangle (`closest_point_on_triangle`): the closest point lies in the point's Voronoi
+  region of the triangle, a vertex, an edge or the face (Ericson, "Real-Time Collision Detection",
+  2005, Sec. 5.1.5). Here the face region is decided by the signs of three edge functions and the
+  rest by the nearest of the three edges, in float64, for accuracy on slivers and range at 1e18 or
+  1e-18 (the function's docstring says why). A degenerate triangle (a segment or a point, valid
+  input) has no face and is measured as its edges; a point on a vertex is at distance 0 exactly.
 - Traversal: nearest child first, the farther one deferred on the stack with its box distance
   (the squared distance from the point to the box); a deferred node is dropped when popped if its
   box lies farther than the closest triangle found since, and a box is entered only when it is
@@ -15,7 +13,7 @@
   closest point lies in some leaf whose box is no farther: so spatial-split trees answer correctly
   as well, testing the whole triangle at each of its leaves.
 - Equal distances go to the lowest primitive id, whatever the tree, so every builder gives the same
-  answer where the float32 distances are equal.
+  answer where the float64 distances are equal.
 - Stack overflow is handled as in ``traversal.py``: a node met with a full stack is tested as one
   leaf over its whole primitive range.
 """
@@ -93,6 +91,19 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     A degenerate triangle (a segment or a point, valid input) has no face and is its edges.
     Vertices come back exactly where the closest point is one.
     """
+    result = TrianglePoint()
+    # A point on a vertex is at distance 0: the plane projection below would leave a rounding
+    # residue (about 1e-17 of the scale), so max_dist = 0 would miss it and a vertex shared by
+    # several triangles would not go to the lowest id.
+    if p == a or p == b or p == c:
+        result.point = p
+        if not (p == a):
+            if p == b:
+                result.u = 1.0
+            else:
+                result.v = 1.0
+        result.d2 = wp.float64(0.0)
+        return result
     p64 = wp.vec3d(p)
     a64 = wp.vec3d(a)
     ab = wp.vec3d(b) - a64
@@ -114,7 +125,6 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
             face = 1
             u = s_b / nn
             v = s_c / nn
-    result = TrianglePoint()
     if face == 1:
         # The projection itself, not a + u ab + v ac: exact up to rounding however thin the triangle.
         q = p64 - n * (wp.dot(n, ap) / nn)
@@ -172,9 +182,12 @@ def point_is_valid(p: wp.vec3, max_dist: float):
     return valid
 
 
-# A box is entered unless it is clearly farther than the best triangle: its float32 distance may
-# be a few ulps off, so a box within that margin of the best distance is still opened.
+# A box is entered unless it is clearly farther than the best triangle: its float32 squared
+# distance may be a few ulps off, so a box within that margin of the best distance is still
+# opened. Below 1.2e-38 the squares are subnormal and their ulp is absolute (2^-149 = 1.4e-45):
+# there the margin is seven of those.
 PRUNE_MARGIN = wp.constant(1.0 - 1.0e-6)
+PRUNE_SLACK = wp.constant(1.0e-44)
 
 
 @wp.struct
@@ -251,7 +264,7 @@ def packed_point_query(
     begin = int(0)
     active = int(0)
     if point_is_valid(p, max_dist) == 1:
-        if box_distance_sq(p, root_lower, root_upper) * PRUNE_MARGIN <= s.box_d2:
+        if box_distance_sq(p, root_lower, root_upper) * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
             active = 1
             node = root
             begin = root_begin
@@ -272,7 +285,7 @@ def packed_point_query(
             # Pop the nearest deferred node not farther than the best triangle so far.
             while top > 0 and active == 0:
                 top -= 1
-                if stack_d[top] * PRUNE_MARGIN <= s.box_d2:
+                if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
                     node = stack[top]
                     begin = stack_begin[top]
                     active = 1
@@ -283,8 +296,8 @@ def packed_point_query(
             prefetch_child(nodes, triangles, n.child_b, begin_b)
             da = box_distance_sq(p, n.lower_a, n.upper_a)
             db = box_distance_sq(p, n.lower_b, n.upper_b)
-            open_a = da * PRUNE_MARGIN <= s.box_d2
-            open_b = db * PRUNE_MARGIN <= s.box_d2
+            open_a = da * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
+            open_b = db * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
             if open_a and open_b:
                 # Visit the nearer child next, defer the farther one.
                 if da <= db:
@@ -308,7 +321,7 @@ def packed_point_query(
                 active = int(0)
                 while top > 0 and active == 0:
                     top -= 1
-                    if stack_d[top] * PRUNE_MARGIN <= s.box_d2:
+                    if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
                         node = stack[top]
                         begin = stack_begin[top]
                         active = 1
@@ -326,7 +339,7 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     top = int(0)
     node = int(-1)
     if point_is_valid(p, max_dist) == 1:
-        if box_distance_sq(p, bvh.node_lowers[0], bvh.node_uppers[0]) * PRUNE_MARGIN <= s.box_d2:
+        if box_distance_sq(p, bvh.node_lowers[0], bvh.node_uppers[0]) * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
             node = 0
     while node >= 0:
         visited += 1
@@ -344,8 +357,8 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
             right = bvh.node_right[node]
             dl = box_distance_sq(p, bvh.node_lowers[left], bvh.node_uppers[left])
             dr = box_distance_sq(p, bvh.node_lowers[right], bvh.node_uppers[right])
-            open_l = dl * PRUNE_MARGIN <= s.box_d2
-            open_r = dr * PRUNE_MARGIN <= s.box_d2
+            open_l = dl * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
+            open_r = dr * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
             node = int(-1)
             if open_l and open_r:
                 if dl <= dr:
@@ -363,7 +376,7 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
                 node = right
         while node < 0 and top > 0:
             top -= 1
-            if stack_d[top] * PRUNE_MARGIN <= s.box_d2:
+            if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
                 node = stack[top]
     return finish(p, s, visited, tested)
 

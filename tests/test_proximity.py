@@ -1,0 +1,815 @@
+"""Closest-point queries: `hlbvh_warp.closest_point`, the `bvh_closest_point` ``@wp.func`` called
+from a user kernel (packed and canonical views), `ProximityQuery` and views kept across `Builder`
+refits and rebuilds.
+
+Every answer is checked against an independent float64 NumPy brute force written here
+(`oracle_point_triangle`): the closest point of a triangle as the minimum of
+|a + s ab + t ac - p|^2, from the 2x2 normal (Gram) equations when their solution lies in the
+triangle, else from the three edges' clamped projections. The kernel instead projects onto the
+plane and decides inside / outside by the signs of edge functions; the two share no code.
+trimesh is not an oracle here: ``trimesh.triangles.closest_point`` was seen off by 3e-5 relative
+on a bunny triangle, and ``trimesh.proximity`` needs ``rtree`` (not installed).
+
+Tolerance: the kernel reads float32 coordinates, computes in float64 and rounds the distance and
+the point to float32. The distance is then within about an ulp of float32 of itself and the point
+within half an ulp of float32 per coordinate, i.e. ~1e-7 of the coordinates involved; the oracle's
+own error (normal equations, worse on thin triangles) stays far below that on these scenes; the one
+needle too thin for it (`test_thin_triangle_face_region`) is checked against a hand-worked answer. So answers are compared
+within ``REL_TOL * scale`` with ``scale`` the largest coordinate magnitude of the query point and
+of the oracle's nearest triangle: 10x the rounding, and still 5 or more orders of magnitude below
+the distances between the triangles of every scene, whatever its scale (1e-18 ... 1e18).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from conftest import shared_mesh
+from handmade_trees import caterpillar
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from oracles import random_soup
+
+import hlbvh_warp
+from hlbvh_warp import api, query, stress_report
+from hlbvh_warp.builder import Builder
+from hlbvh_warp.bvh import bvh_from_numpy
+from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
+from hlbvh_warp.kernels import traversal
+
+api._load_optional_builders()
+METHODS = sorted(api.BUILDERS)
+#: Seconds to minutes on the 1,280- and 3,000-triangle scenes: kept to the small ones.
+SLOW_METHODS = ("recursive_sah",)
+#: Builders `Builder` rebuilds and refits per frame.
+DYNAMIC_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
+#: See the module docstring: 10x the float32 rounding of the answer, relative to the coordinates.
+REL_TOL = 1e-6
+
+
+# ----------------------------------------------------------------------------- the oracle
+def _dot(x, y):
+    return np.einsum("...k,...k->...", x, y)
+
+
+def oracle_point_triangle(p, a, b, c):
+    """Squared distance and closest point of triangle(s) abc to point(s) p, float64, broadcast.
+
+    The unconstrained minimum of |a + s ab + t ac - p|^2 solves the normal equations
+    [[ab.ab, ab.ac], [ab.ac, ac.ac]] (s, t) = (ap.ab, ap.ac); when (s, t) lies in the triangle it
+    is a candidate. The three edges' clamped projections always are. The answer is the nearest
+    candidate: every candidate is a point of the triangle, and the true closest point is either
+    the interior minimum or on an edge, so the minimum is exact. A degenerate triangle (segment,
+    point: zero Gram determinant) is its edges alone; a zero-length edge is its start point.
+    """
+    p, a, b, c = (np.asarray(x, dtype=np.float64) for x in (p, a, b, c))
+    ab, ac, ap = b - a, c - a, p - a
+    with np.errstate(all="ignore"):
+        g00, g01, g11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
+        r0, r1 = _dot(ap, ab), _dot(ap, ac)
+        det = g00 * g11 - g01 * g01
+        s = (g11 * r0 - g01 * r1) / det
+        t = (g00 * r1 - g01 * r0) / det
+        interior = (det > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+        face = a + s[..., None] * ab + t[..., None] * ac
+        candidates = [np.where(interior[..., None], face, np.nan)]
+        for origin, edge in ((a, ab), (a, ac), (b, c - b)):
+            den = _dot(edge, edge)
+            w = np.where(den > 0, np.clip(_dot(p - origin, edge) / den, 0.0, 1.0), 0.0)
+            candidates.append(origin + w[..., None] * edge)
+        q = np.stack(np.broadcast_arrays(*candidates))
+        d2 = _dot(q - p, q - p)
+    d2 = np.where(np.isnan(d2), np.inf, d2)
+    k = np.argmin(d2, axis=0)
+    best_d2 = np.take_along_axis(d2, k[None], axis=0)[0]
+    best_q = np.take_along_axis(q, k[None, ..., None], axis=0)[0]
+    return best_d2, best_q
+
+
+def oracle_closest(vertices, faces, points, budget=300_000):
+    """Brute force over every triangle: ``(distance, prim, closest)`` per point, float64; the
+    lowest id among exactly equal distances (np.argmin); ``(inf, -1, NaN)`` for a NaN/Inf point.
+    Points are taken in chunks so that a chunk holds about ``budget`` point-triangle pairs."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    a, b, c = v[f[:, 0]][None], v[f[:, 1]][None], v[f[:, 2]][None]
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    dist = np.full(len(pts), np.inf)
+    prim = np.full(len(pts), -1, dtype=np.int64)
+    closest = np.full((len(pts), 3), np.nan)
+    chunk = max(1, budget // len(f))
+    for s in range(0, len(pts), chunk):
+        d2, q = oracle_point_triangle(pts[s : s + chunk, None], a, b, c)
+        k = np.argmin(d2, axis=1)
+        rows = np.arange(len(k))
+        best = d2[rows, k]
+        ok = np.isfinite(best)
+        dist[s : s + chunk] = np.where(ok, np.sqrt(best), np.inf)
+        prim[s : s + chunk] = np.where(ok, k, -1)
+        closest[s : s + chunk] = np.where(ok[:, None], q[rows, k], np.nan)
+    return dist, prim, closest
+
+
+def oracle_distance_to(vertices, faces, points, prims):
+    """Float64 distance from each point to its own triangle ``prims[i]``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces, dtype=np.int64)[np.asarray(prims)]]
+    d2, _ = oracle_point_triangle(np.asarray(points, dtype=np.float64), tri[:, 0], tri[:, 1], tri[:, 2])
+    return np.sqrt(d2)
+
+
+def lowest_duplicate(vertices, faces):
+    """For each triangle, the lowest id of a triangle with the very same coordinates (vertex by
+    vertex): such triangles are at bitwise equal distances from any point, so the rule "equal
+    distances go to the lowest id" makes that one the only valid answer among them."""
+    tri = np.ascontiguousarray(np.asarray(vertices, dtype=np.float32)[np.asarray(faces)].reshape(len(faces), 9))
+    _, first, inverse = np.unique(tri, axis=0, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)]
+
+
+def check_answers(vertices, faces, points, closest, distance, prim, u=None, v=None, max_dist=np.inf):
+    """Compare one batched answer with the oracle; returns the oracle's ``(distance, prim)``.
+
+    A point whose oracle distance lies within tolerance of ``max_dist`` may go either way; every
+    other one must be found exactly when some triangle lies within ``max_dist``. A found answer
+    must be at the oracle's distance, on a triangle at that distance (near-ties may pick another
+    triangle than the oracle's), be a point of that triangle, lie at the reported distance from
+    the query point and be the lowest id among identical triangles; ``u, v`` must rebuild it.
+    """
+    verts = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    pts = np.asarray(points, dtype=np.float32).astype(np.float64).reshape(-1, 3)
+    n = len(pts)
+    assert closest.shape == (n, 3) and distance.shape == (n,) and prim.shape == (n,)
+    assert closest.dtype == np.float32 and distance.dtype == np.float32 and prim.dtype == np.int32
+    d_ref, prim_ref, _ = oracle_closest(verts, faces, pts)
+    valid = np.isfinite(pts).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        scale = np.maximum(np.abs(np.where(valid[:, None], pts, 0.0)).max(axis=1),
+                           np.abs(verts[faces[np.maximum(prim_ref, 0)]]).max(axis=(1, 2)))
+    tol = REL_TOL * scale
+    max_dist = float(np.float32(max_dist))  # the kernel's bound is a float32
+    found_ref = (prim_ref >= 0) & (d_ref <= max_dist)
+    with np.errstate(invalid="ignore"):  # inf - inf for NaN points under an infinite bound
+        decided = ~(np.abs(d_ref - max_dist) <= tol)
+    found = prim >= 0
+    assert np.array_equal(found[decided], found_ref[decided]), \
+        f"{int((found != found_ref)[decided].sum())} points disagree on found / not found"
+    assert (prim[~found] == -1).all()
+    assert np.isnan(closest[~found]).all() and np.isposinf(distance[~found]).all()
+    if u is not None:
+        assert u.shape == (n,) and v.shape == (n,)
+        assert (u[~found] == 0).all() and (v[~found] == 0).all()
+    if not found.any():
+        return d_ref, prim_ref
+    pf, q, d, k, t = pts[found], closest[found].astype(np.float64), distance[found].astype(np.float64), prim[found], \
+        tol[found]
+    assert (k < len(faces)).all()
+    err = np.abs(d - d_ref[found])
+    assert (err <= t).all(), f"distance off the oracle by up to {(err / np.maximum(t, 1e-300)).max():.3g} tolerances"
+    own = oracle_distance_to(verts, faces, pf, k)
+    assert (np.abs(own - d_ref[found]) <= t).all(), "the returned triangle is not a nearest one"
+    assert (oracle_distance_to(verts, faces, q, k) <= t).all(), "the closest point is not on its triangle"
+    assert (np.abs(np.linalg.norm(pf - q, axis=1) - d) <= t).all(), "distance and closest point disagree"
+    assert np.array_equal(k, lowest_duplicate(verts, faces)[k]), "a higher id among identical triangles"
+    if u is not None:
+        uf, vf = u[found].astype(np.float64), v[found].astype(np.float64)
+        tri = verts[faces[k]]
+        rebuilt = (1 - uf - vf)[:, None] * tri[:, 0] + uf[:, None] * tri[:, 1] + vf[:, None] * tri[:, 2]
+        assert (np.abs(rebuilt - q).max(axis=1) <= t).all(), "u, v do not rebuild the closest point"
+        assert (uf >= 0).all() and (vf >= 0).all() and (uf + vf <= 1 + 1e-6).all()
+    return d_ref, prim_ref
+
+
+def query_points(rng, vertices, faces, n=30):
+    """Named float32 point sets for one scene: far outside, inside its box, near the surface
+    (offsets from 1e-4 to 1e-1 of its extent), exactly on vertices, and on edge midpoints."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces)]
+    lo, hi = v.min(0), v.max(0)
+    center, extent = 0.5 * (lo + hi), float((hi - lo).max())
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pick = rng.integers(0, len(tri), n)
+    w = rng.dirichlet(np.ones(3), n)
+    on = np.einsum("nk,nkd->nd", w, tri[pick])
+    offset = 10.0 ** rng.uniform(-4, -1, (n, 1)) * extent * rng.normal(size=(n, 3))
+    corner = rng.integers(0, 3, n)
+    mid = 0.5 * (tri[pick, corner] + tri[pick, (corner + 1) % 3])
+    return {
+        "far": (center + 10.0 * extent * dirs).astype(np.float32),
+        "inside": (lo + rng.random((n, 3)) * (hi - lo)).astype(np.float32),
+        "near": (on + offset).astype(np.float32),
+        "vertex": np.asarray(vertices, dtype=np.float32)[rng.integers(0, len(v), n)],
+        "edge": mid.astype(np.float32),
+    }
+
+
+def check_vertex_points(points, closest):
+    """A query point exactly on a vertex: the closest point is that vertex, bit for bit ("vertices
+    come back exactly", kernels/proximity.py); `check_answers` checks the distance (see
+    `test_point_exactly_on_a_vertex_is_at_distance_zero` for why not == 0 here)."""
+    assert np.array_equal(closest, points)
+
+
+# ----------------------------------------------------------------------------- helpers
+def make_scene(family: str, seed: int = 0):
+    return stress_report.SCENE_FAMILIES[family](np.random.default_rng(seed))
+
+
+def canonical_view(bvh):
+    """A view without the packed layout: `bvh_closest_point` then walks the canonical arrays."""
+    packed = query.view(bvh)
+    canonical = query.BvhView()
+    for name in ("node_lowers", "node_uppers", "node_left", "node_right", "node_begin", "node_end", "prim_order",
+                 "prim_lowers", "prim_uppers", "vertices", "faces"):
+        setattr(canonical, name, getattr(packed, name))
+    canonical.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=bvh.device)
+    canonical.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=bvh.device)
+    return canonical
+
+
+@wp.kernel
+def _closest_point_user_kernel(
+    bvh: hlbvh_warp.BvhView,
+    points: wp.array(dtype=wp.vec3),
+    max_dist: wp.array(dtype=float),
+    out_point: wp.array(dtype=wp.vec3),
+    out_distance: wp.array(dtype=float),
+    out_prim: wp.array(dtype=int),
+    out_uv: wp.array(dtype=wp.vec2),
+    out_counts: wp.array(dtype=wp.vec2i),
+):
+    # What a user writes: one query per thread, its own bound per point.
+    tid = wp.tid()
+    r = hlbvh_warp.bvh_closest_point(bvh, points[tid], max_dist[tid])
+    out_point[tid] = r.point
+    out_distance[tid] = r.distance
+    out_prim[tid] = r.prim
+    out_uv[tid] = wp.vec2(r.u, r.v)
+    out_counts[tid] = wp.vec2i(r.nodes_visited, r.prims_tested)
+
+
+def run_user_kernel(view, points, max_dist, device):
+    """`_closest_point_user_kernel` on ``points``; returns closest, distance, prim, u, v, visits, tests."""
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    n = len(points)
+    bounds = np.broadcast_to(np.asarray(max_dist, dtype=np.float32), (n,)).copy()
+    out = [wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros(n, dtype=float, device=device),
+           wp.zeros(n, dtype=int, device=device), wp.zeros(n, dtype=wp.vec2, device=device),
+           wp.zeros(n, dtype=wp.vec2i, device=device)]
+    wp.launch(_closest_point_user_kernel, dim=n, device=device,
+              inputs=[view, wp.array(points, dtype=wp.vec3, device=device),
+                      wp.array(bounds, dtype=float, device=device)] + out)
+    closest, distance, prim, uv, counts = (a.numpy() for a in out)
+    return (closest.reshape(n, 3), distance, prim.astype(np.int32), uv[:, 0], uv[:, 1], counts[:, 0], counts[:, 1])
+
+
+def all_points(sets: dict):
+    return np.concatenate(list(sets.values()))
+
+
+# ----------------------------------------------------------------------------- the oracle itself
+def test_oracle_on_hand_computed_cases():
+    """The oracle's own regions against distances worked out by hand: face, edge, vertex, a
+    degenerate segment and a point triangle."""
+    a, b, c = np.array([0.0, 0, 0]), np.array([2.0, 0, 0]), np.array([0.0, 2, 0])
+    cases = [([0.5, 0.5, 0.75], [0.5, 0.5, 0], 0.75),  # above the face
+             ([1.0, -0.5, 0.0], [1.0, 0, 0], 0.5),  # beside edge ab, in the plane
+             ([2.0, 2.0, 0.0], [1.0, 1.0, 0], np.sqrt(2.0)),  # beside the hypotenuse
+             ([-0.375, -0.5, 0.0], [0, 0, 0], 0.625),  # vertex a's region
+             ([3.0, -1.0, 1.0], [2.0, 0, 0], np.sqrt(3.0))]  # vertex b's region
+    for p, q_ref, d_ref in cases:
+        d2, q = oracle_point_triangle(np.array(p), a, b, c)
+        assert np.sqrt(d2) == pytest.approx(d_ref, abs=1e-15) and np.allclose(q, q_ref, atol=1e-15)
+    # A segment (collinear vertices) and a point: their edges only.
+    d2, q = oracle_point_triangle(np.array([1.0, 1.0, 0.0]), a, b, np.array([1.0, 0, 0]))
+    assert d2 == pytest.approx(1.0) and np.allclose(q, [1, 0, 0])
+    d2, q = oracle_point_triangle(np.array([1.0, 2.0, 2.0]), a, a, a)
+    assert d2 == pytest.approx(9.0) and np.allclose(q, a)
+
+
+def test_checker_rejects_wrong_answers(rng):
+    """`check_answers` passes the oracle's own answers rounded to float32 and fails answers that
+    are wrong by a little more than the tolerance: another triangle, a distance, a point off its
+    triangle, weights that do not rebuild it, a higher duplicate id, a miss."""
+    verts, faces = random_soup(rng, 60)
+    faces = np.concatenate([faces, faces[:5]])  # triangle 60 duplicates triangle 0
+    points = np.concatenate([verts[faces[0, :1]], all_points(query_points(rng, verts, faces, 10))])
+    d_ref, prim_ref, q_ref = oracle_closest(verts, faces, points)
+    tri = verts.astype(np.float64)[faces[prim_ref]]
+    # Weights of q_ref (least squares in the triangle's plane), for the u, v check.
+    uv = np.array([np.linalg.lstsq(np.column_stack([t[1] - t[0], t[2] - t[0]]), q - t[0], rcond=None)[0]
+                   for t, q in zip(tri, q_ref)])
+    uv = np.clip(uv, 0.0, 1.0)
+    good = [q_ref.astype(np.float32), d_ref.astype(np.float32), prim_ref.astype(np.int32),
+            uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32)]
+    assert prim_ref[0] == 0
+    check_answers(verts, faces, points, *good)
+    i = int(np.argmax(d_ref))  # a point far from everything: its neighbours are clearly farther
+    d_other = oracle_distance_to(verts, faces, points[i : i + 1].repeat(len(faces), 0), np.arange(len(faces)))
+    farthest = int(np.argmax(d_other))
+    assert d_other[farthest] > d_ref[i] * (1 + 1e-4)
+    step = 3 * REL_TOL * np.abs(points[i]).max()
+    away = (q_ref[i] - points[i]) / d_ref[i]  # moving the point along it changes its distance by step
+    mutations = {
+        "distance": lambda g: g[1].__setitem__(i, g[1][i] + step),
+        "triangle": lambda g: g[2].__setitem__(i, farthest),
+        "point": lambda g: g[0].__setitem__(i, g[0][i] + step * away),
+        "weights": lambda g: g[3].__setitem__(i, g[3][i] + 0.1),
+        "miss": lambda g: g[2].__setitem__(i, -1),
+        "duplicate": lambda g: g[2].__setitem__(0, 60),
+    }
+    for name, mutate in mutations.items():
+        bad = [x.copy() for x in good]
+        mutate(bad)
+        with pytest.raises(AssertionError):
+            check_answers(verts, faces, points, *bad)
+            pytest.fail(f"a wrong {name} passed")  # only reached when nothing raised
+
+
+# ----------------------------------------------------------------------------- scenes against the oracle
+@pytest.mark.parametrize("method", METHODS)
+def test_random_soup_against_oracle(device, rng, method):
+    verts, faces = random_soup(rng, 200)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    sets = query_points(rng, verts, faces, n=40)
+    points = all_points(sets)
+    closest, distance, prim, u, v, stats = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True,
+                                                                    stats=True)
+    check_answers(verts, faces, points, closest, distance, prim, u, v)
+    assert (prim >= 0).all()
+    at = slice(len(points) - 2 * len(sets["vertex"]), len(points) - len(sets["edge"]))
+    check_vertex_points(points[at], closest[at])
+    # Every found point entered the root and tested at least one triangle.
+    assert (stats.nodes_visited >= 1).all() and (stats.prims_tested >= 1).all()
+    # Pruning works: far fewer triangle tests than the brute force, on average.
+    assert stats.prims_tested.mean() < 0.5 * len(faces)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "sbvh", "binned_sah"])
+@pytest.mark.parametrize("shape", ["icosphere", "box"])
+def test_closed_mesh_against_oracle(device, rng, method, shape):
+    """Points inside, outside and on a closed mesh; a vertex shared by several triangles is an
+    exact tie at distance 0 and must go to the lowest of them."""
+    mesh = trimesh.creation.icosphere(subdivisions=3) if shape == "icosphere" else \
+        trimesh.creation.box(extents=(1.0, 2.0, 0.5))
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    dirs = rng.normal(size=(100, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    radii = np.concatenate([rng.uniform(0.0, 0.4, 50), rng.uniform(1.2, 3.0, 50)])
+    inside_outside = (dirs * radii[:, None]).astype(np.float32)
+    for points in (inside_outside, all_points(query_points(rng, verts, faces, n=20))):
+        closest, distance, prim, u, v = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True)
+        check_answers(verts, faces, points, closest, distance, prim, u, v)
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, verts)
+    check_answers(verts, faces, verts, closest, distance, prim)
+    check_vertex_points(verts, closest)
+    # Each vertex is answered by a triangle that uses it (the mesh is closed and convex-ish: no
+    # other triangle passes through a vertex).
+    assert (faces[prim] == np.arange(len(verts))[:, None]).any(axis=1).all()
+
+
+def _family_params():
+    for family in stress_report.SCENE_FAMILIES:
+        for method in METHODS:
+            if method in SLOW_METHODS and family in ("soup", "closed"):
+                continue
+            yield family, method
+
+
+@pytest.mark.parametrize(("family", "method"), list(_family_params()))
+def test_stress_families_against_oracle(device, family, method):
+    """Every adversarial scene of the stress report (identical and duplicated triangles, zero-area
+    ones, 1e18 and 1e-18 coordinates, mixed scales, flat, slivers, one and two triangles)."""
+    verts, faces = make_scene(family)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    sets = query_points(np.random.default_rng(1), verts, faces, n=25)
+    points = all_points(sets)
+    closest, distance, prim, u, v = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True)
+    check_answers(verts, faces, points, closest, distance, prim, u, v)
+    vert = sets["vertex"]
+    at = slice(len(points) - len(sets["edge"]) - len(vert), len(points) - len(sets["edge"]))
+    check_vertex_points(vert, closest[at])
+
+
+def test_shared_bunny_against_oracle(device, rng):
+    mesh = shared_mesh("bunny")
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    sets = query_points(rng, verts, faces, n=30)
+    points = all_points(sets)
+    closest, distance, prim, u, v = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True)
+    check_answers(verts, faces, points, closest, distance, prim, u, v)
+
+
+# ----------------------------------------------------------------------------- exact geometry
+def _axis_aligned_scene(scale=1.0):
+    """Four pairs of right triangles with legs of 2: triangle 2j in the plane z = 0 and 2j + 1 in
+    z = 4, both at x offset 8j. From float32 points with few mantissa bits, distances to them are
+    exact in float64 (normal (0, 0, 4), its square and the coordinates are dyadic), also after
+    scaling by a power of two, so bounds and ties can be hit exactly."""
+    base = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0]], np.float32)
+    tris = [base + np.array([8.0 * (k // 2), 0, 4.0 * (k % 2)], np.float32) for k in range(8)]
+    verts = np.concatenate(tris) * np.float32(scale)
+    return verts, np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_max_dist_is_inclusive(device, method):
+    """A triangle at exactly max_dist counts; one float32 step below, it does not."""
+    # (point, exact distance to triangle 0, the nearest): below its face, beside an edge, in a
+    # vertex's region, on an edge, inside it and on its hypotenuse (distance 0).
+    cases = [([0.5, 0.5, -0.75], 0.75), ([1.0, -0.5, 0.0], 0.5), ([-0.375, -0.5, 0.0], 0.625),
+             ([1.0, 0.0, 0.0], 0.0), ([0.5, 0.5, 0.0], 0.0), ([1.0, 1.0, 0.0], 0.0)]
+    for scale in (2.0**-40, 1.0, 2.0**40):  # exact scalings: the distances scale exactly
+        verts, faces = _axis_aligned_scene(scale)
+        bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+        for p, d in cases:
+            p = np.array(p, np.float32) * np.float32(scale)
+            d = float(np.float32(d * scale))
+            closest, distance, prim = hlbvh_warp.closest_point(bvh, p, max_dist=d)
+            assert prim[0] == 0 and distance[0] == d, (p, d, scale)
+            check_answers(verts, faces, p, closest, distance, prim, max_dist=d)
+            if d > 0:
+                below = float(np.nextafter(np.float32(d), np.float32(0)))
+                closest, distance, prim = hlbvh_warp.closest_point(bvh, p, max_dist=below)
+                assert prim[0] == -1 and np.isinf(distance[0]) and np.isnan(closest).all(), (p, d, scale)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_exact_ties_go_to_the_lowest_id(device, rng, method):
+    """Points midway between the two triangles of a pair are at bitwise equal distances from both
+    (different triangles, different leaves): the lower id wins, whatever the tree."""
+    verts, faces = _axis_aligned_scene()
+    perm = rng.permutation(len(faces))
+    faces = faces[perm]  # the triangle made as k now has id inv[k]
+    inv = np.argsort(perm)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    xy = np.array([[0.5, 0.25], [0.25, 1.0], [1.0, 0.5], [0.0, 0.0], [1.0, 1.0], [2.0, 0.0], [-1.0, -0.5],
+                   [3.0, 3.0]], np.float32)  # inside, on edges and vertices, beside them
+    pair = np.arange(len(xy)) % 4
+    points = np.column_stack([8.0 * pair + xy[:, 0], xy[:, 1], np.full(len(xy), 2.0)]).astype(np.float32)
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, points)
+    assert np.array_equal(prim, np.minimum(inv[2 * pair], inv[2 * pair + 1]))
+    check_answers(verts, faces, points, closest, distance, prim)
+    # The mirror images are found as well, at the same distances.
+    check_answers(verts, faces, points * [1, 1, 0], *hlbvh_warp.closest_point(bvh, points * [1, 1, 0]))
+
+
+@pytest.mark.parametrize(("method", "exponent"), [(m, e) for m in METHODS for e in (-15, -6, 0, 6, 15)
+                                                  if m not in SLOW_METHODS or e == 0])
+def test_duplicate_triangles_go_to_the_lowest_id(device, rng, method, exponent):
+    """Each triangle listed four times under shuffled ids: only the lowest id of the four is a
+    valid answer, for every builder, at every scale whose squared distances are normal floats
+    (the slow builder at one scale)."""
+    scale = 10.0**exponent
+    verts, faces = stress_report._soup(rng, 40, scale=scale, offset=rng.normal() * scale)
+    faces = np.concatenate([faces] * 4)[rng.permutation(4 * len(faces))]
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    points = all_points(query_points(rng, verts, faces, n=30))
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, points)
+    check_answers(verts, faces, points, closest, distance, prim)  # includes the lowest-duplicate rule
+
+
+def _two_leaf_duplicate(tri, device):
+    """Triangle 1 duplicates triangle 0; the root's first leaf (visited first: equal boxes) holds 1."""
+    return bvh_from_numpy(
+        method="handmade", config=BuildConfig(), device=device,
+        prim_lowers=np.repeat(tri.min(0)[None], 2, 0), prim_uppers=np.repeat(tri.max(0)[None], 2, 0),
+        prim_order=np.array([1, 0]), node_left=np.array([1, -1, -1]), node_right=np.array([2, -1, -1]),
+        node_begin=np.array([0, 0, 1]), node_end=np.array([2, 1, 2]),
+        vertices=wp.array(tri, dtype=wp.vec3, device=device),
+        faces=wp.array(np.array([[0, 1, 2], [0, 1, 2]], np.int32), dtype=wp.int32, device=device))
+
+
+def test_duplicate_tie_with_normal_squared_distances(device):
+    """The control of the test below: the same geometry scaled by 2^40 keeps the rule."""
+    tri = np.array([[2.4275658e-23, 7.7269566e-21, 2.2281929e-21], [7.8830522e-21, 1.9420459e-22, 7.0277119e-21],
+                    [8.9744347e-21, 3.7384161e-21, 6.8685831e-21]], np.float32) * np.float32(2.0**40)
+    point = np.array([-2.1696194e-21, 1.1519425e-20, 2.0663103e-21], np.float32) * np.float32(2.0**40)
+    bvh = _two_leaf_duplicate(tri, device)
+    for view in (query.view(bvh), canonical_view(bvh)):
+        closest, distance, prim = run_user_kernel(view, point, np.inf, device)[:3]
+        assert prim[0] == 0 and np.array_equal(closest[0], tri[0])
+
+
+def test_duplicate_tie_with_subnormal_squared_distance(device):
+    """Equal distances must go to the lowest id also where the squared distance is a float32
+    subnormal (distance < 1.1e-19: points near a surface of the 1e-18 scene family). The box
+    pruning compares float32 box distances with a relative margin of 1e-6, and a subnormal has
+    fewer mantissa bits: with that margin alone the box of the lower duplicate rounded above the
+    best distance and was pruned (the absolute PRUNE_SLACK covers it). Point nearest to vertex 0
+    (a box corner): box distance = triangle distance."""
+    tri = np.array([[2.4275658e-23, 7.7269566e-21, 2.2281929e-21], [7.8830522e-21, 1.9420459e-22, 7.0277119e-21],
+                    [8.9744347e-21, 3.7384161e-21, 6.8685831e-21]], np.float32)
+    point = np.array([-2.1696194e-21, 1.1519425e-20, 2.0663103e-21], np.float32)
+    bvh = _two_leaf_duplicate(tri, device)
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, point)
+    assert np.array_equal(closest[0], tri[0])
+    assert prim[0] == 0, f"prim {prim[0]}: the duplicate with the higher id"
+
+
+def test_point_exactly_on_a_vertex_is_at_distance_zero(device):
+    """A query point exactly on a vertex is at distance exactly 0 (the kernel returns the vertex
+    itself as the closest point), so an inclusive bound of 0 finds it. On vertex b or c the edge
+    functions are (0, 0, nn), the face branch, whose plane projection left a float64 rounding
+    residue of 1.6e-17 before vertices were matched exactly."""
+    tri = np.array([[0.8050029, 0.8079408, 0.51532555], [0.28580138, 0.053930704, 0.38336888],
+                    [0.4084732, 0.045275193, 0.04875771]], np.float32)
+    bvh = hlbvh_warp.build(tri, faces=np.array([[0, 1, 2]], np.int32), device=device)
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, tri)
+    assert np.array_equal(closest, tri) and prim.tolist() == [0, 0, 0]  # holds
+    assert distance.tolist() == [0.0, 0.0, 0.0]
+    assert hlbvh_warp.closest_point(bvh, tri, max_dist=0.0)[2].tolist() == [0, 0, 0]
+
+
+def test_thin_triangle_face_region(device):
+    """A needle (angle 1e-12 rad at vertex a; the oracle's normal equations cancel there, so the
+    expected answer is worked out by hand): a point 1e-15 above its face is 1e-15 away, not the
+    2e-13 of its nearest edge."""
+    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1e-12, 0]], np.float32)
+    faces = np.array([[0, 1, 2]], np.int32)
+    p = np.array([[0.8, 0.2e-12, 1e-15], [0.8, 0.2e-12, -1e-15]], np.float32)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    closest, distance, prim, u, v = hlbvh_warp.closest_point(bvh, p, return_barycentrics=True)
+    h = float(np.float32(1e-15))
+    assert prim.tolist() == [0, 0]
+    assert np.allclose(distance, h, rtol=1e-6, atol=0)
+    # The projection: (1 - u - v) a + u b + v c = (0.8, 0.2e-12, 0): v = y / c_y, u = x - v.
+    v_ref = float(np.float32(0.2e-12)) / float(np.float32(1e-12))
+    assert np.allclose(v, v_ref, rtol=1e-6) and np.allclose(u, float(np.float32(0.8)) - v_ref, rtol=1e-6)
+    assert np.allclose(closest[:, :2], p[:, :2], rtol=1e-6, atol=0) and (np.abs(closest[:, 2]) <= 1e-21).all()
+
+
+# ----------------------------------------------------------------------------- bounds, NaN, empty, errors
+@pytest.mark.parametrize("method", ["hlbvh", "median", "sbvh"])
+def test_max_dist_bounds_the_search(device, rng, method):
+    verts, faces = random_soup(rng, 300)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    points = all_points(query_points(rng, verts, faces, n=40))
+    full = hlbvh_warp.closest_point(bvh, points, stats=True)
+    d_ref, _ = check_answers(verts, faces, points, *full[:3])
+    for bound in (0.0, float(np.quantile(d_ref, 0.3)), float(np.quantile(d_ref, 0.8))):
+        closest, distance, prim, stats = hlbvh_warp.closest_point(bvh, points, max_dist=bound, stats=True)
+        check_answers(verts, faces, points, closest, distance, prim, max_dist=bound)
+        found = prim >= 0
+        assert 0 < found.sum() < len(points)
+        # What a bounded search finds is the unbounded answer, bit for bit.
+        assert np.array_equal(prim[found], full[2][found]) and np.array_equal(distance[found], full[1][found])
+        assert np.array_equal(closest[found], full[0][found])
+        # A tighter bound never opens a box the unbounded search would not.
+        assert (stats.nodes_visited <= full[3].nodes_visited).all()
+        assert (stats.prims_tested <= full[3].prims_tested).all()
+        assert (stats.nodes_visited[found] >= 1).all() and (stats.prims_tested[found] >= 1).all()
+    # Points far outside with a small bound: the root box is beyond it, nothing is opened.
+    far = (verts.max(0) + 10.0 + rng.random((20, 3))).astype(np.float32)
+    _, distance, prim, stats = hlbvh_warp.closest_point(bvh, far, max_dist=1.0, stats=True)
+    assert (prim == -1).all() and np.isinf(distance).all()
+    assert (stats.nodes_visited == 0).all() and (stats.prims_tested == 0).all()
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_boxes_farther_than_the_best_are_not_opened(device, method):
+    """Two triangles in the planes z = 0 and z = 2 + gap above the same square; a point at height 1
+    over the lower one, 1 + gap below the upper one. Nearest first, the lower triangle (box
+    distance 1) is tested first; the upper one's box lies gap farther and must then be skipped,
+    down to gaps the 1e-6 float32 margin of the box test cannot tell from a tie (where it is
+    opened: `offer` decides)."""
+    for gap in (1.0, 0.2, 1e-3, 1e-5):  # float32(2 + 1e-5) is 2 + 1.0014e-5
+        tri = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0]], np.float32)
+        verts = np.concatenate([tri, tri + np.array([0, 0, 2 + gap], np.float32)])
+        faces = np.arange(6, dtype=np.int32).reshape(2, 3)
+        bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+        point = np.array([[0.5, 0.5, 1.0]], np.float32)
+        out = hlbvh_warp.closest_point(bvh, point, stats=True)
+        check_answers(verts, faces, point, *out[:3])
+        assert out[2][0] == 0 and out[1][0] == 1.0
+        assert out[3].prims_tested[0] == 1, f"gap {gap}: the farther box was opened"
+    # At a tie the farther-or-equal box is opened and the lower id wins (here: the upper one).
+    verts = np.concatenate([tri + np.array([0, 0, 2], np.float32), tri])
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    out = hlbvh_warp.closest_point(bvh, point, stats=True)
+    assert out[2][0] == 0 and out[1][0] == 1.0 and out[3].prims_tested[0] == 2
+
+
+def test_nan_and_inf_points_find_nothing(device, rng):
+    verts, faces = random_soup(rng, 50)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    good = rng.random((6, 3)).astype(np.float32)
+    bad = np.array([[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf], [np.nan] * 3, [np.inf, -np.inf, 0]], np.float32)
+    points = np.concatenate([good[:3], bad, good[3:]])
+    closest, distance, prim, u, v, stats = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True,
+                                                                    stats=True)
+    check_answers(verts, faces, points, closest, distance, prim, u, v)
+    is_bad = np.zeros(len(points), bool)
+    is_bad[3:8] = True
+    assert (prim[is_bad] == -1).all() and (prim[~is_bad] >= 0).all()
+    assert (stats.nodes_visited[is_bad] == 0).all() and (stats.prims_tested[is_bad] == 0).all()
+    # The user-kernel function: a NaN bound finds nothing as well (the batched call refuses one).
+    out = run_user_kernel(query.view(bvh), good, np.nan, device)
+    assert (out[2] == -1).all() and np.isinf(out[1]).all()
+
+
+def test_empty_and_single_points(device, rng):
+    verts, faces = random_soup(rng, 20)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    closest, distance, prim, u, v, stats = hlbvh_warp.closest_point(bvh, np.zeros((0, 3)),
+                                                                    return_barycentrics=True, stats=True)
+    assert closest.shape == (0, 3) and distance.shape == (0,) and prim.shape == (0,)
+    assert u.shape == v.shape == (0,) and stats.nodes_visited.shape == stats.prims_tested.shape == (0,)
+    assert closest.dtype == np.float32 and distance.dtype == np.float32 and prim.dtype == np.int32
+    # One (3,) point, a list, float64, integers and a Warp array: the same answers.
+    p = np.array([0.25, 0.5, 2.0], np.float32)
+    ref = hlbvh_warp.closest_point(bvh, p[None])
+    check_answers(verts, faces, p[None], *ref)
+    for same in (p, p.tolist(), p.astype(np.float64)[None], wp.array(p[None], dtype=wp.vec3, device=device)):
+        out = hlbvh_warp.closest_point(bvh, same)
+        for x, y in zip(out, ref):
+            assert np.array_equal(x, y)
+    ints = np.array([[0, 1, 2]], np.int64)
+    check_answers(verts, faces, ints, *hlbvh_warp.closest_point(bvh, ints))
+
+
+def test_invalid_inputs_raise(device, rng):
+    verts, faces = random_soup(rng, 20)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    boxes = hlbvh_warp.build_from_bounds(verts[faces].min(1), verts[faces].max(1), device=device)
+    with pytest.raises(ValueError, match="over a mesh"):
+        hlbvh_warp.closest_point(boxes, np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="takes a Bvh"):
+        hlbvh_warp.closest_point(trimesh.creation.box(), np.zeros((1, 3)))
+    for shape in [(4, 2), (2, 3, 3), (4,), (3, 1)]:
+        with pytest.raises(ValueError, match="shape"):
+            hlbvh_warp.closest_point(bvh, np.zeros(shape))
+    for points in (np.array([["a", "b", "c"]]), np.zeros((2, 3), complex), np.array([[None, 1, 2]], object)):
+        with pytest.raises(ValueError, match="real numbers"):
+            hlbvh_warp.closest_point(bvh, points)
+    for bound in (-1.0, -1e-30, float("nan"), float("-inf")):
+        with pytest.raises(ValueError, match="max_dist must be >= 0"):
+            hlbvh_warp.closest_point(bvh, np.zeros((1, 3)), max_dist=bound)
+    for bound in ("far", None, [1.0, 2.0]):
+        with pytest.raises(ValueError, match="max_dist must be a number"):
+            hlbvh_warp.closest_point(bvh, np.zeros((1, 3)), max_dist=bound)
+    # Still usable afterwards, and numeric bounds of any type are fine.
+    for bound in (np.float32(10.0), 10, np.int64(10)):
+        check_answers(verts, faces, np.zeros((1, 3)), *hlbvh_warp.closest_point(bvh, np.zeros((1, 3)), max_dist=bound),
+                      max_dist=10.0)
+
+
+# ----------------------------------------------------------------------------- trees and views
+@pytest.mark.parametrize("deep", ["left", "right"])
+def test_chain_deeper_than_the_stack(device, rng, deep):
+    """A caterpillar tree of depth 299: the full-stack fallback keeps the answers exact, in the
+    packed layout and on the canonical arrays."""
+    n = 300
+    verts = stress_report.scene_soup(rng)[0][: 3 * n]
+    faces = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+    bvh = caterpillar(verts, faces, device, deep=deep)
+    assert bvh.depth == n - 1 > TRAVERSAL_STACK_SIZE
+    points = all_points(query_points(rng, verts, faces, n=20))
+    out = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True)
+    check_answers(verts, faces, points, *out)
+    canonical = run_user_kernel(canonical_view(bvh), points, np.inf, device)
+    check_answers(verts, faces, points, *canonical[:5])
+
+
+def test_spatial_split_tree_is_exact(device, rng):
+    """SBVH leaves bound parts of triangles and list a triangle in several leaves: the answers,
+    the lowest-id rule among duplicates and the canonical walk stay exact."""
+    small, _ = random_soup(rng, 150, scale=1.0)
+    # Long thin triangles across the cluster (x from -1 to 2) make spatial splits pay.
+    a = rng.random((40, 3))
+    a[:, 0] = -1.0
+    b = a.copy()
+    b[:, 0] = 2.0
+    c = b + [0.0, 0.05, 0.0]
+    verts = np.concatenate([small, np.stack([a, b, c], axis=1).reshape(-1, 3).astype(np.float32)])
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    faces = np.concatenate([faces, faces[::7]])  # duplicated triangles, higher ids
+    bvh = hlbvh_warp.build(verts, faces=faces, method="sbvh", device=device)
+    assert bvh.has_duplicates, "the scene should make the SBVH split triangles"
+    points = all_points(query_points(rng, verts, faces, n=40))
+    out = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True, stats=True)
+    check_answers(verts, faces, points, *out[:5])
+    canonical = run_user_kernel(canonical_view(bvh), points, np.inf, device)
+    check_answers(verts, faces, points, *canonical[:5])
+    assert np.array_equal(canonical[2], out[2]) and np.array_equal(canonical[1], out[1])
+
+
+@pytest.mark.parametrize("max_leaf_size", [1, 4])
+def test_user_kernel_packed_and_canonical_views_agree(device, rng, max_leaf_size):
+    """`bvh_closest_point` from a user kernel: the packed view gives the batched call's answers bit
+    for bit (same function), the canonical walk the same answers, all matching the oracle."""
+    mesh = trimesh.util.concatenate([trimesh.creation.icosphere(subdivisions=3),
+                                     trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((2, 0, 0))])
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device, config=BuildConfig(max_leaf_size=max_leaf_size))
+    points = all_points(query_points(rng, verts, faces, n=40))
+    bound = 0.3
+    batched = hlbvh_warp.closest_point(bvh, points, max_dist=bound, return_barycentrics=True, stats=True)
+    packed = run_user_kernel(hlbvh_warp.view(bvh), points, bound, device)
+    canonical = run_user_kernel(canonical_view(bvh), points, bound, device)
+    for name, out in (("packed", packed), ("canonical", canonical)):
+        check_answers(verts, faces, points, *out[:5], max_dist=bound)
+        for x, y in zip(out[:5], batched[:5]):
+            assert np.array_equal(x, y, equal_nan=True), name
+    assert np.array_equal(packed[5], batched[5].nodes_visited)
+    assert np.array_equal(packed[6], batched[5].prims_tested)
+    # Per-point bounds: each point gets its own.
+    bounds = np.where(np.arange(len(points)) % 2 == 0, np.inf, 0.0).astype(np.float32)
+    out = run_user_kernel(hlbvh_warp.view(bvh), points, bounds, device)
+    even = np.arange(len(points)) % 2 == 0
+    assert np.array_equal(out[2][even], hlbvh_warp.closest_point(bvh, points[even])[2])
+    assert np.array_equal(out[2][~even], hlbvh_warp.closest_point(bvh, points[~even], max_dist=0.0)[2])
+
+
+@pytest.mark.parametrize("method", DYNAMIC_METHODS)
+def test_view_follows_refit_and_rebuild(device, rng, method):
+    """A view taken once keeps answering for the moved vertices after a refit and a rebuild."""
+    verts, faces = random_soup(rng, 200)
+    builder = Builder(len(faces), device=device, method=method)
+    bvh = builder.build(verts, faces)
+    view = hlbvh_warp.view(bvh)
+    points = all_points(query_points(rng, verts, faces, n=30))
+    frames = [verts, (verts * np.float32(1.5) + np.float32(0.2)).astype(np.float32),
+              (verts + 0.3 * rng.standard_normal(verts.shape)).astype(np.float32)[:, [2, 0, 1]]]
+    previous = None
+    for k, frame in enumerate(frames):
+        if k == 1:
+            builder.refit(frame)
+        elif k == 2:
+            builder.rebuild(frame)
+        out = run_user_kernel(view, points, np.inf, device)
+        check_answers(frame, faces, points, *out[:5])
+        check_answers(frame, faces, points, *hlbvh_warp.closest_point(builder.bvh, points, return_barycentrics=True))
+        if previous is not None:
+            assert not np.array_equal(previous, out[1]), "the answers did not move with the vertices"
+        previous = out[1]
+
+
+# ----------------------------------------------------------------------------- trimesh drop-in
+def test_proximity_query_on_surface(device, rng):
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    pq = hlbvh_warp.ProximityQuery(mesh, device=device)
+    points = rng.normal(size=(200, 3)) * 1.2
+    closest, distance, triangle_id = pq.on_surface(points)
+    # trimesh's conventions: float64 points and distances, int64 triangle ids.
+    assert closest.shape == (200, 3) and distance.shape == (200,) and triangle_id.shape == (200,)
+    assert closest.dtype == np.float64 and distance.dtype == np.float64 and triangle_id.dtype == np.int64
+    verts = np.asarray(mesh.vertices, np.float32)
+    check_answers(verts, mesh.faces, points, closest.astype(np.float32), distance.astype(np.float32),
+                  triangle_id.astype(np.int32))
+    # The mesh changes: the BVH is rebuilt for the new vertices.
+    mesh.vertices = mesh.vertices * 2.0 + 0.5
+    closest, distance, triangle_id = pq.on_surface(points)
+    check_answers(np.asarray(mesh.vertices, np.float32), mesh.faces, points, closest.astype(np.float32),
+                  distance.astype(np.float32), triangle_id.astype(np.int32))
+
+
+def test_proximity_query_signed_distance(device, rng):
+    """trimesh's sign: positive inside (and on) the closed surface, negative outside."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    pq = hlbvh_warp.ProximityQuery(mesh, device=device)
+    dirs = rng.normal(size=(120, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    radii = np.concatenate([rng.uniform(0.0, 0.9, 60), rng.uniform(1.1, 3.0, 60)])
+    points = dirs * radii[:, None]
+    sd = pq.signed_distance(points)
+    assert sd.shape == (120,) and sd.dtype == np.float64
+    d_ref, _, _ = oracle_closest(mesh.vertices.astype(np.float32), mesh.faces, points.astype(np.float32))
+    assert (sd[:60] > 0).all() and (sd[60:] < 0).all()
+    assert np.allclose(np.abs(sd), d_ref, rtol=0, atol=REL_TOL * 3.0)
+    on = pq.signed_distance(np.asarray(mesh.vertices, np.float32).astype(np.float64)[:30])
+    assert (on == 0).all() and not np.signbit(on).any()
+
+
+# ----------------------------------------------------------------------------- fuzz
+@settings(max_examples=25, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    num_tris=st.integers(1, 40),
+    exponent=st.integers(-15, 15),
+    duplicate=st.booleans(),
+    flat_axis=st.sampled_from([None, 0, 1, 2]),
+    method=st.sampled_from(METHODS),
+    bounded=st.booleans(),
+)
+def test_fuzzed_small_soups(device, seed, num_tris, exponent, duplicate, flat_axis, method, bounded):
+    rng = np.random.default_rng(seed)
+    scale = 10.0**exponent
+    verts, faces = stress_report._soup(rng, num_tris, scale=scale, offset=rng.normal() * scale)
+    if duplicate:
+        faces = np.concatenate([faces, faces[: max(1, num_tris // 2)]])
+        faces = faces[rng.permutation(len(faces))]
+    if flat_axis is not None:
+        verts[:, flat_axis] = verts[0, flat_axis]
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    points = all_points(query_points(rng, verts, faces, n=8))
+    max_dist = float(np.float32(0.1 * scale)) if bounded else np.inf
+    out = hlbvh_warp.closest_point(bvh, points, max_dist=max_dist, return_barycentrics=True)
+    check_answers(verts, faces, points, *out, max_dist=max_dist)
