@@ -46,7 +46,8 @@ def point_sets(rng, vertices: np.ndarray, num_points: int) -> dict:
 
 def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> int:
     found_a, found_b = prim_a >= 0, prim_b >= 0
-    close = np.abs(d_a.astype(np.float64) - d_b.astype(np.float64)) <= rtol * scale
+    with np.errstate(invalid="ignore"):  # inf - inf where neither found anything
+        close = np.abs(d_a.astype(np.float64) - d_b.astype(np.float64)) <= rtol * scale
     agree = (~found_a & ~found_b) | (found_a & found_b & close)
     return int((~agree).sum())
 
