@@ -77,17 +77,57 @@ def segment_parameter(ap: wp.vec3d, ab: wp.vec3d):
 
 
 @wp.func
+def sum_compensated(s: wp.float64, c: wp.float64, x: wp.float64):
+    """One step of a compensated sum (Ogita, Rump & Oishi, "Accurate Sum and Dot Product", SIAM
+    J. Sci. Comput. 2005, Sum2): adds x to the sum s and its rounding error to c (Knuth's
+    TwoSum: exact, with no multiplication for an FMA contraction to change)."""
+    t = s + x
+    z = t - s
+    c = c + ((s - (t - z)) + (x - z))
+    return wp.vec2d(t, c)
+
+
+@wp.func
+def exact_cross_component(ay: float, az: float, by: float, bz: float, cy: float, cz: float):
+    """One component of (b - a) x (c - a) = a x b + b x c + c x a, accurate to an ulp of itself: each of
+    the six products of float32 coordinates is exact in float64 (24 + 24 bits), and only their sum
+    rounds, compensated."""
+    acc = wp.vec2d(wp.float64(ay) * wp.float64(bz), wp.float64(0.0))
+    acc = sum_compensated(acc[0], acc[1], -wp.float64(az) * wp.float64(by))
+    acc = sum_compensated(acc[0], acc[1], wp.float64(by) * wp.float64(cz))
+    acc = sum_compensated(acc[0], acc[1], -wp.float64(bz) * wp.float64(cy))
+    acc = sum_compensated(acc[0], acc[1], wp.float64(cy) * wp.float64(az))
+    acc = sum_compensated(acc[0], acc[1], -wp.float64(cz) * wp.float64(ay))
+    return acc[0] + acc[1]
+
+
+@wp.func
+def exact_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    return wp.vec3d(exact_cross_component(a[1], a[2], b[1], b[2], c[1], c[2]),
+                    exact_cross_component(a[2], a[0], b[2], b[0], c[2], c[0]),
+                    exact_cross_component(a[0], a[1], b[0], b[1], c[0], c[1]))
+
+
+# Where |ab x ac| falls below this fraction of |ab| |ac| (sin(angle) < 3.6e-6), the rounding of the
+# float64 cross product (at most about 2^-48 |ab| |ac|, the edges' own rounding included when their
+# vertices differ by more than 2^29 in magnitude) could tilt the normal by more than 1e-9: the
+# normal is then computed exactly instead.
+NORMAL_RECHECK = wp.constant(1.3e-11)
+
+
+@wp.func
 def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     """The point of triangle abc closest to p, as a `TrianglePoint`.
 
     The projection onto the plane when it falls inside the triangle, else the closest point of the
     three edges (Ericson, "Real-Time Collision Detection", 2005, Sec. 5.1.5: the closest point lies
     in the point's Voronoi region of the triangle). Inside or outside is decided by the signs of the
-    three edge functions n . ((v_j - v_i) x (p - v_i)), whose rounding error is a few ulps of
-    |p - v_i| whatever the triangle's shape; the textbook's products of dot products lose
-    1 / sin(angle) of that on a sliver. Computed in float64: a sliver's normal in float32 tilts by
-    2^-24 / sin(angle), which moves the projection of a point by as much times its distance
-    in the plane, and the squares of coordinates near 1e20 or 1e-20 leave the float32 range.
+    three edge functions n . ((v_j - v_i) x (p - v_i)); near an edge, where their rounding could
+    decide wrongly, the face and the edge are equally near. Computed in float64: a normal computed
+    in float32 tilts by about 2^-24 / sin(angle), which moves the projection of a point by as much
+    times its distance in the plane, and the squares of coordinates near 1e20 or 1e-20 leave the
+    float32 range. On a needle (sin(angle) < 3.6e-6) even the float64 cross product tilts by more
+    than 1e-9, and the normal is computed exactly (`exact_normal`).
     A degenerate triangle (a segment or a point, valid input) has no face and is its edges.
     Vertices come back exactly where the closest point is one.
     """
@@ -111,13 +151,17 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     ap = p64 - a64
     n = wp.cross(ab, ac)
     nn = wp.dot(n, n)
+    ll = wp.dot(ab, ab) * wp.dot(ac, ac)
+    if nn < wp.float64(NORMAL_RECHECK) * ll:
+        n = exact_normal(a, b, c)
+        nn = wp.dot(n, n)
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     u = zero
     v = zero
     face = int(0)
     # Below sin(angle) = 1e-15 the normal is float64 noise: the triangle is its edges.
-    if nn > wp.float64(1.0e-30) * wp.dot(ab, ab) * wp.dot(ac, ac):
+    if nn > wp.float64(1.0e-30) * ll:
         s_b = wp.dot(n, wp.cross(ap, ac))
         s_c = wp.dot(n, wp.cross(ab, ap))
         s_a = wp.dot(n, wp.cross(ac - ab, ap - ab))

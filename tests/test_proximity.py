@@ -545,6 +545,66 @@ def test_thin_triangle_face_region(device):
     assert np.allclose(closest[:, :2], p[:, :2], rtol=1e-6, atol=0) and (np.abs(closest[:, 2]) <= 1e-21).all()
 
 
+def _exact_distance_sq(p, a, b, c):
+    """The squared distance of the float32 inputs in rational arithmetic: the Gram equations'
+    interior point if it lies in the triangle, and the three clamped edge projections."""
+    from fractions import Fraction
+
+    p, a, b, c = ([Fraction(float(x)) for x in np.float32(v)] for v in (p, a, b, c))
+
+    def sub(x, y):
+        return [x[i] - y[i] for i in range(3)]
+
+    def dot(x, y):
+        return sum(x[i] * y[i] for i in range(3))
+
+    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
+    g00, g01, g11, r0, r1 = dot(ab, ab), dot(ab, ac), dot(ac, ac), dot(ap, ab), dot(ap, ac)
+    det = g00 * g11 - g01 * g01
+    candidates = []
+    if det > 0:
+        s, t = (g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det
+        if s >= 0 and t >= 0 and s + t <= 1:
+            d = [ap[i] - s * ab[i] - t * ac[i] for i in range(3)]
+            candidates.append(dot(d, d))
+    for origin, edge in ((a, ab), (a, ac), (b, sub(c, b))):
+        den, op = dot(edge, edge), sub(p, origin)
+        w = Fraction(0) if den == 0 else min(max(dot(op, edge) / den, Fraction(0)), Fraction(1))
+        d = [op[i] - w * edge[i] for i in range(3)]
+        candidates.append(dot(d, d))
+    return min(candidates)
+
+
+def test_needles_whose_vertices_differ_widely_in_magnitude(device):
+    """Needles (c = 2 b, a within 1e-15..1e-10 of the origin): b - a then rounds in float64, and the
+    float64 cross product cancels, tilting the normal by up to 1e-5 (a review found distances 13x
+    too large, 1.6e-6 of the scale off). The normal is now computed exactly below sin(angle)
+    3.6e-6; every distance must match the rational one to 1e-12 of the scale, besides the float32
+    rounding of the distance returned."""
+    from math import sqrt
+
+    gen = np.random.default_rng(6)
+    rows = []
+    for _ in range(120):
+        b = gen.normal(size=3)
+        b /= np.linalg.norm(b)
+        side = np.cross(b, gen.normal(size=3))
+        side /= np.linalg.norm(side)
+        up = np.cross(b, side)
+        a = 10.0 ** gen.uniform(-15, -10) * (up + gen.normal() * 10.0 ** gen.uniform(-8, 0) * side)
+        p = gen.uniform(1.05, 1.95) * b + 10.0 ** gen.uniform(-8, 0) * side
+        rows.append((p, a, b, 2 * b))
+    # The review's case first.
+    rows.insert(0, ([0.95570445, 0.6443991, -0.66360235], [1.3326483e-11, -2.6009016e-11, -6.0638838e-12],
+                    [0.7185566, 0.48449838, -0.49893668], [1.4371132, 0.96899676, -0.99787337]))
+    for p, a, b, c in rows:
+        tri = np.array([a, b, c], np.float32)
+        bvh = hlbvh_warp.build(tri, faces=np.array([[0, 1, 2]], np.int32), device=device)
+        distance = float(hlbvh_warp.closest_point(bvh, np.float32(p))[1][0])
+        expected = sqrt(_exact_distance_sq(p, *tri))
+        assert abs(distance - expected) <= 2.0**-24 * expected + 1e-12 * 2.0, (p, tri.tolist(), distance, expected)
+
+
 # ----------------------------------------------------------------------------- bounds, NaN, empty, errors
 @pytest.mark.parametrize("method", ["hlbvh", "median", "sbvh"])
 def test_max_dist_bounds_the_search(device, rng, method):
