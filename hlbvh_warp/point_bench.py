@@ -3,8 +3,9 @@
 For each mesh, one BVH per method and one ``wp.Mesh`` of the same triangles answer the same
 points in the same process:
 
-- ``box``: uniform in the bounding box grown by a fifth on each side (points inside a closed mesh
-  search farthest: nothing near them prunes much);
+- ``box``: uniform in the bounding box grown by a fifth on each side: most lie far from the
+  surface, where many boxes are about as near as the nearest triangle and the search opens the
+  most nodes;
 - ``near``: mesh vertices moved by a normal offset of 1% of the box diagonal, the points a
   collision or a projection step asks about;
 - ``near-bounded``: the same with ``max_dist`` = 5% of the diagonal, as a contact query bounds

@@ -376,7 +376,8 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         ``(closest, distance, prim_id)`` NumPy arrays: ``(P, 3)`` float32 points on the surface,
         ``(P,)`` float32 distances and ``(P,)`` int32 triangles (trimesh's ``closest_point``
         order); where nothing is found, NaN, inf and -1. Then ``u, v`` when asked, then the
-        stats. Equal distances go to the lowest triangle id.
+        stats. Equal distances go to the lowest triangle id. ``prim_id >= 0`` is the test for
+        found: a distance past float32's range (two points near +-3e38) reads inf as well.
 
     Raises:
         ValueError: a BVH over bare boxes, points of a wrong shape or dtype, or a negative or NaN

@@ -148,14 +148,35 @@ class ProximityQuery:
         return closest.astype(np.float64), distance.astype(np.float64), prim.astype(np.int64)
 
     def signed_distance(self, points):
-        """Distance to the surface, positive inside the (watertight) mesh and within 1e-8
-        (trimesh's ``tol.merge``) of it, negative outside, as trimesh's: ``(m,) float64``."""
+        """Distance to the surface, positive inside the mesh and within 1e-8 (trimesh's
+        ``tol.merge``) of the surface, negative outside, decided as trimesh 5.2 decides it:
+        ``(m,) float64``.
+
+        Where the point's projection onto its closest triangle's plane falls inside that
+        triangle, the triangle's normal gives the sign (so an open mesh has a side); elsewhere, a
+        ray-parity test against the whole mesh (`contains_points`). The band is taken on the
+        float32 point and mesh this package queries: a float64 point 1e-8 from the surface may
+        round to either side of it. A point with a NaN or Inf coordinate gets NaN.
+        """
         from trimesh.constants import tol
+        from trimesh.triangles import points_to_barycentric
 
         points = np.asanyarray(points, dtype=np.float64)
-        _, distance, _ = self.on_surface(points)
-        inside = distance <= tol.merge
-        outside = ~inside
-        if outside.any():
-            inside[outside] = self._rays.contains_points(points[outside])
-        return np.where(inside, distance, -distance)
+        closest, distance, triangle_id = self.on_surface(points)
+        distance[triangle_id < 0] = np.nan
+        far = np.nonzero((triangle_id >= 0) & (distance > tol.merge))[0]
+        if len(far) == 0:
+            return distance
+        normals = self.mesh.face_normals[triangle_id[far]]
+        offset = np.einsum("ij,ij->i", points[far] - closest[far], normals)
+        projection = points[far] - normals * offset[:, None]
+        barycentric = points_to_barycentric(self.mesh.triangles[triangle_id[far]], projection)
+        on_triangle = ~((barycentric < -tol.merge) | (barycentric > 1 + tol.merge)).any(axis=1)
+        # The normal's side is outside: negative there.
+        facing = np.einsum("ij,ij->i", normals[on_triangle], points[far[on_triangle]] - projection[on_triangle])
+        distance[far[on_triangle]] *= -np.sign(facing)
+        rest = far[~on_triangle]
+        if len(rest):
+            inside = self._rays.contains_points(points[rest])
+            distance[rest] *= np.where(inside, 1.0, -1.0)
+        return distance

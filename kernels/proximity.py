@@ -39,7 +39,8 @@ NAN = wp.constant(float("nan"))
 @wp.struct
 class ClosestPoint:
     """Result of a closest-point query: ``prim`` is -1 and ``distance`` inf when no triangle lies
-    within the query's ``max_dist`` (or the point has a NaN or Inf coordinate).
+    within the query's ``max_dist`` (or the point has a NaN or Inf coordinate). Test ``prim``: a
+    distance beyond float32's range (points near +-3e38) reads inf too.
 
     ``point`` is the closest point on triangle ``prim``, ``(1 - u - v) * a + u * b + v * c`` for its
     vertices a, b, c (the same weights as a `RayHit`); ``nodes_visited`` and ``prims_tested`` count

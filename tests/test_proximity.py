@@ -847,6 +847,34 @@ def test_proximity_query_signed_distance(device, rng):
     assert (on == 0).all() and not np.signbit(on).any()
 
 
+def test_proximity_query_signed_distance_follows_trimesh_on_open_meshes(device, rng, monkeypatch):
+    """On a mesh that is not closed the sign is trimesh's: the closest triangle's normal where the
+    point projects into it, ray parity elsewhere (a review found ray parity used everywhere, so
+    both sides of an open square came out negative). The oracle is trimesh 5.2's own
+    `signed_distance`, with the two parts that need `rtree` (its closest point and its ray
+    queries) served by this package."""
+    import trimesh.proximity
+
+    square = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], faces=[[0, 1, 2], [0, 2, 3]])
+    points = np.array([[0.5, 0.5, 1.0], [0.5, 0.5, -1.0], [0.3, 0.6, 0.2], [0.3, 0.6, -0.2]])
+    # Normals +z: the side they face is outside (negative), the other inside.
+    np.testing.assert_allclose(hlbvh_warp.ProximityQuery(square, device=device).signed_distance(points),
+                               [-1.0, 1.0, -0.2, 0.2], rtol=1e-6)
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    holed = trimesh.Trimesh(sphere.vertices, sphere.faces[5:])
+    dirs = rng.normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    points = np.concatenate([dirs * rng.uniform(0.2, 1.8, (400, 1)), [[0.5, 0.5, np.nan]]])
+    ours = hlbvh_warp.ProximityQuery(holed, device=device).signed_distance(points)
+    assert np.isnan(ours[-1])
+    helper = hlbvh_warp.ProximityQuery(holed, device=device)
+    monkeypatch.setattr(trimesh.proximity, "closest_point", lambda mesh, pts: helper.on_surface(pts))
+    holed.ray = hlbvh_warp.RayMeshIntersector(holed, device=device)
+    expected = trimesh.proximity.signed_distance(holed, points[:-1])
+    np.testing.assert_array_equal(np.sign(ours[:-1]), np.sign(expected))
+    np.testing.assert_allclose(ours[:-1], expected, rtol=1e-12)
+
+
 # ----------------------------------------------------------------------------- fuzz
 @settings(max_examples=25, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
