@@ -20,14 +20,12 @@ launches, interleaved, and one fixed-format row is printed per run.
 
 from __future__ import annotations
 
-import argparse
 import pathlib
 
 import numpy as np
 import warp as wp
 
-from .cli import device_name, positive_int
-from .ray_bench import DEFAULT_MESHES, SHARED_MESHES, best_times
+from .ray_bench import best_times, mesh_method_parser, run_rows
 
 DISAGREE_RTOL = 1e-5
 
@@ -133,33 +131,9 @@ def format_row(r: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-points", description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", action="append", type=pathlib.Path,
-                        help="a mesh file (repeatable); default: bunny and armadillo from ../shared/meshes")
-    parser.add_argument("--points", type=positive_int, default=200_000, help="points per set (default 200k)")
-    parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
-    parser.add_argument("--repeats", type=positive_int, default=3, help="launches timed per kernel; the best is kept")
-    parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--max-leaf-size", type=positive_int, default=1,
-                        help="BuildConfig.max_leaf_size of the trees (default 1)")
+    parser = mesh_method_parser("python -m hlbvh_warp bench-points", __doc__.splitlines()[0], "--points", 200_000,
+                                "points per set (default 200k)")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
-    wp.init()
-    paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]
-    missing = [str(p) for p in paths if not p.exists()]
-    if missing:
-        parser.error(f"mesh not found: {', '.join(missing)}")
-    methods = args.method or ["hlbvh"]
-    device = wp.get_device(args.device)
-    print(HEADER)
-    total_disagree = 0
-    with wp.ScopedDevice(device):
-        for path in paths:
-            for method in methods:
-                for row in run(path, method, args.points, args.repeats, device, args.seed, args.max_leaf_size):
-                    total_disagree += row["disagree"]
-                    print(format_row(row), flush=True)
-    print("ratio = wp.mesh_query_point_no_sign time / ours (> 1: ours is faster); max diff = largest distance "
-          f"difference over the box diagonal; disagreements in total: {total_disagree}")
-    return 1 if total_disagree else 0
+    return run_rows(parser, args, args.points, run, HEADER, format_row,
+                    "ratio = wp.mesh_query_point_no_sign time / ours (> 1: ours is faster); max diff = largest "
+                    "distance difference over the box diagonal")

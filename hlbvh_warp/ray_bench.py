@@ -139,34 +139,47 @@ def format_row(r: dict) -> str:
     )
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-rays", description=__doc__.splitlines()[0])
+def mesh_method_parser(prog: str, description: str, count_option: str, count_default: int, count_help: str):
+    """The options bench-rays and bench-points share: meshes, builders, repeats, device, seed, leaf size,
+    and the number of queries per kind (``count_option``)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--mesh", action="append", type=pathlib.Path,
                         help="a mesh file (repeatable); default: bunny and armadillo from ../shared/meshes")
-    parser.add_argument("--rays", type=positive_int, default=1_000_000, help="rays per kind (default 1M)")
+    parser.add_argument(count_option, type=positive_int, default=count_default, help=count_help)
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
     parser.add_argument("--repeats", type=positive_int, default=3, help="launches timed per kernel; the best is kept")
     parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-leaf-size", type=positive_int, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str) -> int:
+    """Print one row per mesh, method and query kind; exit 1 when any row disagrees with wp.Mesh
+    (as bench-wide and quality do, so a script can rely on the status)."""
     wp.config.quiet = True
     wp.init()
     paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         parser.error(f"mesh not found: {', '.join(missing)}")
-    methods = args.method or ["hlbvh"]
     device = wp.get_device(args.device)
-    print(HEADER)
+    print(header)
     total_disagree = 0
     with wp.ScopedDevice(device):
         for path in paths:
-            for method in methods:
-                for row in run(path, method, args.rays, args.repeats, device, args.seed, args.max_leaf_size):
+            for method in args.method or ["hlbvh"]:
+                for row in run_fn(path, method, count, args.repeats, device, args.seed, args.max_leaf_size):
                     total_disagree += row["disagree"]
-                    print(format_row(row), flush=True)
-    print(f"ratio = wp.mesh_query_ray time / ours (> 1: ours is faster); disagreements in total: {total_disagree}")
-    # As bench-wide and quality: a disagreement fails the command, so a script can rely on it.
+                    print(format_fn(row), flush=True)
+    print(f"{footer}; disagreements in total: {total_disagree}")
     return 1 if total_disagree else 0
+
+
+def main(argv=None) -> int:
+    parser = mesh_method_parser("python -m hlbvh_warp bench-rays", __doc__.splitlines()[0], "--rays", 1_000_000,
+                                "rays per kind (default 1M)")
+    args = parser.parse_args(argv)
+    return run_rows(parser, args, args.rays, run, HEADER, format_row,
+                    "ratio = wp.mesh_query_ray time / ours (> 1: ours is faster)")
