@@ -414,7 +414,7 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
 
 def _point_array(points) -> np.ndarray:
     """Query points: shapes and dtypes are errors; NaN or Inf points find nothing."""
-    arr = points.numpy() if isinstance(points, wp.array) else np.asarray(points)
+    arr = inputs._to_numpy(points, "points")
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"points must hold real numbers, got dtype {arr.dtype}")
     if arr.shape == (3,):
