@@ -47,7 +47,8 @@ def contact_kernel(bvh: query.BvhView, positions: wp.array(dtype=wp.vec3), veloc
             else:
                 # On the surface: leave along the triangle's normal, on the side the particle came from.
                 a = bvh.vertices[bvh.faces[c.prim, 0]]
-                n = wp.normalize(wp.cross(bvh.vertices[bvh.faces[c.prim, 1]] - a, bvh.vertices[bvh.faces[c.prim, 2]] - a))
+                b = bvh.vertices[bvh.faces[c.prim, 1]]
+                n = wp.normalize(wp.cross(b - a, bvh.vertices[bvh.faces[c.prim, 2]] - a))
                 if wp.dot(n, positions[i] - a) < 0.0:
                     n = -n
             x = c.point + n * radius
@@ -142,7 +143,8 @@ if __name__ == "__main__":
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Run without writing the picture.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
-    parser.add_argument("--mesh", type=mesh_file, default=None, help="Mesh file; the generated default scene if absent.")
+    parser.add_argument("--mesh", type=mesh_file, default=None,
+                        help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=positive_int, default=20000, help="Size of the generated scene.")
     parser.add_argument("--num-particles", type=positive_int, default=20000)
     parser.add_argument("--out", type=str, default="example_mesh_contact.png", help="The picture of the last frame.")

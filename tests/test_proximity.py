@@ -13,8 +13,9 @@ on a bunny triangle, and ``trimesh.proximity`` needs ``rtree`` (not installed).
 Tolerance: the kernel reads float32 coordinates, computes in float64 and rounds the distance and
 the point to float32. The distance is then within about an ulp of float32 of itself and the point
 within half an ulp of float32 per coordinate, i.e. ~1e-7 of the coordinates involved; the oracle's
-own error (normal equations, worse on thin triangles) stays far below that on these scenes; the one
-needle too thin for it (`test_thin_triangle_face_region`) is checked against a hand-worked answer. So answers are compared
+own error (normal equations, worse on thin triangles) stays far below that on these scenes; needles
+too thin for it are checked against a hand-worked answer (`test_thin_triangle_face_region`) and
+rational arithmetic (`test_needles_whose_vertices_differ_widely_in_magnitude`). So answers are compared
 within ``REL_TOL * scale`` with ``scale`` the largest coordinate magnitude of the query point and
 of the oracle's nearest triangle: 10x the rounding, and still 5 or more orders of magnitude below
 the distances between the triangles of every scene, whatever its scale (1e-18 ... 1e18).
