@@ -393,6 +393,9 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         raise ValueError(f"max_dist must be >= 0, got {max_dist}")
     num_points = p.shape[0]
     device = bvh.device
+    order = _point_order(p, device)
+    if order is not None:
+        p = p[order]
     out_point = wp.empty(num_points, dtype=wp.vec3, device=device)
     out_distance = wp.empty(num_points, dtype=float, device=device)
     out_prim = wp.empty(num_points, dtype=wp.int32, device=device)
@@ -404,11 +407,78 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         wp.launch(proximity.closest_point_kernel, dim=num_points, device=device,
                   inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device), max_dist, out_point, out_distance,
                           out_prim, out_u, out_v, visits, tests])
-    out = (out_point.numpy().reshape(num_points, 3), out_distance.numpy(), out_prim.numpy())
+    out = [out_point.numpy().reshape(num_points, 3), out_distance.numpy(), out_prim.numpy()]
     if return_barycentrics:
-        out += (out_u.numpy(), out_v.numpy())
+        out += [out_u.numpy(), out_v.numpy()]
     if stats:
-        out += (TraversalStats(visits.numpy(), tests.numpy()),)
+        out += [visits.numpy(), tests.numpy()]
+    out = _in_caller_order(order, out)
+    if stats:
+        out = out[:-2] + [TraversalStats(out[-2], out[-1])]
+    return tuple(out)
+
+
+#: Batches of points at least this large are queried in Morton order on the CPU: sorting costs
+#: about 0.2 us a point, a query one to several us. (Rays were tried and left in the caller's
+#: order: a camera ray costs less than its share of the sort.)
+SORT_QUERIES_FROM = 4096
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """10-bit integers with two zero bits after each bit (the Morton interleave of one axis)."""
+    x = x & 0x3FF
+    x = (x | (x << 16)) & 0x30000FF
+    x = (x | (x << 8)) & 0x300F00F
+    x = (x | (x << 4)) & 0x30C30C3
+    return (x | (x << 2)) & 0x9249249
+
+
+def _morton_codes(points: np.ndarray) -> np.ndarray:
+    """30-bit Morton codes of the points over their bounding box; 2^33 (after every code, with
+    any octant above it) for a point with a NaN or Inf coordinate."""
+    finite = np.isfinite(points).all(axis=1)
+    codes = np.full(points.shape[0], 1 << 33, dtype=np.int64)
+    if finite.any():
+        pts = points[finite].astype(np.float64)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        extent = np.where(hi > lo, hi - lo, 1.0)
+        cells = np.clip(((pts - lo) / extent * 1024.0).astype(np.int64), 0, 1023)
+        codes[finite] = (_spread_bits(cells[:, 0]) << 2) | (_spread_bits(cells[:, 1]) << 1) | _spread_bits(cells[:, 2])
+    return codes
+
+
+def _point_order(points: np.ndarray, device):
+    """The order to query points in (None: as given). Nearby points walk the same nodes: in
+    Morton order each query finds most of its nodes and triangles in the cache the previous one
+    warmed. A CPU launch runs its threads in order, so the order is the whole effect there; on
+    CUDA this host-side sort would cost more than the queries. Points already coherent (a mesh's
+    vertices in file order, a simulation's particles kept sorted) are left as they are: there the
+    sort only costs. A sample of consecutive steps decides: a median step above 5% of the points'
+    extent is an order worth sorting."""
+    n = points.shape[0]
+    if not device.is_cpu or n < SORT_QUERIES_FROM:
+        return None
+    finite = points[np.isfinite(points).all(axis=1)]
+    if finite.shape[0] < 2:
+        return None
+    extent = float(np.linalg.norm(finite.max(axis=0).astype(np.float64) - finite.min(axis=0)))
+    starts = np.linspace(0, n - 2, num=min(n - 1, 1024)).astype(np.int64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        steps = np.linalg.norm(points[starts + 1].astype(np.float64) - points[starts], axis=1)
+    if not np.nanmedian(steps) > 0.05 * extent:
+        return None
+    return np.argsort(_morton_codes(points), kind="stable")
+
+
+def _in_caller_order(order, arrays):
+    """Results computed in ``order`` back in the caller's order."""
+    if order is None:
+        return arrays
+    out = []
+    for values in arrays:
+        back = np.empty_like(values)
+        back[order] = values
+        out.append(back)
     return out
 
 

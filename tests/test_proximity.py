@@ -902,3 +902,57 @@ def test_fuzzed_small_soups(device, seed, num_tris, exponent, duplicate, flat_ax
     max_dist = float(np.float32(0.1 * scale)) if bounded else np.inf
     out = hlbvh_warp.closest_point(bvh, points, max_dist=max_dist, return_barycentrics=True)
     check_answers(verts, faces, points, *out, max_dist=max_dist)
+
+
+# ----------------------------------------------------------------------------- query order
+def test_points_in_morton_order_give_the_callers_answers(device, rng, monkeypatch):
+    """`closest_point` may query a batch in Morton order (on the CPU, for incoherent batches):
+    every output, statistics included, comes back in the caller's order, equal to a batch
+    queried as given, NaN points included."""
+    verts, faces = random_soup(rng, 400)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    points = rng.uniform(-0.5, 1.5, (3000, 3)).astype(np.float32)
+    points[[5, 77, 2999]] = np.nan
+    monkeypatch.setattr(query, "SORT_QUERIES_FROM", 10**9)
+    as_given = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True, stats=True)
+    monkeypatch.setattr(query, "SORT_QUERIES_FROM", 16)
+    order = query._point_order(points, wp.get_device(device))
+    if wp.get_device(device).is_cpu:
+        assert order is not None and np.array_equal(np.sort(order), np.arange(len(points)))
+        assert set(order[-3:].tolist()) == {5, 77, 2999}  # points with NaN last
+    sorted_run = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True, stats=True)
+    for a, b in zip(as_given[:5], sorted_run[:5]):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(as_given[5].nodes_visited, sorted_run[5].nodes_visited)
+    np.testing.assert_array_equal(as_given[5].prims_tested, sorted_run[5].prims_tested)
+    check_answers(verts, faces, points, *sorted_run[:5])
+
+
+def test_query_order_leaves_coherent_or_small_batches_alone(rng):
+    cpu = wp.get_device("cpu")
+    sphere = trimesh.creation.icosphere(subdivisions=5)  # 10242 vertices, listed coherently
+    vertices = np.asarray(sphere.vertices, np.float32)
+    # Consecutive icosphere vertices lie 2.3% of the extent apart (median): left as they are.
+    assert query._point_order(vertices, cpu) is None
+    shuffled = vertices[rng.permutation(len(vertices))]
+    order = query._point_order(shuffled, cpu)
+    assert order is not None
+    # Morton order: consecutive points much closer than in the shuffled order.
+    def median_step(p):
+        return np.median(np.linalg.norm(np.diff(p, axis=0), axis=1))
+    assert median_step(shuffled[order]) < 0.1 * median_step(shuffled)
+    assert query._point_order(shuffled[: query.SORT_QUERIES_FROM - 1], cpu) is None
+
+
+def test_morton_codes_interleave_bits():
+    """The codes against a bit-by-bit interleave: bit i of x, y, z lands at 3i + 2, 3i + 1, 3i."""
+    cells = np.random.default_rng(3).integers(0, 1024, (200, 3))
+    spread = [query._spread_bits(cells[:, k]) for k in range(3)]
+    for row, (x, y, z) in enumerate(cells):
+        expected = sum(((int(x) >> i) & 1) << (3 * i + 2) | ((int(y) >> i) & 1) << (3 * i + 1) | ((int(z) >> i) & 1) << (3 * i)
+                       for i in range(10))
+        assert (spread[0][row] << 2 | spread[1][row] << 1 | spread[2][row]) == expected
+    # Points at the corners of their box take the extreme codes; a NaN point the sentinel after all.
+    pts = np.array([[0, 0, 0], [1, 1, 1], [np.nan, 0, 0], [0.5, 0.5, 0.5]], np.float32)
+    codes = query._morton_codes(pts)
+    assert codes[0] == 0 and codes[1] == (1 << 30) - 1 and codes[2] > codes[1] and 0 < codes[3] < codes[1]
