@@ -84,18 +84,23 @@ def bounds_arrays(lowers, uppers) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def query_array(values, name: str) -> np.ndarray:
+    """Query rows (ray origins or directions, box bounds, points): ``(n, 3)`` or one ``(3,)`` row of
+    real numbers, as contiguous float32. NaN or Inf is not an error here: such a query finds
+    nothing; only shapes and dtypes are."""
+    arr = _to_numpy(values, name)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+    if arr.shape == (3,):
+        arr = arr.reshape(1, 3)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
 def ray_arrays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     """Rays may hold NaN or Inf (they miss); only shapes and dtypes are errors."""
-    out = []
-    for values, name in ((origins, "origins"), (directions, "directions")):
-        arr = _to_numpy(values, name)
-        if arr.dtype.kind not in "fiu":
-            raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
-        if arr.ndim == 1 and arr.shape == (3,):
-            arr = arr.reshape(1, 3)
-        if arr.ndim != 2 or arr.shape[1] != 3:
-            raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
-        out.append(np.ascontiguousarray(arr, dtype=np.float32))
-    if out[0].shape != out[1].shape:
-        raise ValueError(f"origins and directions differ in shape: {out[0].shape} vs {out[1].shape}")
-    return out[0], out[1]
+    o, d = query_array(origins, "origins"), query_array(directions, "directions")
+    if o.shape != d.shape:
+        raise ValueError(f"origins and directions differ in shape: {o.shape} vs {d.shape}")
+    return o, d

@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 
 from . import inputs
+from .host_morton import morton_order
 from .bvh import Bvh
 from .kernels import proximity, traversal
 from .kernels.proximity import ClosestPoint, bvh_closest_point  # noqa: F401  (re-exported for user kernels)
@@ -302,19 +303,10 @@ def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
 
 def _box_arrays(lowers, uppers):
     """Query boxes: shapes and dtypes are errors; NaN bounds overlap nothing, infinite ones are fine."""
-    out = []
-    for values, name in ((lowers, "lowers"), (uppers, "uppers")):
-        arr = values.numpy() if isinstance(values, wp.array) else np.asarray(values)
-        if arr.dtype.kind not in "fiu":
-            raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
-        if arr.shape == (3,):
-            arr = arr.reshape(1, 3)
-        if arr.ndim != 2 or arr.shape[1] != 3:
-            raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
-        out.append(np.ascontiguousarray(arr, dtype=np.float32))
-    if out[0].shape != out[1].shape:
-        raise ValueError(f"lowers and uppers differ in shape: {out[0].shape} vs {out[1].shape}")
-    return out[0], out[1]
+    lo, hi = inputs.query_array(lowers, "lowers"), inputs.query_array(uppers, "uppers")
+    if lo.shape != hi.shape:
+        raise ValueError(f"lowers and uppers differ in shape: {lo.shape} vs {hi.shape}")
+    return lo, hi
 
 
 def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
@@ -384,7 +376,7 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
             ``max_dist``.
     """
     _require_mesh(bvh, "closest_point")
-    p = _point_array(points)
+    p = inputs.query_array(points, "points")
     try:
         max_dist = float(max_dist)
     except (TypeError, ValueError) as exc:
@@ -424,29 +416,6 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
 SORT_QUERIES_FROM = 4096
 
 
-def _spread_bits(x: np.ndarray) -> np.ndarray:
-    """10-bit integers with two zero bits after each bit (the Morton interleave of one axis)."""
-    x = x & 0x3FF
-    x = (x | (x << 16)) & 0x30000FF
-    x = (x | (x << 8)) & 0x300F00F
-    x = (x | (x << 4)) & 0x30C30C3
-    return (x | (x << 2)) & 0x9249249
-
-
-def _morton_codes(points: np.ndarray) -> np.ndarray:
-    """30-bit Morton codes of the points over their bounding box; 2^33 (after every code, with
-    any octant above it) for a point with a NaN or Inf coordinate."""
-    finite = np.isfinite(points).all(axis=1)
-    codes = np.full(points.shape[0], 1 << 33, dtype=np.int64)
-    if finite.any():
-        pts = points[finite].astype(np.float64)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        extent = np.where(hi > lo, hi - lo, 1.0)
-        cells = np.clip(((pts - lo) / extent * 1024.0).astype(np.int64), 0, 1023)
-        codes[finite] = (_spread_bits(cells[:, 0]) << 2) | (_spread_bits(cells[:, 1]) << 1) | _spread_bits(cells[:, 2])
-    return codes
-
-
 def _point_order(points: np.ndarray, device):
     """The order to query points in (None: as given). Nearby points walk the same nodes: in
     Morton order each query finds most of its nodes and triangles in the cache the previous one
@@ -467,7 +436,7 @@ def _point_order(points: np.ndarray, device):
         steps = np.linalg.norm(points[starts + 1].astype(np.float64) - points[starts], axis=1)
     if not np.nanmedian(steps) > 0.05 * extent:
         return None
-    return np.argsort(_morton_codes(points), kind="stable")
+    return morton_order(points)
 
 
 def _in_caller_order(order, arrays):
@@ -480,15 +449,3 @@ def _in_caller_order(order, arrays):
         back[order] = values
         out.append(back)
     return out
-
-
-def _point_array(points) -> np.ndarray:
-    """Query points: shapes and dtypes are errors; NaN or Inf points find nothing."""
-    arr = inputs._to_numpy(points, "points")
-    if arr.dtype.kind not in "fiu":
-        raise ValueError(f"points must hold real numbers, got dtype {arr.dtype}")
-    if arr.shape == (3,):
-        arr = arr.reshape(1, 3)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {arr.shape}")
-    return np.ascontiguousarray(arr, dtype=np.float32)

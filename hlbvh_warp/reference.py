@@ -10,28 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .host_morton import morton_order
+
 #: Barycentric slack of the float64 reference, far below float32 traversal error.
 BARYCENTRIC_EPS = 1e-12
 
 #: Ray-group or ray-triangle pairs held at once: about 16 MB per float64 temporary.
 PAIR_BUDGET = 1 << 21
-
-
-def _spread_bits(x):
-    # 10 bits -> every third bit of 30, to order the triangles along a Morton curve.
-    x = x.astype(np.int64) & 0x3FF
-    x = (x | (x << 16)) & 0x30000FF
-    x = (x | (x << 8)) & 0x300F00F
-    x = (x | (x << 4)) & 0x30C30C3
-    return (x | (x << 2)) & 0x9249249
-
-
-def _curve_order(centroids):
-    lo, hi = centroids.min(axis=0), centroids.max(axis=0)
-    cells = (centroids - lo) / np.where(hi > lo, hi - lo, 1.0) * 1023.0
-    q = np.clip(cells, 0, 1023).astype(np.int64)
-    key = (_spread_bits(q[:, 0]) << 2) | (_spread_bits(q[:, 1]) << 1) | _spread_bits(q[:, 2])
-    return np.argsort(key, kind="stable")
 
 
 def _boxes_met(lower, upper, origins, directions):
@@ -99,7 +84,7 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
         group_size = int(np.clip(2.0 * num_faces ** (1.0 / 3.0), 16, 512))
     group_size = max(1, int(group_size))
     corners = v[f]  # (F, 3, 3)
-    order = _curve_order(corners.mean(axis=1))
+    order = morton_order(corners.mean(axis=1))
     num_groups = -(-num_faces // group_size)
     # Pad to whole groups by repeating the last triangle: a duplicate changes no closest hit.
     order = np.concatenate([order, np.full(num_groups * group_size - num_faces, order[-1])])

@@ -34,7 +34,7 @@ from hypothesis import strategies as st
 from oracles import random_soup
 
 import hlbvh_warp
-from hlbvh_warp import api, query, stress_report
+from hlbvh_warp import api, host_morton, query, stress_report
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.bvh import bvh_from_numpy
 from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
@@ -947,12 +947,12 @@ def test_query_order_leaves_coherent_or_small_batches_alone(rng):
 def test_morton_codes_interleave_bits():
     """The codes against a bit-by-bit interleave: bit i of x, y, z lands at 3i + 2, 3i + 1, 3i."""
     cells = np.random.default_rng(3).integers(0, 1024, (200, 3))
-    spread = [query._spread_bits(cells[:, k]) for k in range(3)]
+    spread = [host_morton.spread_bits(cells[:, k]) for k in range(3)]
     for row, (x, y, z) in enumerate(cells):
         expected = sum(((int(x) >> i) & 1) << (3 * i + 2) | ((int(y) >> i) & 1) << (3 * i + 1) | ((int(z) >> i) & 1) << (3 * i)
                        for i in range(10))
         assert (spread[0][row] << 2 | spread[1][row] << 1 | spread[2][row]) == expected
     # Points at the corners of their box take the extreme codes; a NaN point the sentinel after all.
     pts = np.array([[0, 0, 0], [1, 1, 1], [np.nan, 0, 0], [0.5, 0.5, 0.5]], np.float32)
-    codes = query._morton_codes(pts)
+    codes = host_morton.morton_codes(pts)
     assert codes[0] == 0 and codes[1] == (1 << 30) - 1 and codes[2] > codes[1] and 0 < codes[3] < codes[1]
