@@ -14,7 +14,9 @@ if not _os.path.isdir(_os.path.join(_os.path.dirname(__file__), "kernels")) and 
 from .api import build, build_from_bounds  # noqa: E402
 from .builder import Builder  # noqa: E402
 from .bvh import Bvh  # noqa: E402
+from .collide import intersecting_pairs, overlapping_pairs, triangles_intersect  # noqa: E402
 from .config import BuildConfig  # noqa: E402
+from .kernels.collide import neighbours_meet, triangles_meet  # noqa: E402  (for user kernels)
 from .query import (  # noqa: E402
     BvhView,
     ClosestPoint,
@@ -56,8 +58,13 @@ __all__ = [
     "bvh_occluded",
     "intersect",
     "intersect_all",
+    "intersecting_pairs",
+    "neighbours_meet",
     "occluded",
+    "overlapping_pairs",
     "query_aabb",
+    "triangles_intersect",
+    "triangles_meet",
     "view",
 ]
 __version__ = "0.1.0"

@@ -623,14 +623,17 @@ def bvh_aabb_query(
     lower: wp.vec3,
     upper: wp.vec3,
     query: int,
+    min_prim: int,
     out_pairs: wp.array(dtype=wp.vec2i),
     offset: int,
     capacity: int,
 ):
-    """Every primitive whose box overlaps [lower, upper] (closed); returns how many.
+    """Every primitive above ``min_prim`` whose box overlaps [lower, upper] (closed); returns how many.
 
     The first ``capacity`` of them are written as ``(query, prim)`` to ``out_pairs`` from
     ``offset`` on (pass capacity 0 to count only). Works for BVHs built from bare boxes too.
+    ``min_prim`` -1 keeps every primitive; a self query passes its own id, so that each pair of
+    the tree's primitives is found once (Karras, HPG 2012, Sec. 4).
     """
     count = int(0)
     stack = vec64i()
@@ -644,7 +647,7 @@ def bvh_aabb_query(
         if left < 0 or top >= STACK_SIZE - 1:
             for k in range(bvh.node_begin[node], bvh.node_end[node]):
                 p = bvh.prim_order[k]
-                if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
+                if p > min_prim and box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
                     if count < capacity:
                         out_pairs[offset + count] = wp.vec2i(query, p)
                     count += 1
@@ -961,16 +964,24 @@ def aabb_query_kernel(
     bvh: BvhView,
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
+    self_pairs: int,
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     out_pairs: wp.array(dtype=wp.vec2i),
 ):
-    """Count pass when ``out_pairs`` is empty (writes ``counts``), else write pass at ``offsets``."""
+    """Count pass when ``out_pairs`` is empty (writes ``counts``), else write pass at ``offsets``.
+
+    With ``self_pairs`` 1 the query boxes are the tree's own primitives: query i keeps partners
+    above i only.
+    """
     tid = wp.tid()
+    min_prim = int(-1)
+    if self_pairs == 1:
+        min_prim = tid
     if out_pairs.shape[0] == 0:
-        counts[tid] = bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, out_pairs, 0, 0)
+        counts[tid] = bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, min_prim, out_pairs, 0, 0)
     else:
-        bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, out_pairs, offsets[tid], counts[tid])
+        bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, min_prim, out_pairs, offsets[tid], counts[tid])
 
 
 @wp.kernel

@@ -1,0 +1,160 @@
+"""Mesh-mesh and self-intersection queries: host wrappers around ``kernels/collide.py``.
+
+- `overlapping_pairs`: the broad phase. One thread per primitive of the smaller side walks the
+  other side's BVH with the primitive's box (Karras, HPG 2012, Sec. 4): a count pass, a prefix
+  sum, a write pass, no atomics. A self query keeps partners with a larger id only.
+- `intersecting_pairs`: the narrow phase on those candidates, one thread per pair, with the exact
+  triangle-triangle test of ``kernels/collide.py``; self queries apply its neighbour rule.
+- `triangles_intersect`: the same test on rows of two triangle arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import inputs
+from .bvh import Bvh
+from .kernels import collide, traversal
+from .query import _require_mesh, _require_whole_boxes, view
+
+#: Candidate pairs are counted in int32 on the device.
+MAX_PAIRS = 2**31 - 1
+
+
+def _check_tree(bvh, name: str, mesh: bool):
+    if mesh:
+        _require_mesh(bvh, name)
+    elif not isinstance(bvh, Bvh):
+        raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
+    _require_whole_boxes(bvh, name)
+
+
+def _sides(a, b, name: str, mesh: bool):
+    """(query side, tree side, swapped): the smaller side queries the larger one's tree, since a
+    query costs about the log of the tree's size; ``swapped`` when the tree is ``a``."""
+    _check_tree(a, name, mesh)
+    if b is None:
+        return a, a, False
+    _check_tree(b, name, mesh)
+    if a.device != b.device:
+        raise ValueError(f"{name}() needs both BVHs on one device, got {a.device} and {b.device}")
+    if b.num_prims >= a.num_prims:
+        return a, b, False
+    return b, a, True
+
+
+def _candidates(queries: Bvh, tree: Bvh, self_pairs: bool) -> wp.array:
+    """Device array of ``(query prim, tree prim)`` pairs whose boxes overlap."""
+    device = tree.device
+    n = queries.num_prims
+    lowers, uppers = queries.prim_lowers, queries.prim_uppers
+    counts = wp.zeros(n, dtype=wp.int32, device=device)
+    none = wp.empty(0, dtype=wp.vec2i, device=device)
+    flag = 1 if self_pairs else 0
+    wp.launch(traversal.aabb_query_kernel, dim=n, inputs=[view(tree), lowers, uppers, flag, counts, counts, none],
+              device=device)
+    # Summed in int64 on the host first: a device scan of counts past 2^31 would wrap.
+    total = int(counts.numpy().sum(dtype=np.int64))
+    if total > MAX_PAIRS:
+        raise ValueError(f"{total} overlapping pairs: more than the {MAX_PAIRS} a query can return")
+    if total == 0:
+        return none
+    offsets = wp.empty_like(counts)
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    pairs = wp.empty(total, dtype=wp.vec2i, device=device)
+    wp.launch(traversal.aabb_query_kernel, dim=n, inputs=[view(tree), lowers, uppers, flag, offsets, counts, pairs],
+              device=device)
+    return pairs
+
+
+def _sorted_pairs(pairs: np.ndarray, swapped: bool) -> np.ndarray:
+    pairs = pairs.astype(np.int64).reshape(-1, 2)
+    if swapped:
+        pairs = pairs[:, ::-1]
+    return np.ascontiguousarray(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))])
+
+
+def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
+    """Pairs of primitives whose boxes overlap (closed boxes: touching counts): a broad phase.
+
+    Args:
+        a, b: BVHs on one device, over meshes or bare boxes (`build_from_bounds`), from any
+            object-split builder. ``b`` None asks for the pairs within ``a``.
+
+    Returns:
+        ``(K, 2)`` int64 pairs ``(prim of a, prim of b)``, sorted; within ``a``, ``i < j`` only.
+    """
+    queries, tree, swapped = _sides(a, b, "overlapping_pairs", mesh=False)
+    pairs = _candidates(queries, tree, b is None)
+    if pairs.shape[0] == 0:
+        return np.zeros((0, 2), np.int64)
+    return _sorted_pairs(pairs.numpy(), swapped)
+
+
+def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
+    """Pairs of triangles that intersect, touching included, decided exactly for the float32
+    coordinates (``kernels/collide.py``).
+
+    Args:
+        a, b: mesh BVHs on one device, from any object-split builder. ``b`` None asks for the
+            self-intersections of ``a``: pairs touching only at vertex positions they share
+            (coordinates equal, welded or not), or along a shared edge, are not reported;
+            zero-area triangles are not reported against their neighbours; a duplicated face
+            (the same three positions) is (`collide.neighbours_meet`).
+
+    Returns:
+        ``(K, 2)`` int64 pairs ``(face of a, face of b)``, sorted; within ``a``, ``i < j`` only.
+    """
+    queries, tree, swapped = _sides(a, b, "intersecting_pairs", mesh=True)
+    pairs = _candidates(queries, tree, b is None)
+    if pairs.shape[0] == 0:
+        return np.zeros((0, 2), np.int64)
+    device = tree.device
+    meets = wp.empty(pairs.shape[0], dtype=wp.int32, device=device)
+    wp.launch(collide.triangle_pairs_kernel, dim=pairs.shape[0], device=device,
+              inputs=[queries.vertices, queries.faces, tree.vertices, tree.faces, pairs, 1 if b is None else 0, meets])
+    found = pairs.numpy()[meets.numpy() == 1]
+    return _sorted_pairs(found, swapped)
+
+
+def _triangle_rows(values, name: str) -> np.ndarray:
+    arr = inputs._to_numpy(values, name)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+    if arr.shape == (3, 3):
+        arr = arr.reshape(1, 3, 3)
+    if arr.ndim != 3 or arr.shape[1:] != (3, 3):
+        raise ValueError(f"{name} must have shape (K, 3, 3): K triangles of three vertices, got {arr.shape}")
+    if arr.dtype != np.float32:
+        arr = arr.astype(np.float64, copy=False)
+    inputs.check_float32_range(arr.reshape(-1, 3), name)
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def triangles_intersect(tri_a, tri_b, neighbours: bool = False, device=None) -> np.ndarray:
+    """Whether triangle ``tri_a[k]`` and triangle ``tri_b[k]`` intersect, for every row k.
+
+    Args:
+        tri_a, tri_b: ``(K, 3, 3)`` vertex coordinates (or one ``(3, 3)`` triangle each), narrowed
+            to float32 first; the test is exact for those. Zero-area triangles are the segments
+            or points they span.
+        neighbours: apply the self-intersection rule of `intersecting_pairs` (contact at shared
+            vertex positions does not count).
+        device: the Warp device to run on (default: Warp's default device).
+
+    Returns:
+        ``(K,)`` bool.
+    """
+    ta, tb = _triangle_rows(tri_a, "tri_a"), _triangle_rows(tri_b, "tri_b")
+    if ta.shape != tb.shape:
+        raise ValueError(f"tri_a and tri_b differ in shape: {ta.shape} vs {tb.shape}")
+    if ta.shape[0] == 0:
+        return np.zeros(0, bool)
+    device = wp.get_device(device)
+    wa = wp.array(ta, dtype=wp.vec3, device=device)
+    wb = wp.array(tb, dtype=wp.vec3, device=device)
+    meets = wp.empty(ta.shape[0], dtype=wp.int32, device=device)
+    wp.launch(collide.triangle_soup_kernel, dim=ta.shape[0], inputs=[wa, wb, 1 if neighbours else 0, meets],
+              device=device)
+    return meets.numpy() == 1

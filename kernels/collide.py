@@ -1,0 +1,516 @@
+"""Triangle-triangle intersection with exact predicates, for mesh-mesh and self-intersection queries.
+
+The broad phase is the box query of ``traversal.py``: one thread per triangle of one mesh walks
+the other mesh's BVH with the triangle's box, the approach of Karras ("Maximizing Parallelism in
+the Construction of BVHs, Octrees, and k-d Trees", HPG 2012, Sec. 4), where a self query keeps
+only partners with a larger id so that each pair is found once. This module is the narrow phase.
+
+**Exactness.** Every decision reduces to the sign of an orientation determinant of float32 points:
+``orient3d`` (which side of a plane a point lies) and ``orient2d`` (the same in a coordinate
+plane). Both are evaluated as Shewchuk does ("Adaptive Precision Floating-Point Arithmetic and
+Fast Robust Geometric Predicates", DCG 1997): a float64 evaluation from coordinate differences,
+trusted when it exceeds a bound on its rounding error, else the exact sign from an expansion (a
+sum of float64 components that do not overlap). The exact path expands the determinant over the
+raw coordinates, products of two or three float32 values: two are exact in float64 (48 bits);
+for three, the 48-bit product is split in two halves of at most 27 bits by adding and removing a
+scale (no exponent extraction, no Dekker split whose multiply a fused multiply-add could alter),
+and each half times the third factor is exact again. Every product formed is exact, so contracting
+a multiply and an add into an FMA cannot change a result. Touching, coplanar and collinear
+configurations are therefore decided exactly for the coordinates as stored.
+
+**Closed triangles.** Two triangles of nonzero area meet iff an edge of one meets the other (the
+intersection, when not empty, is convex and each of its extreme points lies on an edge of one of
+them). An edge meets a triangle when its end points are not strictly on one side of the
+triangle's plane and the line through it passes the triangle: the signs of the three volumes it
+spans with the triangle's edges are not mixed (Moeller & Trumbore's test in signed-volume form;
+Segura & Feito, WSCG 2001). An edge lying in the plane is tested in 2D, in the coordinate plane
+where the triangle's projection has the largest area. A zero-area triangle (valid input) is the
+segment or point its vertices span and is tested as its edges; two of them as segment pairs.
+
+**Neighbours.** In a self query, triangles sharing a vertex position always touch there. The
+pair counts only when the triangles meet elsewhere (see `neighbours_meet`).
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+vec12d = wp.types.vector(length=12, dtype=wp.float64)
+#: One component per exact product term: 24 triple products of orient3d, two halves each.
+vec48d = wp.types.vector(length=48, dtype=wp.float64)
+
+#: Rounding error bounds of the float64 filters, relative to the permanent (the determinant with
+#: every term's absolute value). Shewchuk's (3 + 16e)e and (7 + 56e)e with e = 2^-53, rounded up.
+ORIENT2D_ERROR = wp.constant(wp.float64(4.0e-16))
+ORIENT3D_ERROR = wp.constant(wp.float64(1.0e-15))
+#: 3 * 2^27: adding |p| * SPLIT_SCALE to a 48-bit product p and removing it again rounds p to its
+#: top 27 bits or fewer, since the sum's unit in the last place is about 2^-(53 - 28.6) of p.
+SPLIT_SCALE = wp.constant(wp.float64(402653184.0))
+
+
+@wp.func
+def grow_expansion(e: vec48d, n: int, t: wp.float64):
+    """Add ``t`` to the expansion ``e[0:n]`` (components in increasing magnitude, not overlapping).
+
+    Shewchuk's Grow-Expansion with zero elimination: each component is added to the running sum
+    by Knuth's TwoSum, whose rounding error is exactly representable and kept as a component.
+    """
+    q = t
+    m = int(0)
+    for i in range(n):
+        s = q + e[i]
+        bv = s - q
+        av = s - bv
+        err = (q - av) + (e[i] - bv)
+        q = s
+        if err != wp.float64(0.0):
+            e[m] = err
+            m += 1
+    if q != wp.float64(0.0):
+        e[m] = q
+        m += 1
+    return e, m
+
+
+@wp.func
+def grow_triple_product(e: vec48d, n: int, x: wp.float64, y: wp.float64, z: wp.float64, sign: wp.float64):
+    """Add ``sign * x * y * z`` exactly, for float32 values x, y, z held in float64."""
+    p = x * y  # 48 bits at most: exact
+    scale = wp.abs(p) * SPLIT_SCALE  # 50 bits at most: exact
+    hi = (p + scale) - scale
+    lo = p - hi
+    e, n = grow_expansion(e, n, sign * hi * z)
+    e, n = grow_expansion(e, n, sign * lo * z)
+    return e, n
+
+
+@wp.func
+def expansion_sign(e: vec48d, n: int):
+    # The largest component decides: the others sum to less than its last bit.
+    s = int(0)
+    if n > 0:
+        if e[n - 1] > wp.float64(0.0):
+            s = 1
+        else:
+            s = -1
+    return s
+
+
+@wp.func
+def to_d(p: wp.vec3):
+    return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+
+
+@wp.func
+def orient3d_exact(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
+    """Sign of det[b - a, c - a, d - a] from the 4x4 determinant over the raw coordinates.
+
+    orient3d = det3(b, c, d) - det3(a, c, d) + det3(a, b, d) - det3(a, b, c) (expansion along the
+    column of ones), each 3x3 determinant six signed triple products.
+    """
+    pts = vec12d(
+        wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]),
+        wp.float64(b[0]), wp.float64(b[1]), wp.float64(b[2]),
+        wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2]),
+        wp.float64(d[0]), wp.float64(d[1]), wp.float64(d[2]),
+    )
+    e = vec48d()
+    n = int(0)
+    for m in range(4):
+        # Rows of the minor: the three points other than point m, in order (offsets into pts).
+        r0 = 0
+        if m == 0:
+            r0 = 3
+        r1 = 3
+        if m <= 1:
+            r1 = 6
+        r2 = 6
+        if m <= 2:
+            r2 = 9
+        sign = wp.float64(1.0)
+        if m % 2 == 1:
+            sign = wp.float64(-1.0)
+        # The six permutations (c0, c1, c2) of the columns with their signs.
+        e, n = grow_triple_product(e, n, pts[r0 + 0], pts[r1 + 1], pts[r2 + 2], sign)
+        e, n = grow_triple_product(e, n, pts[r0 + 0], pts[r1 + 2], pts[r2 + 1], -sign)
+        e, n = grow_triple_product(e, n, pts[r0 + 1], pts[r1 + 0], pts[r2 + 2], -sign)
+        e, n = grow_triple_product(e, n, pts[r0 + 1], pts[r1 + 2], pts[r2 + 0], sign)
+        e, n = grow_triple_product(e, n, pts[r0 + 2], pts[r1 + 0], pts[r2 + 1], sign)
+        e, n = grow_triple_product(e, n, pts[r0 + 2], pts[r1 + 1], pts[r2 + 0], -sign)
+    return expansion_sign(e, n)
+
+
+@wp.func
+def orient3d(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
+    """Exact sign of det[b - a, c - a, d - a]: +1 when d lies on the side of plane abc that
+    (b - a) x (c - a) points to, -1 on the other, 0 on the plane."""
+    u = to_d(b) - to_d(a)
+    v = to_d(c) - to_d(a)
+    w = to_d(d) - to_d(a)
+    vw0 = v[1] * w[2]
+    vw1 = v[2] * w[1]
+    vw2 = v[2] * w[0]
+    vw3 = v[0] * w[2]
+    vw4 = v[0] * w[1]
+    vw5 = v[1] * w[0]
+    det = u[0] * (vw0 - vw1) + u[1] * (vw2 - vw3) + u[2] * (vw4 - vw5)
+    permanent = (wp.abs(u[0]) * (wp.abs(vw0) + wp.abs(vw1)) + wp.abs(u[1]) * (wp.abs(vw2) + wp.abs(vw3))
+                 + wp.abs(u[2]) * (wp.abs(vw4) + wp.abs(vw5)))
+    bound = ORIENT3D_ERROR * permanent
+    s = int(0)
+    if det > bound:
+        s = 1
+    elif det < -bound:
+        s = -1
+    elif permanent != wp.float64(0.0):
+        s = orient3d_exact(a, b, c, d)
+    # permanent 0: every difference product vanished and so did the exact determinant.
+    return s
+
+
+@wp.func
+def orient2d(a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
+    """Exact sign of the component ``axis`` of (b - a) x (c - a): orientation of a, b, c in the
+    coordinate plane that drops ``axis`` (axes axis + 1 and axis + 2, cyclically)."""
+    i = (axis + 1) % 3
+    j = (axis + 2) % 3
+    ux = wp.float64(b[i]) - wp.float64(a[i])
+    uy = wp.float64(b[j]) - wp.float64(a[j])
+    vx = wp.float64(c[i]) - wp.float64(a[i])
+    vy = wp.float64(c[j]) - wp.float64(a[j])
+    left = ux * vy
+    right = uy * vx
+    det = left - right
+    bound = ORIENT2D_ERROR * (wp.abs(left) + wp.abs(right))
+    s = int(0)
+    if det > bound:
+        s = 1
+    elif det < -bound:
+        s = -1
+    elif left != wp.float64(0.0) or right != wp.float64(0.0):
+        # a_i b_j - a_j b_i + b_i c_j - b_j c_i + c_i a_j - c_j a_i: six exact float32 products.
+        e = vec48d()
+        n = int(0)
+        e, n = grow_expansion(e, n, wp.float64(a[i]) * wp.float64(b[j]))
+        e, n = grow_expansion(e, n, -wp.float64(a[j]) * wp.float64(b[i]))
+        e, n = grow_expansion(e, n, wp.float64(b[i]) * wp.float64(c[j]))
+        e, n = grow_expansion(e, n, -wp.float64(b[j]) * wp.float64(c[i]))
+        e, n = grow_expansion(e, n, wp.float64(c[i]) * wp.float64(a[j]))
+        e, n = grow_expansion(e, n, -wp.float64(c[j]) * wp.float64(a[i]))
+        s = expansion_sign(e, n)
+    return s
+
+
+@wp.func
+def projection_axis(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """The axis whose coordinate plane shows triangle abc with the largest area, or -1 when the
+    triangle has zero area (its three vertices are collinear, exactly)."""
+    n = wp.cross(to_d(b) - to_d(a), to_d(c) - to_d(a))
+    # Try the axes from the largest float64 component down; the exact sign has the last word.
+    k0 = int(0)
+    if wp.abs(n[1]) > wp.abs(n[k0]):
+        k0 = 1
+    if wp.abs(n[2]) > wp.abs(n[k0]):
+        k0 = 2
+    axis = int(-1)
+    if orient2d(a, b, c, k0) != 0:
+        axis = k0
+    else:
+        for step in range(1, 3):
+            k = (k0 + step) % 3
+            if axis < 0 and orient2d(a, b, c, k) != 0:
+                axis = k
+    return axis
+
+
+@wp.func
+def on_segment_2d(a: wp.vec3, b: wp.vec3, p: wp.vec3, axis: int):
+    """Whether p, known collinear with a and b in the plane dropping ``axis``, lies in the box of
+    the segment ab there (closed)."""
+    i = (axis + 1) % 3
+    j = (axis + 2) % 3
+    inside = int(0)
+    if wp.min(a[i], b[i]) <= p[i] and p[i] <= wp.max(a[i], b[i]):
+        if wp.min(a[j], b[j]) <= p[j] and p[j] <= wp.max(a[j], b[j]):
+            inside = 1
+    return inside
+
+
+@wp.func
+def segments_meet_2d(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3, axis: int):
+    """Whether closed segments ab and cd meet in the plane dropping ``axis`` (points allowed)."""
+    d1 = orient2d(a, b, c, axis)
+    d2 = orient2d(a, b, d, axis)
+    d3 = orient2d(c, d, a, axis)
+    d4 = orient2d(c, d, b, axis)
+    meet = int(0)
+    if d1 * d2 < 0 and d3 * d4 < 0:
+        meet = 1
+    elif d1 == 0 and on_segment_2d(a, b, c, axis) == 1:
+        meet = 1
+    elif d2 == 0 and on_segment_2d(a, b, d, axis) == 1:
+        meet = 1
+    elif d3 == 0 and on_segment_2d(c, d, a, axis) == 1:
+        meet = 1
+    elif d4 == 0 and on_segment_2d(c, d, b, axis) == 1:
+        meet = 1
+    return meet
+
+
+@wp.func
+def point_in_triangle_2d(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
+    """Whether p lies in the closed triangle abc, both in the plane dropping ``axis``, where abc
+    has nonzero area."""
+    s1 = orient2d(a, b, p, axis)
+    s2 = orient2d(b, c, p, axis)
+    s3 = orient2d(c, a, p, axis)
+    positive = s1 > 0 or s2 > 0 or s3 > 0
+    negative = s1 < 0 or s2 < 0 or s3 < 0
+    inside = int(1)
+    if positive and negative:
+        inside = 0
+    return inside
+
+
+@wp.func
+def segment_meets_triangle(x: wp.vec3, y: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
+    """Whether closed segment xy (a point when x = y) meets closed triangle abc of nonzero area,
+    whose `projection_axis` is ``axis``."""
+    sx = orient3d(a, b, c, x)
+    sy = orient3d(a, b, c, y)
+    meet = int(0)
+    if sx * sy > 0:
+        meet = 0
+    elif sx == 0 and sy == 0:
+        # In the triangle's plane: 2D, where the projection keeps the triangle's area.
+        if point_in_triangle_2d(x, a, b, c, axis) == 1 or point_in_triangle_2d(y, a, b, c, axis) == 1:
+            meet = 1
+        elif segments_meet_2d(x, y, a, b, axis) == 1 or segments_meet_2d(x, y, b, c, axis) == 1:
+            meet = 1
+        elif segments_meet_2d(x, y, c, a, axis) == 1:
+            meet = 1
+    else:
+        # The segment reaches the plane at one point; the line through it passes the closed
+        # triangle iff the volumes it spans with the three edges do not take both signs.
+        o1 = orient3d(x, y, a, b)
+        o2 = orient3d(x, y, b, c)
+        o3 = orient3d(x, y, c, a)
+        positive = o1 > 0 or o2 > 0 or o3 > 0
+        negative = o1 < 0 or o2 < 0 or o3 < 0
+        if not (positive and negative):
+            meet = 1
+    return meet
+
+
+@wp.func
+def segments_meet(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
+    """Whether closed segments ab and cd (points allowed) meet in 3D.
+
+    They must be coplanar; then they meet iff they meet in all three coordinate planes: a common
+    point projects to one in each, and some coordinate plane keeps their common plane (or line)
+    one to one, where disjoint segments stay disjoint.
+    """
+    meet = int(0)
+    if orient3d(a, b, c, d) == 0:
+        if segments_meet_2d(a, b, c, d, 0) == 1 and segments_meet_2d(a, b, c, d, 1) == 1:
+            meet = segments_meet_2d(a, b, c, d, 2)
+    return meet
+
+
+@wp.func
+def strictly_one_side(a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3, q: wp.vec3, r: wp.vec3):
+    """Whether p, q and r lie strictly on one side of the plane of abc (nonzero area)."""
+    sp = orient3d(a, b, c, p)
+    sq = orient3d(a, b, c, q)
+    sr = orient3d(a, b, c, r)
+    return (sp > 0 and sq > 0 and sr > 0) or (sp < 0 and sq < 0 and sr < 0)
+
+
+@wp.func
+def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
+    """Whether closed triangles a and b share a point, exactly for their float32 coordinates.
+
+    Zero-area triangles count as the segment or point they span.
+    """
+    axis_a = projection_axis(a0, a1, a2)
+    axis_b = projection_axis(b0, b1, b2)
+    meet = int(0)
+    if axis_a >= 0 and axis_b >= 0:
+        # Each triangle strictly on one side of the other's plane: the usual early exit.
+        if not strictly_one_side(b0, b1, b2, a0, a1, a2) and not strictly_one_side(a0, a1, a2, b0, b1, b2):
+            if segment_meets_triangle(a0, a1, b0, b1, b2, axis_b) == 1:
+                meet = 1
+            elif segment_meets_triangle(a1, a2, b0, b1, b2, axis_b) == 1:
+                meet = 1
+            elif segment_meets_triangle(a2, a0, b0, b1, b2, axis_b) == 1:
+                meet = 1
+            elif segment_meets_triangle(b0, b1, a0, a1, a2, axis_a) == 1:
+                meet = 1
+            elif segment_meets_triangle(b1, b2, a0, a1, a2, axis_a) == 1:
+                meet = 1
+            else:
+                meet = segment_meets_triangle(b2, b0, a0, a1, a2, axis_a)
+    elif axis_b >= 0:
+        # a is a segment or a point: the union of its edges.
+        if segment_meets_triangle(a0, a1, b0, b1, b2, axis_b) == 1:
+            meet = 1
+        elif segment_meets_triangle(a1, a2, b0, b1, b2, axis_b) == 1:
+            meet = 1
+        else:
+            meet = segment_meets_triangle(a2, a0, b0, b1, b2, axis_b)
+    elif axis_a >= 0:
+        if segment_meets_triangle(b0, b1, a0, a1, a2, axis_a) == 1:
+            meet = 1
+        elif segment_meets_triangle(b1, b2, a0, a1, a2, axis_a) == 1:
+            meet = 1
+        else:
+            meet = segment_meets_triangle(b2, b0, a0, a1, a2, axis_a)
+    else:
+        for i in range(3):
+            for j in range(3):
+                if meet == 0:
+                    pa = a0
+                    qa = a1
+                    if i == 1:
+                        pa = a1
+                        qa = a2
+                    elif i == 2:
+                        pa = a2
+                        qa = a0
+                    pb = b0
+                    qb = b1
+                    if j == 1:
+                        pb = b1
+                        qb = b2
+                    elif j == 2:
+                        pb = b2
+                        qb = b0
+                    meet = segments_meet(pa, qa, pb, qb)
+    return meet
+
+
+@wp.func
+def shared_with(p: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
+    shared = int(0)
+    if p == b0 or p == b1 or p == b2:
+        shared = 1
+    return shared
+
+
+@wp.func
+def neighbours_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
+    """`triangles_meet` for two triangles of one mesh, where touching at shared vertices is expected.
+
+    Vertices are shared when their coordinates are equal (welded or not). For a pair sharing some:
+    - a zero-area triangle is not reported (it lies along its neighbours by construction);
+    - the same three positions (a duplicated face) is reported;
+    - one shared vertex v: reported iff the edge opposite v in either triangle meets the other,
+      which for triangles of nonzero area is exactly "they meet somewhere other than v" (a corner
+      of their intersection other than v is a vertex of one lying in the other or lies on the
+      opposite edge of one of them);
+    - a shared edge uv: reported iff the triangles are coplanar and fold over, their third
+      vertices strictly on one side of uv; otherwise they meet exactly along uv.
+    """
+    s0 = shared_with(a0, b0, b1, b2)
+    s1 = shared_with(a1, b0, b1, b2)
+    s2 = shared_with(a2, b0, b1, b2)
+    num_shared = s0 + s1 + s2
+    meet = int(0)
+    if num_shared == 0:
+        meet = triangles_meet(a0, a1, a2, b0, b1, b2)
+    else:
+        axis_a = projection_axis(a0, a1, a2)
+        axis_b = projection_axis(b0, b1, b2)
+        if axis_a >= 0 and axis_b >= 0:
+            # Nonzero area: three distinct vertices each, so the count is the same from b's side.
+            if num_shared == 3:
+                meet = 1
+            elif num_shared == 1:
+                # Rotate a so that a0 is the shared vertex, and find b's.
+                v = a0
+                x = a1
+                y = a2
+                if s1 == 1:
+                    v = a1
+                    x = a2
+                    y = a0
+                elif s2 == 1:
+                    v = a2
+                    x = a0
+                    y = a1
+                p = b1
+                q = b2
+                if v == b1:
+                    p = b2
+                    q = b0
+                elif v == b2:
+                    p = b0
+                    q = b1
+                if segment_meets_triangle(x, y, b0, b1, b2, axis_b) == 1:
+                    meet = 1
+                else:
+                    meet = segment_meets_triangle(p, q, a0, a1, a2, axis_a)
+            else:
+                # The unshared vertex of each, and the shared edge uv.
+                x = a0
+                u = a1
+                v = a2
+                if s1 == 0:
+                    x = a1
+                    u = a2
+                    v = a0
+                elif s2 == 0:
+                    x = a2
+                    u = a0
+                    v = a1
+                y = b0
+                if shared_with(b1, a0, a1, a2) == 0:
+                    y = b1
+                elif shared_with(b2, a0, a1, a2) == 0:
+                    y = b2
+                if orient3d(u, v, x, y) == 0:
+                    # Coplanar: same side of uv in a plane that keeps a's area (and so the plane's).
+                    if orient2d(u, v, x, axis_a) == orient2d(u, v, y, axis_a):
+                        meet = 1
+    return meet
+
+
+@wp.kernel
+def triangle_pairs_kernel(
+    vertices_a: wp.array(dtype=wp.vec3),
+    faces_a: wp.array2d(dtype=wp.int32),
+    vertices_b: wp.array(dtype=wp.vec3),
+    faces_b: wp.array2d(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    neighbours: int,
+    meets: wp.array(dtype=wp.int32),
+):
+    """For each candidate ``(face of a, face of b)``, whether the two triangles meet (1) or not."""
+    tid = wp.tid()
+    fa = pairs[tid][0]
+    fb = pairs[tid][1]
+    a0 = vertices_a[faces_a[fa, 0]]
+    a1 = vertices_a[faces_a[fa, 1]]
+    a2 = vertices_a[faces_a[fa, 2]]
+    b0 = vertices_b[faces_b[fb, 0]]
+    b1 = vertices_b[faces_b[fb, 1]]
+    b2 = vertices_b[faces_b[fb, 2]]
+    if neighbours == 1:
+        meets[tid] = neighbours_meet(a0, a1, a2, b0, b1, b2)
+    else:
+        meets[tid] = triangles_meet(a0, a1, a2, b0, b1, b2)
+
+
+@wp.kernel
+def triangle_soup_kernel(
+    tri_a: wp.array2d(dtype=wp.vec3),
+    tri_b: wp.array2d(dtype=wp.vec3),
+    neighbours: int,
+    meets: wp.array(dtype=wp.int32),
+):
+    """`triangles_meet` (or `neighbours_meet`) on row i of two ``(K, 3)`` arrays of triangles."""
+    i = wp.tid()
+    if neighbours == 1:
+        meets[i] = neighbours_meet(tri_a[i, 0], tri_a[i, 1], tri_a[i, 2], tri_b[i, 0], tri_b[i, 1], tri_b[i, 2])
+    else:
+        meets[i] = triangles_meet(tri_a[i, 0], tri_a[i, 1], tri_a[i, 2], tri_b[i, 0], tri_b[i, 1], tri_b[i, 2])
