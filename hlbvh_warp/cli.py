@@ -15,6 +15,7 @@ COMMANDS = {
     "bench": ("hlbvh_warp.bench", "build time against tree quality for every builder (JSON + plot)"),
     "bench-rays": ("hlbvh_warp.ray_bench", "closest-hit rays per second against wp.Mesh"),
     "bench-points": ("hlbvh_warp.point_bench", "closest-point queries per second against wp.Mesh"),
+    "bench-pairs": ("hlbvh_warp.pair_bench", "overlapping triangle pairs per second against wp.Mesh"),
     "bench-wide": ("hlbvh_warp.wide_bench", "closest-hit rays through wide BVHs (k = 2, 4, 8, 16)"),
     "quality": ("hlbvh_warp.quality", "SAH, end-point overlap and measured ray cost of every builder"),
     "stress": ("hlbvh_warp.stress_report", "disagreements with the float64 oracle per scene family"),

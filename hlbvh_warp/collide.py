@@ -2,7 +2,8 @@
 
 - `overlapping_pairs`: the broad phase. One thread per primitive of the smaller side walks the
   other side's BVH with the primitive's box (Karras, HPG 2012, Sec. 4): a count pass, a prefix
-  sum, a write pass, no atomics. A self query keeps partners with a larger id only.
+  sum, a write pass, no atomics. A self query keeps partners later in the tree's order only, and
+  skips the subtrees that hold none.
 - `intersecting_pairs`: the narrow phase on those candidates, one thread per pair, with the exact
   triangle-triangle test of ``kernels/collide.py``; self queries apply its neighbour rule.
 - `triangles_intersect`: the same test on rows of two triangle arrays.
@@ -44,16 +45,23 @@ def _sides(a, b, name: str, mesh: bool):
     return b, a, True
 
 
+def launch_box_pairs(queries: Bvh, tree: Bvh, self_pairs: bool, offsets, counts, out_pairs):
+    """One pass of the box query: counts when ``out_pairs`` is empty, else the pairs at ``offsets``.
+
+    The queries run in ``queries``' tree order (coherent walks); a self query also skips what
+    earlier queries covered (``traversal.bvh_aabb_query``).
+    """
+    wp.launch(traversal.aabb_query_kernel, dim=queries.num_prims, device=tree.device,
+              inputs=[view(tree), queries.prim_lowers, queries.prim_uppers, queries.prim_order, 1 if self_pairs else 0,
+                      offsets, counts, out_pairs])
+
+
 def _candidates(queries: Bvh, tree: Bvh, self_pairs: bool) -> wp.array:
     """Device array of ``(query prim, tree prim)`` pairs whose boxes overlap."""
     device = tree.device
-    n = queries.num_prims
-    lowers, uppers = queries.prim_lowers, queries.prim_uppers
-    counts = wp.zeros(n, dtype=wp.int32, device=device)
+    counts = wp.zeros(queries.num_prims, dtype=wp.int32, device=device)
     none = wp.empty(0, dtype=wp.vec2i, device=device)
-    flag = 1 if self_pairs else 0
-    wp.launch(traversal.aabb_query_kernel, dim=n, inputs=[view(tree), lowers, uppers, flag, counts, counts, none],
-              device=device)
+    launch_box_pairs(queries, tree, self_pairs, counts, counts, none)
     # Summed in int64 on the host first: a device scan of counts past 2^31 would wrap.
     total = int(counts.numpy().sum(dtype=np.int64))
     if total > MAX_PAIRS:
@@ -63,14 +71,15 @@ def _candidates(queries: Bvh, tree: Bvh, self_pairs: bool) -> wp.array:
     offsets = wp.empty_like(counts)
     wp.utils.array_scan(counts, offsets, inclusive=False)
     pairs = wp.empty(total, dtype=wp.vec2i, device=device)
-    wp.launch(traversal.aabb_query_kernel, dim=n, inputs=[view(tree), lowers, uppers, flag, offsets, counts, pairs],
-              device=device)
+    launch_box_pairs(queries, tree, self_pairs, offsets, counts, pairs)
     return pairs
 
 
-def _sorted_pairs(pairs: np.ndarray, swapped: bool) -> np.ndarray:
+def _sorted_pairs(pairs: np.ndarray, swapped: bool, self_pairs: bool) -> np.ndarray:
     pairs = pairs.astype(np.int64).reshape(-1, 2)
-    if swapped:
+    if self_pairs:
+        pairs = np.sort(pairs, axis=1)  # found in tree order: either id may come first
+    elif swapped:
         pairs = pairs[:, ::-1]
     return np.ascontiguousarray(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))])
 
@@ -89,7 +98,7 @@ def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
     pairs = _candidates(queries, tree, b is None)
     if pairs.shape[0] == 0:
         return np.zeros((0, 2), np.int64)
-    return _sorted_pairs(pairs.numpy(), swapped)
+    return _sorted_pairs(pairs.numpy(), swapped, b is None)
 
 
 def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
@@ -115,7 +124,7 @@ def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
     wp.launch(collide.triangle_pairs_kernel, dim=pairs.shape[0], device=device,
               inputs=[queries.vertices, queries.faces, tree.vertices, tree.faces, pairs, 1 if b is None else 0, meets])
     found = pairs.numpy()[meets.numpy() == 1]
-    return _sorted_pairs(found, swapped)
+    return _sorted_pairs(found, swapped, b is None)
 
 
 def _triangle_rows(values, name: str) -> np.ndarray:

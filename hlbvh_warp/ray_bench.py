@@ -139,13 +139,15 @@ def format_row(r: dict) -> str:
     )
 
 
-def mesh_method_parser(prog: str, description: str, count_option: str, count_default: int, count_help: str):
-    """The options bench-rays and bench-points share: meshes, builders, repeats, device, seed, leaf size,
-    and the number of queries per kind (``count_option``)."""
+def mesh_method_parser(prog: str, description: str, count_option: str | None = None, count_default: int = 0,
+                       count_help: str = ""):
+    """The options the bench-rays, bench-points and bench-pairs commands share: meshes, builders, repeats,
+    device, seed, leaf size, and the number of queries per kind (``count_option``, where there is one)."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--mesh", action="append", type=pathlib.Path,
                         help="a mesh file (repeatable); default: bunny and armadillo from ../shared/meshes")
-    parser.add_argument(count_option, type=positive_int, default=count_default, help=count_help)
+    if count_option is not None:
+        parser.add_argument(count_option, type=positive_int, default=count_default, help=count_help)
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
     parser.add_argument("--repeats", type=positive_int, default=3, help="launches timed per kernel; the best is kept")
     parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")

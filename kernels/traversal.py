@@ -618,36 +618,30 @@ def bvh_ray_all_hits(
 
 
 @wp.func
-def bvh_aabb_query(
+def canonical_aabb_query(
     bvh: BvhView,
     lower: wp.vec3,
     upper: wp.vec3,
     query: int,
-    min_prim: int,
+    after: int,
     out_pairs: wp.array(dtype=wp.vec2i),
     offset: int,
     capacity: int,
 ):
-    """Every primitive above ``min_prim`` whose box overlaps [lower, upper] (closed); returns how many.
-
-    The first ``capacity`` of them are written as ``(query, prim)`` to ``out_pairs`` from
-    ``offset`` on (pass capacity 0 to count only). Works for BVHs built from bare boxes too.
-    ``min_prim`` -1 keeps every primitive; a self query passes its own id, so that each pair of
-    the tree's primitives is found once (Karras, HPG 2012, Sec. 4).
-    """
+    """`bvh_aabb_query` over the canonical arrays (the BVHs over bare boxes have no packed layout)."""
     count = int(0)
     stack = vec64i()
     top = int(0)
     node = int(-1)
-    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1 and bvh.node_end[0] > after + 1:
         node = 0
     while node >= 0:
         left = bvh.node_left[node]
         # Both children may be pushed: keep two free slots, else test the node's whole range.
         if left < 0 or top >= STACK_SIZE - 1:
-            for k in range(bvh.node_begin[node], bvh.node_end[node]):
+            for k in range(wp.max(bvh.node_begin[node], after + 1), bvh.node_end[node]):
                 p = bvh.prim_order[k]
-                if p > min_prim and box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
+                if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
                     if count < capacity:
                         out_pairs[offset + count] = wp.vec2i(query, p)
                     count += 1
@@ -655,15 +649,114 @@ def bvh_aabb_query(
         else:
             right = bvh.node_right[node]
             node = -1
-            if box_overlap(lower, upper, bvh.node_lowers[left], bvh.node_uppers[left]) == 1:
-                stack[top] = left
-                top += 1
-            if box_overlap(lower, upper, bvh.node_lowers[right], bvh.node_uppers[right]) == 1:
-                stack[top] = right
-                top += 1
+            if bvh.node_end[left] > after + 1:
+                if box_overlap(lower, upper, bvh.node_lowers[left], bvh.node_uppers[left]) == 1:
+                    stack[top] = left
+                    top += 1
+            if bvh.node_end[right] > after + 1:
+                if box_overlap(lower, upper, bvh.node_lowers[right], bvh.node_uppers[right]) == 1:
+                    stack[top] = right
+                    top += 1
         if top > 0:
             top -= 1
             node = stack[top]
+    return count
+
+
+@wp.func
+def packed_aabb_query(
+    nodes: wp.array(dtype=PackedNode),
+    triangles: wp.array(dtype=PackedTriangle),
+    prim_order: wp.array(dtype=wp.int32),
+    root_begin: int,
+    root: int,
+    lower: wp.vec3,
+    upper: wp.vec3,
+    query: int,
+    after: int,
+    out_pairs: wp.array(dtype=wp.vec2i),
+    offset: int,
+    capacity: int,
+):
+    """`bvh_aabb_query` over the packed layout of a mesh BVH: both children's boxes in one record,
+    a leaf's triangles next to each other in tree order (their boxes taken from the vertices, as
+    the build takes them). The caller has tested the root's box."""
+    count = int(0)
+    stack = vec64i()
+    stack_begin = vec64i()
+    top = int(0)
+    node = root
+    begin = root_begin
+    active = int(1)
+    while active == 1:
+        if node >= 0 and top >= STACK_SIZE:
+            # No room to defer a child: test the node's whole range as one leaf.
+            full = nodes[node]
+            node = -(full.count_a + full.count_b)
+        if node < 0:
+            for k in range(wp.max(begin, after + 1), begin - node):
+                tri = triangles[k]
+                if box_overlap(lower, upper, wp.min(wp.min(tri.a, tri.b), tri.c), wp.max(wp.max(tri.a, tri.b), tri.c)) == 1:
+                    if count < capacity:
+                        out_pairs[offset + count] = wp.vec2i(query, prim_order[k])
+                    count += 1
+            active = int(0)
+        else:
+            n = nodes[node]
+            begin_b = begin + n.count_a
+            # A child whose range ends at or before position `after` holds no partner.
+            hit_a = begin_b > after + 1 and box_overlap(lower, upper, n.lower_a, n.upper_a) == 1
+            hit_b = begin_b + n.count_b > after + 1 and box_overlap(lower, upper, n.lower_b, n.upper_b) == 1
+            if hit_a and hit_b:
+                stack[top] = n.child_b
+                stack_begin[top] = begin_b
+                top += 1
+                node = n.child_a
+            elif hit_a:
+                node = n.child_a
+            elif hit_b:
+                node = n.child_b
+                begin = begin_b
+            else:
+                active = int(0)
+        if active == 0 and top > 0:
+            top -= 1
+            node = stack[top]
+            begin = stack_begin[top]
+            active = int(1)
+    return count
+
+
+@wp.func
+def bvh_aabb_query(
+    bvh: BvhView,
+    lower: wp.vec3,
+    upper: wp.vec3,
+    query: int,
+    after: int,
+    out_pairs: wp.array(dtype=wp.vec2i),
+    offset: int,
+    capacity: int,
+):
+    """Every primitive at a position of ``prim_order`` above ``after`` whose box overlaps
+    [lower, upper] (closed); returns how many.
+
+    The first ``capacity`` of them are written as ``(query, prim)`` to ``out_pairs`` from
+    ``offset`` on (pass capacity 0 to count only). Works for BVHs built from bare boxes too.
+    ``after`` -1 keeps every primitive. A self query from the primitive at position k passes k:
+    each pair of the tree's primitives is then found once, and a subtree whose range ends at or
+    before k is skipped whole, about half the tree's nodes (Karras, HPG 2012, Sec. 4).
+    """
+    count = int(0)
+    if bvh.packed_nodes.shape[0] > 0:
+        root_begin = bvh.node_begin[0]
+        if bvh.node_end[0] > after + 1 and box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+            # The root's record is at position 0; a root that is a leaf has none.
+            root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
+            count = packed_aabb_query(bvh.packed_nodes, bvh.packed_triangles, bvh.prim_order, root_begin, root,
+                                      lower, upper, query, after, out_pairs, offset, capacity)
+    else:
+        count = canonical_aabb_query(bvh, lower, upper, query, after, out_pairs, offset, capacity)
     return count
 
 
@@ -964,6 +1057,7 @@ def aabb_query_kernel(
     bvh: BvhView,
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
+    order: wp.array(dtype=wp.int32),
     self_pairs: int,
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
@@ -971,17 +1065,22 @@ def aabb_query_kernel(
 ):
     """Count pass when ``out_pairs`` is empty (writes ``counts``), else write pass at ``offsets``.
 
-    With ``self_pairs`` 1 the query boxes are the tree's own primitives: query i keeps partners
-    above i only.
+    Thread k queries box ``order[k]`` (box k when ``order`` is empty): a BVH's ``prim_order`` walks
+    its primitives in tree order, where consecutive queries visit nearly the same nodes. With
+    ``self_pairs`` 1 the queries are the tree's own primitives in its order: thread k keeps
+    partners at later positions only, so each pair comes once, in either order.
     """
     tid = wp.tid()
-    min_prim = int(-1)
+    query = tid
+    if order.shape[0] > 0:
+        query = order[tid]
+    after = int(-1)
     if self_pairs == 1:
-        min_prim = tid
+        after = tid
     if out_pairs.shape[0] == 0:
-        counts[tid] = bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, min_prim, out_pairs, 0, 0)
+        counts[tid] = bvh_aabb_query(bvh, lowers[query], uppers[query], query, after, out_pairs, 0, 0)
     else:
-        bvh_aabb_query(bvh, lowers[tid], uppers[tid], tid, min_prim, out_pairs, offsets[tid], counts[tid])
+        bvh_aabb_query(bvh, lowers[query], uppers[query], query, after, out_pairs, offsets[tid], counts[tid])
 
 
 @wp.kernel
