@@ -40,6 +40,19 @@ def moved_copy(vertices: np.ndarray) -> np.ndarray:
     return ((vertices - center) @ turn.T + center + shift).astype(np.float32)
 
 
+def count_disagreements(ours: np.ndarray, reference: np.ndarray, order: np.ndarray, self_pairs: bool) -> int:
+    """Queries whose pair counts differ; for self pairs, the difference of the totals.
+
+    Ours runs query k on face ``order[k]`` (tree order) and, for self pairs, keeps partners later in
+    the tree's order; Warp's kernel runs query k on face k and keeps partners with a larger id.
+    """
+    if self_pairs:
+        return abs(int(ours.sum(dtype=np.int64)) - int(reference.sum(dtype=np.int64)))
+    by_face = np.empty_like(ours)
+    by_face[order] = ours
+    return int((by_face != reference).sum())
+
+
 def run(mesh_path: pathlib.Path, method: str, count: int, repeats: int, device, seed: int = 0,
         max_leaf_size: int = 1) -> list[dict]:
     """One row per scene; every triangle queries (``count`` and ``seed`` are unused: the scenes are fixed)."""
@@ -72,14 +85,8 @@ def run(mesh_path: pathlib.Path, method: str, count: int, repeats: int, device, 
 
         ours()
         reference()
-        if self_pairs:
-            # Ours splits the pairs by tree position, Warp's kernel by face id: compare the totals.
-            disagree = abs(int(ours_counts.numpy().sum(dtype=np.int64)) - int(ref_counts.numpy().sum(dtype=np.int64)))
-        else:
-            # Ours runs the queries in the moved copy's tree order: count k belongs to prim_order[k].
-            ours_by_face = np.empty(n, np.int32)
-            ours_by_face[queries.prim_order.numpy()] = ours_counts.numpy()
-            disagree = int((ours_by_face != ref_counts.numpy()).sum())
+        disagree = count_disagreements(ours_counts.numpy(), ref_counts.numpy(), queries.prim_order.numpy(),
+                                       self_pairs == 1)
         t_ours, t_ref = best_times([ours, reference], repeats, device)
 
         # The narrow phase on every candidate pair, timed alone.

@@ -154,6 +154,38 @@ def test_bench_points_checks_distances_and_fails_on_a_disagreement(tmp_path, mon
     assert "disagreements in total: 6" in capsys.readouterr().out
 
 
+def test_bench_pairs_checks_counts_and_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
+    """bench-pairs compares every query's pair count with wp.mesh_query_aabb's before timing, and
+    exits 1 on a disagreement, as bench-rays does."""
+    import trimesh
+
+    from hlbvh_warp import cli, pair_bench
+
+    path = tmp_path / "ball.ply"
+    trimesh.creation.icosphere(2).export(path)
+    argv = ["bench-pairs", "--mesh", str(path), "--repeats", "1"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    rows = [line.split() for line in out.splitlines() if line.startswith("ball ")]
+    assert [r[3] for r in rows] == ["self", "moved"]
+    # An icosphere has no self-intersections; the moved copy passes through it.
+    assert all(r[6] == "0" for r in rows) and rows[0][-1] == "0" and int(rows[1][-1]) > 0, out
+    monkeypatch.setattr(pair_bench, "count_disagreements", lambda *args, **kwargs: 4)
+    assert cli.main(argv) == 1
+    assert "disagreements in total: 8" in capsys.readouterr().out
+
+
+def test_pair_bench_disagreement_rule():
+    """Counts are matched by face through the query order; self pairs by their totals."""
+    from hlbvh_warp.pair_bench import count_disagreements
+
+    order = np.array([2, 0, 1])
+    assert count_disagreements(np.array([5, 1, 3]), np.array([1, 3, 5]), order, False) == 0
+    assert count_disagreements(np.array([5, 1, 3]), np.array([5, 1, 3]), order, False) == 3
+    assert count_disagreements(np.array([5, 1, 3]), np.array([4, 4, 1]), order, True) == 0
+    assert count_disagreements(np.array([5, 1, 3]), np.array([4, 4, 2]), order, True) == 1
+
+
 def test_point_bench_disagreement_rule():
     """Distances within 1e-5 of the scale agree, further ones and found-against-none do not."""
     from hlbvh_warp.point_bench import count_disagreements

@@ -58,7 +58,11 @@ def test_mesh_files_with_several_objects_or_none_read_alike_in_every_command(tmp
     rc = cli.main(["bench-points", "--mesh", str(two), "--points", "64", "--repeats", "1"])
     out = capsys.readouterr().out
     assert rc == 0 and "disagreements in total: 0" in out, out
+    rc = cli.main(["bench-pairs", "--mesh", str(two), "--repeats", "1"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "disagreements in total: 0" in out, out
     for argv in (["demo", "--mesh", str(empty), "--num-frames", "1", "--out", str(tmp_path / "out")],
+                 ["bench-pairs", "--mesh", str(empty), "--repeats", "1"],
                  ["bench-rays", "--mesh", str(empty), "--rays", "8", "--repeats", "1"],
                  ["bench-points", "--mesh", str(empty), "--points", "8", "--repeats", "1"]):
         rc = cli.main(argv)
@@ -67,7 +71,8 @@ def test_mesh_files_with_several_objects_or_none_read_alike_in_every_command(tmp
 
 
 @pytest.mark.skipif(bool(wp.get_cuda_devices()), reason="needs a machine without CUDA")
-@pytest.mark.parametrize("command", ["demo", "bench", "bench-rays", "bench-points", "bench-wide", "quality", "stress"])
+@pytest.mark.parametrize("command", ["demo", "bench", "bench-rays", "bench-points", "bench-pairs", "bench-wide", "quality",
+                                     "stress"])
 def test_cuda_device_without_cuda_is_a_one_line_error(command, capsys):
     # Warp raises a RuntimeError for "cuda" where there is none (a ValueError for "cuda:0"):
     # every command's --device names it in one line, before any work.

@@ -218,6 +218,33 @@ def test_mesh_contact(device, tmp_path):
     assert path.stat().st_size > 0
 
 
+def test_mesh_collision(device, tmp_path):
+    """The copy passing through the mesh: every frame's intersecting pairs equal those of a fresh
+    `sweep_sah` tree over the copy's vertices of that frame (so the Builder's per-frame tree is
+    right), contact starts and ends clear of the mesh, and each pair's triangles do intersect by
+    `triangles_intersect`."""
+    module = load_example("example_mesh_collision")
+    import hlbvh_warp
+
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=1500, num_frames=10)
+        for _ in range(10):
+            example.step()
+            moving = example.position(example.frame).astype(np.float32)
+            fresh = hlbvh_warp.build(moving, example.faces, method="sweep_sah")
+            assert np.array_equal(example.pairs, hlbvh_warp.intersecting_pairs(example.resting, fresh))
+            if len(example.pairs):
+                tri_a = example.vertices.astype(np.float32)[example.faces[example.pairs[:, 0]]]
+                tri_b = moving[example.faces[example.pairs[:, 1]]]
+                assert hlbvh_warp.triangles_intersect(tri_a, tri_b).all()
+        path = example.render(tmp_path / "collision.png")
+    counts = [r["intersecting"] for r in example.rows]
+    assert counts[0] == 0 and counts[-1] == 0 and max(counts) > 0, counts
+    assert all(r["candidates"] >= r["intersecting"] for r in example.rows)
+    assert len(example.table().splitlines()) == 11
+    assert path.stat().st_size > 0
+
+
 # Small runs of each script, so that one which ignores a bad option still ends quickly.
 TINY_ARGS = {
     "example_exploding_mesh": ["--headless", "--num-frames", "1", "--num-tris", "500"],
@@ -228,6 +255,7 @@ TINY_ARGS = {
     "example_user_kernel": ["--headless", "--num-frames", "1", "--resolution", "8"],
     "example_particle_collisions": ["--headless", "--num-frames", "1", "--num-particles", "100"],
     "example_mesh_contact": ["--headless", "--num-frames", "1", "--num-particles", "100", "--num-tris", "500"],
+    "example_mesh_collision": ["--headless", "--num-frames", "1", "--num-tris", "500"],
     "example_camera_orbit": ["--headless", "--num-frames", "1", "--num-tris", "300", "--resolution", "8",
                              "--methods", "hlbvh", "--widths", "2"],
 }
