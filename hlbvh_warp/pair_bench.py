@@ -3,8 +3,8 @@
 For each mesh, one BVH per method and one ``wp.Mesh`` of the same triangles answer the same box
 queries in the same process, one thread per query triangle:
 
-- ``self``: every triangle's box against the mesh's own tree, keeping partners with a larger id
-  (the broad phase of a self-intersection or self-collision check);
+- ``self``: every triangle's box against the mesh's own tree, each pair once (the broad phase of
+  a self-intersection or self-collision check);
 - ``moved``: the boxes of a copy of the mesh turned by 30 degrees about the vertical axis and
   moved by a tenth of its box diagonal, which passes through the mesh (two bodies in contact).
 
@@ -12,7 +12,8 @@ Warp's query may return a face whose leaf overlaps but whose own box does not; i
 the face's box, as this package's does, so both count the same pairs. On ``moved`` a query
 disagrees when the counts differ; on ``self`` the disagreement is the difference of the totals,
 since Warp's kernel keeps partners with a larger face id and this package's those later in its
-tree's order (each pair once either way), which skips the subtrees before the query's own leaf. Each count pass is timed as the best of ``--repeats`` launches, interleaved.
+tree's order (each pair once either way), which skips the subtrees before the query's own leaf.
+Each count pass is timed as the best of ``--repeats`` launches, interleaved.
 
 The narrow phase (`intersecting_pairs`' exact triangle test, ``kernels/collide.py``) has no peer
 in Warp: its row gives the time per candidate pair and how many pairs intersect.

@@ -14,8 +14,9 @@
   only gets slower below depth 64, and never writes past the stack.
 - Statistics count traversal steps (nodes visited) and primitive tests per query: the n_s and
   n_t of the measured traversal cost m = n_s * c_t + n_t * c_i (Wodniok & Goesele, GI 2016, eq. 10).
-- Box queries and ``bvh_ray_all_hits`` walk the canonical arrays. Closest-hit and any-hit ray
-  queries read a traversal layout derived from them (``pack_nodes_sweep_kernel`` on the CPU,
+- ``bvh_ray_all_hits``, and box queries on a BVH over bare boxes, walk the canonical arrays.
+  Closest-hit and any-hit ray queries, and box queries on a mesh BVH, read a traversal layout
+  derived from them (``pack_nodes_sweep_kernel`` on the CPU,
   ``pack_nodes_kernel`` elsewhere, ``pack_triangles_kernel``; made and kept current by
   ``hlbvh_warp.query.TraversalLayout``): every interior node
   is one 64-byte `PackedNode` holding both children's boxes and references, so the two box tests of
@@ -696,7 +697,8 @@ def packed_aabb_query(
         if node < 0:
             for k in range(wp.max(begin, after + 1), begin - node):
                 tri = triangles[k]
-                if box_overlap(lower, upper, wp.min(wp.min(tri.a, tri.b), tri.c), wp.max(wp.max(tri.a, tri.b), tri.c)) == 1:
+                tri_lower = wp.min(wp.min(tri.a, tri.b), tri.c)
+                if box_overlap(lower, upper, tri_lower, wp.max(wp.max(tri.a, tri.b), tri.c)) == 1:
                     if count < capacity:
                         out_pairs[offset + count] = wp.vec2i(query, prim_order[k])
                     count += 1
