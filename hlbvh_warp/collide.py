@@ -81,7 +81,10 @@ def _sorted_pairs(pairs: np.ndarray, swapped: bool, self_pairs: bool) -> np.ndar
         pairs = np.sort(pairs, axis=1)  # found in tree order: either id may come first
     elif swapped:
         pairs = pairs[:, ::-1]
-    return np.ascontiguousarray(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))])
+    # One int64 key per pair sorts several times faster than a lexsort of the two columns.
+    span = int(pairs[:, 1].max()) + 1 if len(pairs) else 1
+    keys = np.sort(pairs[:, 0] * span + pairs[:, 1])
+    return np.ascontiguousarray(np.stack([keys // span, keys % span], axis=1))
 
 
 def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
