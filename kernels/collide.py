@@ -3,7 +3,7 @@
 The broad phase is the box query of ``traversal.py``: one thread per triangle of one mesh walks
 the other mesh's BVH with the triangle's box, the approach of Karras ("Maximizing Parallelism in
 the Construction of BVHs, Octrees, and k-d Trees", HPG 2012, Sec. 4), where a self query keeps
-only partners with a larger id so that each pair is found once. This module is the narrow phase.
+only partners later in the tree's order, so that each pair is found once. This module is the narrow phase.
 
 **Exactness.** Every decision reduces to the sign of an orientation determinant of float32 points:
 ``orient3d`` (which side of a plane a point lies) and ``orient2d`` (the same in a coordinate
@@ -329,6 +329,20 @@ def strictly_one_side(a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3, q: wp.vec3
 
 
 @wp.func
+def edges_meet_triangle(x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
+    """Whether an edge of triangle x meets closed triangle abc of nonzero area (`projection_axis`
+    ``axis``)."""
+    meet = int(0)
+    if segment_meets_triangle(x0, x1, a, b, c, axis) == 1:
+        meet = 1
+    elif segment_meets_triangle(x1, x2, a, b, c, axis) == 1:
+        meet = 1
+    else:
+        meet = segment_meets_triangle(x2, x0, a, b, c, axis)
+    return meet
+
+
+@wp.func
 def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
     """Whether closed triangles a and b share a point, exactly for their float32 coordinates.
 
@@ -340,33 +354,15 @@ def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.ve
     if axis_a >= 0 and axis_b >= 0:
         # Each triangle strictly on one side of the other's plane: the usual early exit.
         if not strictly_one_side(b0, b1, b2, a0, a1, a2) and not strictly_one_side(a0, a1, a2, b0, b1, b2):
-            if segment_meets_triangle(a0, a1, b0, b1, b2, axis_b) == 1:
-                meet = 1
-            elif segment_meets_triangle(a1, a2, b0, b1, b2, axis_b) == 1:
-                meet = 1
-            elif segment_meets_triangle(a2, a0, b0, b1, b2, axis_b) == 1:
-                meet = 1
-            elif segment_meets_triangle(b0, b1, a0, a1, a2, axis_a) == 1:
-                meet = 1
-            elif segment_meets_triangle(b1, b2, a0, a1, a2, axis_a) == 1:
+            if edges_meet_triangle(a0, a1, a2, b0, b1, b2, axis_b) == 1:
                 meet = 1
             else:
-                meet = segment_meets_triangle(b2, b0, a0, a1, a2, axis_a)
+                meet = edges_meet_triangle(b0, b1, b2, a0, a1, a2, axis_a)
     elif axis_b >= 0:
         # a is a segment or a point: the union of its edges.
-        if segment_meets_triangle(a0, a1, b0, b1, b2, axis_b) == 1:
-            meet = 1
-        elif segment_meets_triangle(a1, a2, b0, b1, b2, axis_b) == 1:
-            meet = 1
-        else:
-            meet = segment_meets_triangle(a2, a0, b0, b1, b2, axis_b)
+        meet = edges_meet_triangle(a0, a1, a2, b0, b1, b2, axis_b)
     elif axis_a >= 0:
-        if segment_meets_triangle(b0, b1, a0, a1, a2, axis_a) == 1:
-            meet = 1
-        elif segment_meets_triangle(b1, b2, a0, a1, a2, axis_a) == 1:
-            meet = 1
-        else:
-            meet = segment_meets_triangle(b2, b0, a0, a1, a2, axis_a)
+        meet = edges_meet_triangle(b0, b1, b2, a0, a1, a2, axis_a)
     else:
         for i in range(3):
             for j in range(3):
