@@ -164,9 +164,13 @@ def triangles_intersect(tri_a, tri_b, neighbours: bool = False, device=None) -> 
     if ta.shape[0] == 0:
         return np.zeros(0, bool)
     device = wp.get_device(device)
-    wa = wp.array(ta, dtype=wp.vec3, device=device)
-    wb = wp.array(tb, dtype=wp.vec3, device=device)
-    meets = wp.empty(ta.shape[0], dtype=wp.int32, device=device)
-    wp.launch(collide.triangle_soup_kernel, dim=ta.shape[0], inputs=[wa, wb, 1 if neighbours else 0, meets],
-              device=device)
+    # As two soups of K faces each, row k against row k: the kernel `intersecting_pairs` runs.
+    k = ta.shape[0]
+    faces = wp.array(np.arange(3 * k, dtype=np.int32).reshape(k, 3), dtype=wp.int32, device=device)
+    rows = wp.array(np.repeat(np.arange(k, dtype=np.int32), 2).reshape(k, 2), dtype=wp.vec2i, device=device)
+    meets = wp.empty(k, dtype=wp.int32, device=device)
+    wp.launch(collide.triangle_pairs_kernel, dim=k, device=device,
+              inputs=[wp.array(ta.reshape(-1, 3), dtype=wp.vec3, device=device), faces,
+                      wp.array(tb.reshape(-1, 3), dtype=wp.vec3, device=device), faces, rows, 1 if neighbours else 0,
+                      meets])
     return meets.numpy() == 1

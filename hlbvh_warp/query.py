@@ -335,16 +335,16 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
     hw = wp.array(hi, dtype=wp.vec3, device=device)
     counts = wp.zeros(num_queries, dtype=wp.int32, device=device)
     none, no_order = _empty(wp.vec2i, device), _empty(wp.int32, device)
-    wp.launch(traversal.aabb_query_kernel, dim=num_queries, inputs=[view(bvh), lw, hw, no_order, 0, counts, counts, none],
-              device=device)
+    wp.launch(traversal.aabb_query_kernel, dim=num_queries, device=device,
+              inputs=[view(bvh), lw, hw, no_order, 0, counts, counts, none])
     if not return_pairs:
         return counts.numpy()
     offsets, total = _offsets(counts)
     pairs = np.zeros((0, 2), np.int64)
     if total:
         out = wp.empty(total, dtype=wp.vec2i, device=device)
-        wp.launch(traversal.aabb_query_kernel, dim=num_queries, inputs=[view(bvh), lw, hw, no_order, 0, offsets, counts, out],
-                  device=device)
+        wp.launch(traversal.aabb_query_kernel, dim=num_queries, device=device,
+                  inputs=[view(bvh), lw, hw, no_order, 0, offsets, counts, out])
         pairs = out.numpy().astype(np.int64).reshape(-1, 2)
         pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     return counts.numpy(), pairs

@@ -33,9 +33,10 @@ pair counts only when the triangles meet elsewhere (see `neighbours_meet`).
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 vec12d = wp.types.vector(length=12, dtype=wp.float64)
+vec4i = wp.types.vector(length=4, dtype=wp.int32)
 #: One component per exact product term: 24 triple products of orient3d, two halves each.
 vec48d = wp.types.vector(length=48, dtype=wp.float64)
 
@@ -90,9 +91,9 @@ def expansion_sign(e: vec48d, n: int):
     s = int(0)
     if n > 0:
         if e[n - 1] > wp.float64(0.0):
-            s = 1
+            s = int(1)
         else:
-            s = -1
+            s = int(-1)
     return s
 
 
@@ -159,9 +160,9 @@ def orient3d(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
     bound = ORIENT3D_ERROR * permanent
     s = int(0)
     if det > bound:
-        s = 1
+        s = int(1)
     elif det < -bound:
-        s = -1
+        s = int(-1)
     elif permanent != wp.float64(0.0) and not (d == a or d == b or d == c or c == a or c == b or b == a):
         # Two equal points zero the determinant: the usual case between neighbouring triangles of
         # a mesh, answered without the expansion. Permanent 0: every product vanished, and so did
@@ -186,9 +187,9 @@ def orient2d(a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
     bound = ORIENT2D_ERROR * (wp.abs(left) + wp.abs(right))
     s = int(0)
     if det > bound:
-        s = 1
+        s = int(1)
     elif det < -bound:
-        s = -1
+        s = int(-1)
     elif left != wp.float64(0.0) or right != wp.float64(0.0):
         # a_i b_j - a_j b_i + b_i c_j - b_j c_i + c_i a_j - c_j a_i: six exact float32 products.
         e = vec48d()
@@ -215,13 +216,10 @@ def projection_axis(a: wp.vec3, b: wp.vec3, c: wp.vec3):
     if wp.abs(n[2]) > wp.abs(n[k0]):
         k0 = 2
     axis = int(-1)
-    if orient2d(a, b, c, k0) != 0:
-        axis = k0
-    else:
-        for step in range(1, 3):
-            k = (k0 + step) % 3
-            if axis < 0 and orient2d(a, b, c, k) != 0:
-                axis = k
+    for step in range(3):
+        k = (k0 + step) % 3
+        if axis < 0 and orient2d(a, b, c, k) != 0:
+            axis = k
     return axis
 
 
@@ -234,73 +232,103 @@ def on_segment_2d(a: wp.vec3, b: wp.vec3, p: wp.vec3, axis: int):
     inside = int(0)
     if wp.min(a[i], b[i]) <= p[i] and p[i] <= wp.max(a[i], b[i]):
         if wp.min(a[j], b[j]) <= p[j] and p[j] <= wp.max(a[j], b[j]):
-            inside = 1
+            inside = int(1)
     return inside
 
 
 @wp.func
 def segments_meet_2d(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3, axis: int):
     """Whether closed segments ab and cd meet in the plane dropping ``axis`` (points allowed)."""
-    d1 = orient2d(a, b, c, axis)
-    d2 = orient2d(a, b, d, axis)
-    d3 = orient2d(c, d, a, axis)
-    d4 = orient2d(c, d, b, axis)
-    meet = int(0)
-    if d1 * d2 < 0 and d3 * d4 < 0:
-        meet = 1
-    elif d1 == 0 and on_segment_2d(a, b, c, axis) == 1:
-        meet = 1
-    elif d2 == 0 and on_segment_2d(a, b, d, axis) == 1:
-        meet = 1
-    elif d3 == 0 and on_segment_2d(c, d, a, axis) == 1:
-        meet = 1
-    elif d4 == 0 and on_segment_2d(c, d, b, axis) == 1:
-        meet = 1
+    # The orientation of each end of one segment against the other: k = 0, 1 for c and d against
+    # ab, k = 2, 3 for a and b against cd. Both pairs of signs opposite: a proper crossing; an
+    # end on the other's line and within its box: a touch.
+    signs = vec4i()
+    touch = int(0)
+    for k in range(4):
+        p = pick(k, c, d, a)
+        if k == 3:
+            p = b
+        u = a
+        v = b
+        if k >= 2:
+            u = c
+            v = d
+        o = orient2d(u, v, p, axis)
+        signs[k] = o
+        if o == 0 and on_segment_2d(u, v, p, axis) == 1:
+            touch = int(1)
+    meet = touch
+    if signs[0] * signs[1] < 0 and signs[2] * signs[3] < 0:
+        meet = int(1)
     return meet
+
+
+@wp.func
+def pick(k: int, p0: wp.vec3, p1: wp.vec3, p2: wp.vec3):
+    """Vertex k mod 3 of a triangle: lets one call site in a loop serve every edge. The loops of
+    this module stay rolled (``max_unroll`` 0): inlined copies of the exact predicates at every
+    call site made it slow to compile for CUDA."""
+    j = k % 3
+    p = p0
+    if j == 1:
+        p = p1
+    elif j == 2:
+        p = p2
+    return p
 
 
 @wp.func
 def point_in_triangle_2d(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
     """Whether p lies in the closed triangle abc, both in the plane dropping ``axis``, where abc
-    has nonzero area."""
-    s1 = orient2d(a, b, p, axis)
-    s2 = orient2d(b, c, p, axis)
-    s3 = orient2d(c, a, p, axis)
-    positive = s1 > 0 or s2 > 0 or s3 > 0
-    negative = s1 < 0 or s2 < 0 or s3 < 0
-    inside = int(1)
-    if positive and negative:
-        inside = 0
-    return inside
+    has nonzero area: the signs of its three edge orientations are not mixed."""
+    positive = int(0)
+    negative = int(0)
+    for k in range(3):
+        o = orient2d(pick(k, a, b, c), pick(k + 1, a, b, c), p, axis)
+        if o > 0:
+            positive = int(1)
+        elif o < 0:
+            negative = int(1)
+    return 1 - positive * negative
 
 
 @wp.func
 def segment_meets_triangle(x: wp.vec3, y: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
     """Whether closed segment xy (a point when x = y) meets closed triangle abc of nonzero area,
     whose `projection_axis` is ``axis``."""
-    sx = orient3d(a, b, c, x)
-    sy = orient3d(a, b, c, y)
+    # Which side of the plane each end lies on (k = 0: x, k = 1: y).
+    sx = int(0)
+    sy = int(0)
+    for k in range(2):
+        side = orient3d(a, b, c, pick(k, x, y, y))
+        if k == 0:
+            sx = side
+        else:
+            sy = side
     meet = int(0)
     if sx * sy > 0:
-        meet = 0
+        meet = int(0)
     elif sx == 0 and sy == 0:
-        # In the triangle's plane: 2D, where the projection keeps the triangle's area.
-        if point_in_triangle_2d(x, a, b, c, axis) == 1 or point_in_triangle_2d(y, a, b, c, axis) == 1:
-            meet = 1
-        elif segments_meet_2d(x, y, a, b, axis) == 1 or segments_meet_2d(x, y, b, c, axis) == 1:
-            meet = 1
-        elif segments_meet_2d(x, y, c, a, axis) == 1:
-            meet = 1
+        # In the triangle's plane: 2D, where the projection keeps the triangle's area. An end
+        # inside (k = 0, 1), or the segment crossing an edge (k = 2, 3, 4).
+        for k in range(5):
+            if meet == 0:
+                if k < 2:
+                    meet = point_in_triangle_2d(pick(k, x, y, y), a, b, c, axis)
+                else:
+                    meet = segments_meet_2d(x, y, pick(k, a, b, c), pick(k + 1, a, b, c), axis)
     else:
         # The segment reaches the plane at one point; the line through it passes the closed
         # triangle iff the volumes it spans with the three edges do not take both signs.
-        o1 = orient3d(x, y, a, b)
-        o2 = orient3d(x, y, b, c)
-        o3 = orient3d(x, y, c, a)
-        positive = o1 > 0 or o2 > 0 or o3 > 0
-        negative = o1 < 0 or o2 < 0 or o3 < 0
-        if not (positive and negative):
-            meet = 1
+        positive = int(0)
+        negative = int(0)
+        for k in range(3):
+            o = orient3d(x, y, pick(k, a, b, c), pick(k + 1, a, b, c))
+            if o > 0:
+                positive = int(1)
+            elif o < 0:
+                negative = int(1)
+        meet = 1 - positive * negative
     return meet
 
 
@@ -314,32 +342,25 @@ def segments_meet(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
     """
     meet = int(0)
     if orient3d(a, b, c, d) == 0:
-        if segments_meet_2d(a, b, c, d, 0) == 1 and segments_meet_2d(a, b, c, d, 1) == 1:
-            meet = segments_meet_2d(a, b, c, d, 2)
+        meet = int(1)
+        for axis in range(3):
+            if meet == 1:
+                meet = segments_meet_2d(a, b, c, d, axis)
     return meet
 
 
 @wp.func
 def strictly_one_side(a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3, q: wp.vec3, r: wp.vec3):
     """Whether p, q and r lie strictly on one side of the plane of abc (nonzero area)."""
-    sp = orient3d(a, b, c, p)
-    sq = orient3d(a, b, c, q)
-    sr = orient3d(a, b, c, r)
-    return (sp > 0 and sq > 0 and sr > 0) or (sp < 0 and sq < 0 and sr < 0)
-
-
-@wp.func
-def edges_meet_triangle(x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
-    """Whether an edge of triangle x meets closed triangle abc of nonzero area (`projection_axis`
-    ``axis``)."""
-    meet = int(0)
-    if segment_meets_triangle(x0, x1, a, b, c, axis) == 1:
-        meet = 1
-    elif segment_meets_triangle(x1, x2, a, b, c, axis) == 1:
-        meet = 1
-    else:
-        meet = segment_meets_triangle(x2, x0, a, b, c, axis)
-    return meet
+    positive = int(0)
+    negative = int(0)
+    for k in range(3):
+        o = orient3d(a, b, c, pick(k, p, q, r))
+        if o > 0:
+            positive += 1
+        elif o < 0:
+            negative += 1
+    return positive == 3 or negative == 3
 
 
 @wp.func
@@ -351,39 +372,50 @@ def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.ve
     axis_a = projection_axis(a0, a1, a2)
     axis_b = projection_axis(b0, b1, b2)
     meet = int(0)
-    if axis_a >= 0 and axis_b >= 0:
+    if axis_a >= 0 or axis_b >= 0:
         # Each triangle strictly on one side of the other's plane: the usual early exit.
-        if not strictly_one_side(b0, b1, b2, a0, a1, a2) and not strictly_one_side(a0, a1, a2, b0, b1, b2):
-            if edges_meet_triangle(a0, a1, a2, b0, b1, b2, axis_b) == 1:
-                meet = 1
-            else:
-                meet = edges_meet_triangle(b0, b1, b2, a0, a1, a2, axis_a)
-    elif axis_b >= 0:
-        # a is a segment or a point: the union of its edges.
-        meet = edges_meet_triangle(a0, a1, a2, b0, b1, b2, axis_b)
-    elif axis_a >= 0:
-        meet = edges_meet_triangle(b0, b1, b2, a0, a1, a2, axis_a)
-    else:
-        for i in range(3):
-            for j in range(3):
+        apart = int(0)
+        if axis_a >= 0 and axis_b >= 0:
+            for k in range(2):
+                if apart == 0:
+                    # k = 0: a against the plane of b; k = 1: b against the plane of a.
+                    p0 = pick(k, b0, a0, a0)
+                    p1 = pick(k, b1, a1, a1)
+                    p2 = pick(k, b2, a2, a2)
+                    q0 = pick(k, a0, b0, b0)
+                    q1 = pick(k, a1, b1, b1)
+                    q2 = pick(k, a2, b2, b2)
+                    if strictly_one_side(p0, p1, p2, q0, q1, q2):
+                        apart = int(1)
+        if apart == 0:
+            # The edges of a against b (k = 0, 1, 2), then those of b against a (k = 3, 4, 5),
+            # where the triangle tested against has nonzero area; a zero-area triangle is the
+            # union of its edges.
+            for k in range(6):
                 if meet == 0:
-                    pa = a0
-                    qa = a1
-                    if i == 1:
-                        pa = a1
-                        qa = a2
-                    elif i == 2:
-                        pa = a2
-                        qa = a0
-                    pb = b0
-                    qb = b1
-                    if j == 1:
-                        pb = b1
-                        qb = b2
-                    elif j == 2:
-                        pb = b2
-                        qb = b0
-                    meet = segments_meet(pa, qa, pb, qb)
+                    x = pick(k, a0, a1, a2)
+                    y = pick(k + 1, a0, a1, a2)
+                    p = b0
+                    q = b1
+                    r = b2
+                    axis = axis_b
+                    if k >= 3:
+                        x = pick(k, b0, b1, b2)
+                        y = pick(k + 1, b0, b1, b2)
+                        p = a0
+                        q = a1
+                        r = a2
+                        axis = axis_a
+                    if axis >= 0:
+                        meet = segment_meets_triangle(x, y, p, q, r, axis)
+    else:
+        # Both are segments or points: edge against edge.
+        for k in range(9):
+            if meet == 0:
+                i = k // 3
+                j = k % 3
+                meet = segments_meet(pick(i, a0, a1, a2), pick(i + 1, a0, a1, a2), pick(j, b0, b1, b2),
+                                     pick(j + 1, b0, b1, b2))
     return meet
 
 
@@ -391,7 +423,7 @@ def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.ve
 def shared_with(p: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
     shared = int(0)
     if p == b0 or p == b1 or p == b2:
-        shared = 1
+        shared = int(1)
     return shared
 
 
@@ -422,7 +454,7 @@ def neighbours_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.v
         if axis_a >= 0 and axis_b >= 0:
             # Nonzero area: three distinct vertices each, so the count is the same from b's side.
             if num_shared == 3:
-                meet = 1
+                meet = int(1)
             elif num_shared == 1:
                 # Rotate a so that a0 is the shared vertex, and find b's.
                 v = a0
@@ -444,10 +476,12 @@ def neighbours_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.v
                 elif v == b2:
                     p = b0
                     q = b1
-                if segment_meets_triangle(x, y, b0, b1, b2, axis_b) == 1:
-                    meet = 1
-                else:
-                    meet = segment_meets_triangle(p, q, a0, a1, a2, axis_a)
+                # The edge opposite v in a against b (k = 0), then the one in b against a (k = 1).
+                for k in range(2):
+                    if meet == 0:
+                        meet = segment_meets_triangle(pick(k, x, p, p), pick(k, y, q, q), pick(k, b0, a0, a0),
+                                                      pick(k, b1, a1, a1), pick(k, b2, a2, a2),
+                                                      wp.where(k == 0, axis_b, axis_a))
             else:
                 # The unshared vertex of each, and the shared edge uv.
                 x = a0
@@ -469,7 +503,7 @@ def neighbours_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.v
                 if orient3d(u, v, x, y) == 0:
                     # Coplanar: same side of uv in a plane that keeps a's area (and so the plane's).
                     if orient2d(u, v, x, axis_a) == orient2d(u, v, y, axis_a):
-                        meet = 1
+                        meet = int(1)
     return meet
 
 
@@ -497,21 +531,6 @@ def triangle_pairs_kernel(
         meets[tid] = neighbours_meet(a0, a1, a2, b0, b1, b2)
     else:
         meets[tid] = triangles_meet(a0, a1, a2, b0, b1, b2)
-
-
-@wp.kernel
-def triangle_soup_kernel(
-    tri_a: wp.array2d(dtype=wp.vec3),
-    tri_b: wp.array2d(dtype=wp.vec3),
-    neighbours: int,
-    meets: wp.array(dtype=wp.int32),
-):
-    """`triangles_meet` (or `neighbours_meet`) on row i of two ``(K, 3)`` arrays of triangles."""
-    i = wp.tid()
-    if neighbours == 1:
-        meets[i] = neighbours_meet(tri_a[i, 0], tri_a[i, 1], tri_a[i, 2], tri_b[i, 0], tri_b[i, 1], tri_b[i, 2])
-    else:
-        meets[i] = triangles_meet(tri_a[i, 0], tri_a[i, 1], tri_a[i, 2], tri_b[i, 0], tri_b[i, 1], tri_b[i, 2])
 
 
 @wp.kernel
