@@ -427,7 +427,6 @@ class HlbvhPipeline:
 
     def _emit(self, num_segments: int, shift: int, planes: int, stride: int, median: int):
         """Count each segment's valid splits, scan them for offsets, emit the treelets."""
-        n = self.num_prims
         leaf = self.config.max_leaf_size
         walk = [
             self.sorted_codes,

@@ -224,7 +224,6 @@ def binned_split_presorted(b: int, e: int, inputs: SplitInputs):
     bin_weight = inputs.bin_weight
     bin_count = inputs.bin_count
     suffix_cost = inputs.suffix_cost
-    size = e - b
     best_cost = NO_COST
     best_axis = int(-1)
     best_pos = int(-1)

@@ -46,6 +46,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 from conftest import DEVICES, shared_mesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -1104,3 +1105,35 @@ def test_empty_results(device):
     got = hlbvh_warp.triangles_intersect(np.zeros((0, 3, 3), np.float32), np.zeros((0, 3, 3), np.float32),
                                          device=device)
     assert got.shape == (0,) and got.dtype == np.bool_
+
+
+@wp.kernel
+def _user_meets_kernel(tri_a: wp.array2d(dtype=wp.vec3), tri_b: wp.array2d(dtype=wp.vec3),
+                       plain: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32)):
+    # A user's own kernel calling the exported @wp.funcs, as examples/example_user_kernel.py does
+    # for the ray queries.
+    i = wp.tid()
+    a0, a1, a2 = tri_a[i, 0], tri_a[i, 1], tri_a[i, 2]
+    b0, b1, b2 = tri_b[i, 0], tri_b[i, 1], tri_b[i, 2]
+    plain[i] = hlbvh_warp.triangles_meet(a0, a1, a2, b0, b1, b2)
+    neighbours[i] = hlbvh_warp.neighbours_meet(a0, a1, a2, b0, b1, b2)
+
+
+def test_exported_funcs_in_a_user_kernel(device, rng):
+    """`triangles_meet` and `neighbours_meet` called from a user kernel answer as the oracle does,
+    on pairs that share vertices (where the two differ) and pairs that do not."""
+    base = rng.integers(-3, 4, size=(300, 3, 3)).astype(np.float32)
+    other = rng.integers(-3, 4, size=(300, 3, 3)).astype(np.float32)
+    # Share one vertex in a third of the rows and an edge in another third.
+    other[:100, 0] = base[:100, 1]
+    other[100:200, :2] = base[100:200, [2, 0]]
+    with wp.ScopedDevice(device):
+        plain = wp.empty(300, dtype=wp.int32)
+        neighbours = wp.empty(300, dtype=wp.int32)
+        wp.launch(_user_meets_kernel, dim=300, inputs=[wp.array(base, dtype=wp.vec3), wp.array(other, dtype=wp.vec3),
+                                                      plain, neighbours])
+        plain, neighbours = plain.numpy().astype(bool), neighbours.numpy().astype(bool)
+    assert np.array_equal(plain, oracle(base, other))
+    assert np.array_equal(neighbours, oracle(base, other, neighbours=True))
+    # Shared vertices always touch; the rule must have dropped some of those.
+    assert plain[:200].all() and not neighbours[:200].all()
