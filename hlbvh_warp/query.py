@@ -158,6 +158,13 @@ def _empty(dtype, device, shape=0):
     return wp.empty(shape, dtype=dtype, device=device)
 
 
+def _optional_outputs(dtype, count: int, wanted: bool, device):
+    """Two per-query output arrays the kernels fill only when asked (barycentrics, statistics);
+    empty ones tell a kernel to skip them."""
+    size = count if wanted else 0
+    return _empty(dtype, device, size), _empty(dtype, device, size)
+
+
 def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return_barycentrics: bool = False,
               stats: bool = False):
     """Closest hit of every ray, watertight (Woop et al. 2013) over a padded traversal (Ize 2013).
@@ -186,10 +193,8 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     device = bvh.device
     hit_t = wp.empty(num_rays, dtype=float, device=device)
     hit_prim = wp.empty(num_rays, dtype=wp.int32, device=device)
-    bary = num_rays if return_barycentrics else 0
-    counted = num_rays if stats else 0
-    hit_u, hit_v = _empty(float, device, bary), _empty(float, device, bary)
-    visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
+    hit_u, hit_v = _optional_outputs(float, num_rays, return_barycentrics, device)
+    visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
     if num_rays:
         args = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device),
                 t_max, hit_t, hit_prim]
@@ -227,8 +232,7 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
         raise ValueError(f"t_max must be a number or have shape ({num_rays},), got {t_arr.shape}")
     device = bvh.device
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
-    counted = num_rays if stats else 0
-    visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
+    visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
     if num_rays:
         wp.launch(
             traversal.occluded_kernel,
@@ -391,10 +395,8 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
     out_point = wp.empty(num_points, dtype=wp.vec3, device=device)
     out_distance = wp.empty(num_points, dtype=float, device=device)
     out_prim = wp.empty(num_points, dtype=wp.int32, device=device)
-    bary = num_points if return_barycentrics else 0
-    counted = num_points if stats else 0
-    out_u, out_v = _empty(float, device, bary), _empty(float, device, bary)
-    visits, tests = _empty(wp.int32, device, counted), _empty(wp.int32, device, counted)
+    out_u, out_v = _optional_outputs(float, num_points, return_barycentrics, device)
+    visits, tests = _optional_outputs(wp.int32, num_points, stats, device)
     if num_points:
         wp.launch(proximity.closest_point_kernel, dim=num_points, device=device,
                   inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device), max_dist, out_point, out_distance,
