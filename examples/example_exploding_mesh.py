@@ -42,7 +42,8 @@ if __name__ == "__main__":
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Build only: no ray-cast images.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
-    parser.add_argument("--mesh", type=mesh_file, default=None, help="Mesh file; the generated default scene if absent.")
+    parser.add_argument("--mesh", type=mesh_file, default=None,
+                        help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=positive_int, default=60000, help="Size of the generated scene.")
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")

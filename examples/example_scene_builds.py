@@ -122,8 +122,8 @@ class Example:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
-    parser.add_argument("--mesh", action="append", default=None, type=mesh_file, help="a mesh file (repeatable); default: "
-                        "four generated meshes of 40k, 20k, 6k and 1k triangles")
+    parser.add_argument("--mesh", action="append", default=None, type=mesh_file,
+                        help="a mesh file (repeatable); default: generated meshes of 40k, 20k, 6k and 1k triangles")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--headless", action="store_true", help="Run without printing every frame.")
     parser.add_argument("--scratch-sets", type=non_negative_int, default=None,

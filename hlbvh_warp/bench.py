@@ -49,8 +49,8 @@ REFERENCE = "sweep_sah"
 ROW_FORMAT = "{mesh:>{mesh_width}s} {tris:>9d} {builder:>14s} {setting:>12s} {median:>10.2f} {min:>9.2f} {max:>9.2f} " \
              "{rebuild:>10s} {sah:>9s} {ratio:>7s} {nodes:>9s} {bytes:>8s} {rays:>6s}"
 HEADER_FORMAT = "{:>{w}s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>10s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}"
-HEADER_FIELDS = ("mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "rebuild ms", "SAH", "ratio", "nodes",
-    "B/tri", "rays")
+HEADER_FIELDS = ("mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "rebuild ms", "SAH", "ratio",
+                 "nodes", "B/tri", "rays")
 #: The mesh column is at least this wide, and as wide as the longest mesh name (never cut).
 MESH_WIDTH = 12
 
@@ -353,13 +353,15 @@ def api_intersect(bvh, origins, directions):
 
 def format_row(row: dict, mesh_width: int = MESH_WIDTH) -> str:
     if "error" in row:
-        return f"{row['mesh']:>{mesh_width}s} {'':>9s} {row['builder']:>14s} {row['setting']:>12s}  error: {row['error']}"
+        return (f"{row['mesh']:>{mesh_width}s} {'':>9s} {row['builder']:>14s} {row['setting']:>12s}"
+                f"  error: {row['error']}")
 
     def opt(value, fmt):
         return "-" if value is None else format(value, fmt)
 
     return ROW_FORMAT.format(
-        mesh=row["mesh"], mesh_width=mesh_width, tris=row["num_tris"], builder=row["builder"], setting=row["setting"][:12],
+        mesh=row["mesh"], mesh_width=mesh_width, tris=row["num_tris"], builder=row["builder"],
+        setting=row["setting"][:12],
         median=row["time_ms"]["median"], min=row["time_ms"]["min"], max=row["time_ms"]["max"],
         rebuild=opt((row.get("rebuild_ms") or {}).get("median"), ".2f"),
         sah=opt(row["sah"], ".2f"), ratio=opt(row["sah_ratio"], ".3f"), nodes=opt(row["num_nodes"], "d"),
@@ -427,7 +429,8 @@ def parse_args(argv):
                         help="comma-separated builders and peers (default: all)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder")
-    parser.add_argument("--warmup", type=non_negative_int, default=1, help="untimed runs first (kernel compilation, caches)")
+    parser.add_argument("--warmup", type=non_negative_int, default=1,
+                        help="untimed runs first (kernel compilation, caches)")
     parser.add_argument("--rays", type=non_negative_int, default=128, help="rays checked against the brute force")
     parser.add_argument("--sweep", action="store_true", help="also sweep m, p, n, bins and leaf size")
     parser.add_argument("--json", default="out/bench.json", help="where to write the rows")
@@ -456,7 +459,8 @@ def main(argv=None) -> int:
 
     progress = scenes.progress
 
-    print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}  cpu_threads: {args.cpu_threads or 'all cores'}")
+    threads = args.cpu_threads or "all cores"
+    print(f"device: {device}  repeats: {args.repeats}  warm-up: {args.warmup}  cpu_threads: {threads}")
     mesh_width = max([MESH_WIDTH] + [len(name) for name, _, _ in meshes])
     print(header(mesh_width))
     rows = []

@@ -139,7 +139,8 @@ class Bvh:
             self._cache["traversal_layout"] = layout
 
     def __repr__(self) -> str:
-        return f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, device={self.device})"
+        return (f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, "
+                f"device={self.device})")
 
 
 NODE_FIELDS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_parent", "node_begin", "node_end")

@@ -46,9 +46,11 @@ def main(argv=None) -> int:
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default).")
     parser.add_argument("--num-tris", type=positive_int, default=60000, help="Triangles of the generated scene.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
-    parser.add_argument("--rays", type=non_negative_int, default=256, help="Rays checked against the float64 brute force.")
+    parser.add_argument("--rays", type=non_negative_int, default=256,
+                        help="Rays checked against the float64 brute force.")
     parser.add_argument("--num-frames", type=positive_int, default=12, help="Frames of the exploding-mesh animation.")
-    parser.add_argument("--image-size", type=positive_int, default=256, help="Rendered frames are this many pixels square.")
+    parser.add_argument("--image-size", type=positive_int, default=256,
+                        help="Rendered frames are this many pixels square.")
     parser.add_argument("--methods", type=str, default=None, help="Comma-separated subset of the build methods.")
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
     args = parser.parse_args(argv)

@@ -187,7 +187,8 @@ class Animation:
                 line += f"  {r['rebuild_ms']:10.2f}  {r['sah_ratio']:17.3f}"
             lines.append(line + "  " + r["reason"] + (f"; {r['input']}" if "input" in r else ""))
         ms = np.array([r["ms"] for r in self.rows]) if self.rows else np.zeros(1)
-        summary = f"{len(self.rows)} frames: average {ms.mean():.2f} ms, worst {ms.max():.2f} ms, total {ms.sum():.1f} ms"
+        summary = (f"{len(self.rows)} frames: average {ms.mean():.2f} ms, worst {ms.max():.2f} ms, "
+                   f"total {ms.sum():.1f} ms")
         if compare and self.rows:
             ref = np.array([r["rebuild_ms"] for r in self.rows])
             ratio = np.array([r["sah_ratio"] for r in self.rows])

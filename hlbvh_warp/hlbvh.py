@@ -359,7 +359,8 @@ class HlbvhPipeline:
         self._launch(
             block_sort.compact_voxel_starts_kernel,
             num_runs,
-            [self.run_count, self.voxel_flags, self.voxel_index, self.sorted_run_offsets, self.voxel_starts, self.voxel_count],
+            [self.run_count, self.voxel_flags, self.voxel_index, self.sorted_run_offsets, self.voxel_starts,
+             self.voxel_count],
         )
         self._launch(
             block_sort.block_head_flags_kernel,
@@ -370,7 +371,8 @@ class HlbvhPipeline:
         self._launch(
             block_sort.compact_block_starts_kernel,
             num_runs,
-            [self.voxel_count, self.block_flags, self.block_index, self.voxel_starts, self.block_starts, self.block_count],
+            [self.voxel_count, self.block_flags, self.block_index, self.voxel_starts, self.block_starts,
+             self.block_count],
         )
         self.blocks_sorted.zero_()
         args = [n, 3 * (self.config.bits_per_axis - self.coarse_bits), self.block_count, self.block_starts,

@@ -176,7 +176,8 @@ def parse_args(argv):
     parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")
     parser.add_argument("--ci", type=float, default=1.0, help="intersection cost c_i (Wodniok & Goesele: 1.0)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
-    parser.add_argument("--cpu-threads", type=non_negative_int, default=0, help="BuildConfig.cpu_threads (0: every core)")
+    parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
+                        help="BuildConfig.cpu_threads (0: every core)")
     parser.add_argument("--json", default="out/quality.json", help="where to write the rows")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)

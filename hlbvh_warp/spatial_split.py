@@ -207,8 +207,9 @@ def root_split_costs(vertices, faces, config: BuildConfig | None = None, device=
     n = len(faces_np)
     dev = _SegmentArrays(1, device)
     dev.upload(begin=[0], end=[n], open=[1])
+    ref_prims = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device)
     wp.launch(kernels.split_search_kernel, dim=1, device=device,
-              inputs=[0, dev.begin, dev.end, dev.open, wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=device),
+              inputs=[0, dev.begin, dev.end, dev.open, ref_prims,
                       wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device),
                       wp.array(verts_np, dtype=wp.vec3, device=device),
                       wp.array(faces_np, dtype=wp.int32, device=device), config.sbvh_bins, config.max_leaf_size,

@@ -121,7 +121,8 @@ def format_row(r: dict) -> str:
 
     return (f"{r['mesh']:>10s} {r['method']:>10s} {str(r['k']):>3s} {r['nodes']:7d} {opt(r['depth'], 'd'):>5s} "
             f"{opt(r['collapse_ms'], '.1f'):>8s} {opt(r['sah'], '.2f'):>7s} {r['rays']:>7s} {r['mrays_per_s']:8.3f} "
-            f"{r['speedup']:6.2f} {opt(r['n_s'], '6.1f'):>6s} {opt(r['boxes'], '6.1f'):>6s} {r['n_t']:5.2f} {r['disagree']:8d}")
+            f"{r['speedup']:6.2f} {opt(r['n_s'], '6.1f'):>6s} {opt(r['boxes'], '6.1f'):>6s} {r['n_t']:5.2f} "
+            f"{r['disagree']:8d}")
 
 
 def parse_args(argv):
@@ -136,9 +137,11 @@ def parse_args(argv):
     parser.add_argument("--widths", default="2,4,8,16", help="comma-separated branching factors, 2 to 16")
     parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit")
     parser.add_argument("--side", type=positive_int, default=128, help="pixels per image side")
-    parser.add_argument("--repeats", type=positive_int, default=5, help="launches timed per traversal; the best is kept")
+    parser.add_argument("--repeats", type=positive_int, default=5,
+                        help="launches timed per traversal; the best is kept")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
-    parser.add_argument("--cpu-threads", type=non_negative_int, default=0, help="BuildConfig.cpu_threads (0: every core)")
+    parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
+                        help="BuildConfig.cpu_threads (0: every core)")
     parser.add_argument("--json", default="out/bench_wide.json", help="where to write the rows")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)

@@ -71,8 +71,8 @@ def test_mesh_files_with_several_objects_or_none_read_alike_in_every_command(tmp
 
 
 @pytest.mark.skipif(bool(wp.get_cuda_devices()), reason="needs a machine without CUDA")
-@pytest.mark.parametrize("command", ["demo", "bench", "bench-rays", "bench-points", "bench-pairs", "bench-wide", "quality",
-                                     "stress"])
+@pytest.mark.parametrize("command", ["demo", "bench", "bench-rays", "bench-points", "bench-pairs", "bench-wide",
+                                     "quality", "stress"])
 def test_cuda_device_without_cuda_is_a_one_line_error(command, capsys):
     # Warp raises a RuntimeError for "cuda" where there is none (a ValueError for "cuda:0"):
     # every command's --device names it in one line, before any work.

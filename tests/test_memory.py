@@ -89,7 +89,8 @@ def test_one_shot_builds_reuse_the_pipeline_but_never_its_outputs(pool, device, 
     first_arrays = first.to_numpy()
     ((kept, _),) = memory._SCRATCH._entries.values()
     second = hw.build(other_v, other_f, method=method, device=device)
-    assert next(iter(memory._SCRATCH._entries.values()))[0] is kept, "the second build did not reuse the first's pipeline"
+    reused = next(iter(memory._SCRATCH._entries.values()))[0]
+    assert reused is kept, "the second build did not reuse the first's pipeline"
     for name in ("node_left", "node_lowers", "prim_order"):
         assert getattr(first, name).ptr != getattr(second, name).ptr, name
     for key, value in first_arrays.items():

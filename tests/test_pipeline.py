@@ -60,7 +60,7 @@ def radix_tree_reference(codes, max_leaf_size=1):
 
 def node_set(tree):
     leaf = tree["node_left"] < 0
-    return {(int(b), int(e), bool(l)) for b, e, l in zip(tree["node_begin"], tree["node_end"], leaf)}
+    return {(int(b), int(e), bool(is_leaf)) for b, e, is_leaf in zip(tree["node_begin"], tree["node_end"], leaf)}
 
 
 def sah_reference(tree):
@@ -345,7 +345,7 @@ def test_codes_already_in_order_skip_every_sort(device, rng, case):
     tree = hb.build_from_bounds(lo, hi, device=device).to_numpy()
     check_tree_invariants(tree, len(lo))
     leaves = tree["node_left"] < 0
-    spans = {(int(b), int(e), bool(l)) for b, e, l in zip(tree["node_begin"], tree["node_end"], leaves)}
+    spans = {(int(b), int(e), bool(is_leaf)) for b, e, is_leaf in zip(tree["node_begin"], tree["node_end"], leaves)}
     assert spans == radix_tree_reference(codes[tree["prim_order"]])
 
 
@@ -366,13 +366,13 @@ def numpy_bottom_up_boxes(tree, lo, hi):
     nlo = np.zeros_like(tree["node_lowers"])
     nhi = np.zeros_like(tree["node_uppers"])
     for i in range(len(nlo) - 1, -1, -1):
-        l, r = tree["node_left"][i], tree["node_right"][i]
-        if l < 0:
+        left, right = tree["node_left"][i], tree["node_right"][i]
+        if left < 0:
             prims = tree["prim_order"][tree["node_begin"][i] : tree["node_end"][i]]
             nlo[i], nhi[i] = lo[prims].min(0), hi[prims].max(0)
         else:
-            assert l > i and r > i
-            nlo[i], nhi[i] = np.minimum(nlo[l], nlo[r]), np.maximum(nhi[l], nhi[r])
+            assert left > i and right > i
+            nlo[i], nhi[i] = np.minimum(nlo[left], nlo[right]), np.maximum(nhi[left], nhi[right])
     return nlo, nhi
 
 
@@ -428,7 +428,9 @@ def sort_crafted_codes(pipe, codes):
 
 def crafted_voxel_codes(case, rng):
     # 10 bits per axis with coarse_bits=6: a code's coarse voxel is code >> 12.
-    fine = lambda k: rng.permutation(1 << 12)[:k]  # distinct low bits
+    def fine(k):  # distinct low bits
+        return rng.permutation(1 << 12)[:k]
+
     if case == "budget_runs_out_at_a_voxel_end":
         # A reversed voxel of 30 in a block of 100: the insertion sort's budget (4 moves per
         # element, 400) runs out inserting its 29th element (1 + 2 + ... + 28 = 406 moves), one

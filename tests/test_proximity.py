@@ -949,8 +949,8 @@ def test_morton_codes_interleave_bits():
     cells = np.random.default_rng(3).integers(0, 1024, (200, 3))
     spread = [host_morton.spread_bits(cells[:, k]) for k in range(3)]
     for row, (x, y, z) in enumerate(cells):
-        expected = sum(((int(x) >> i) & 1) << (3 * i + 2) | ((int(y) >> i) & 1) << (3 * i + 1) | ((int(z) >> i) & 1) << (3 * i)
-                       for i in range(10))
+        expected = sum(((int(x) >> i) & 1) << (3 * i + 2) | ((int(y) >> i) & 1) << (3 * i + 1)
+                       | ((int(z) >> i) & 1) << (3 * i) for i in range(10))
         assert (spread[0][row] << 2 | spread[1][row] << 1 | spread[2][row]) == expected
     # Points at the corners of their box take the extreme codes; a NaN point the sentinel after all.
     pts = np.array([[0, 0, 0], [1, 1, 1], [np.nan, 0, 0], [0.5, 0.5, 0.5]], np.float32)
