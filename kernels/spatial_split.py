@@ -49,6 +49,30 @@ TINY = wp.constant(1.0e-30)
 CLIP_MARGIN = wp.constant(5.684342e-14)
 
 
+# Out of line (``inline=False``): Warp passes vectors and matrices by value, and inlined into
+# split_search_kernel each of the two sweeps copied its four bin arrays (2 x 192x3 float32 +
+# 2 x 192 int32: 1,536 scalars) into every one of the three per-axis sweeps, and the reference's
+# clip was inlined at each of the three unrolled axes (18 Sutherland-Hodgman passes). NVRTC took
+# 40-55 s per architecture on that kernel; out of line, about 7 s. The CPU's time is unchanged.
+try:
+    out_of_line = wp.func(inline=False)
+except TypeError:  # a Warp without the inlining hint: the same functions, inlined
+    out_of_line = wp.func
+
+
+@out_of_line
+def best_split_of_bins(boxes_lo: bin_boxes, boxes_hi: bin_boxes, enter: bin_counts, leave: bin_counts,
+                       extent: wp.vec3, num_bins: int, n: int):
+    """`best_bin_split` over the kernel's bin arrays, compiled once."""
+    return best_bin_split(boxes_lo, boxes_hi, enter, leave, extent, num_bins, n)
+
+
+@out_of_line
+def reference_polygon(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """`triangle_in_box` (the part of the triangle a reference stands for), compiled once."""
+    return triangle_in_box(a, b, c, lower, upper)
+
+
 @wp.func
 def clip_margin(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
     m = wp.max(wp.max(wp.abs(a), wp.abs(b)), wp.abs(c))
@@ -68,8 +92,12 @@ def planes_at_or_below(x: float, lower: float, extent: float, num_bins: int, str
     plane never disagrees with the plane the distribution cuts at."""
     j = wp.clamp(int(float(num_bins) * (x - lower) / extent), 0, num_bins - 1)
     # The guess is off by at most a step or two of rounding: walk it to the exact count.
-    while j > 0 and (slab_plane(lower, extent, j, num_bins) > x or (strict == 1 and slab_plane(lower, extent, j, num_bins) == x)):
-        j -= 1
+    while j > 0:
+        p = slab_plane(lower, extent, j, num_bins)
+        if p > x or (strict == 1 and p == x):
+            j -= 1
+        else:
+            break
     while j < num_bins - 1:
         p = slab_plane(lower, extent, j + 1, num_bins)
         if p < x or (strict == 0 and p == x):
@@ -82,11 +110,11 @@ def planes_at_or_below(x: float, lower: float, extent: float, num_bins: int, str
 @wp.func
 def slab_box(lower: wp.vec3, upper: wp.vec3, axis: int, lo: float, hi: float):
     # [lower, upper] with its extent along `axis` narrowed to [lo, hi] (clamped to it).
-    l = lower
-    u = upper
-    l[axis] = wp.max(lower[axis], lo)
-    u[axis] = wp.min(upper[axis], hi)
-    return l, u
+    out_lower = lower
+    out_upper = upper
+    out_lower[axis] = wp.max(lower[axis], lo)
+    out_upper[axis] = wp.min(upper[axis], hi)
+    return out_lower, out_upper
 
 
 @wp.func
@@ -199,7 +227,7 @@ def split_search_kernel(
                 counts[slot] = counts[slot] + 1
                 boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                 boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
-    best_cost, best_axis, best_bin, best_left, best_right = best_bin_split(
+    best_cost, best_axis, best_bin, best_left, best_right = best_split_of_bins(
         boxes_lo, boxes_hi, counts, counts, extent, num_bins, n)
     obj_axis[s] = best_axis
     obj_bin[s] = best_bin
@@ -260,7 +288,7 @@ def split_search_kernel(
                         a = vertices[faces[tri, 0]]
                         bv = vertices[faces[tri, 1]]
                         cv = vertices[faces[tri, 2]]
-                        polygon, count = triangle_in_box(a, bv, cv, lo, hi)
+                        polygon, count = reference_polygon(a, bv, cv, lo, hi)
                         margin = clip_margin(a, bv, cv)
                     for bb in range(b0, b1 + 1):
                         slab_lo = lo[axis]
@@ -274,7 +302,7 @@ def split_search_kernel(
                         boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), part_lo)
                         boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), part_hi)
     # Both sides strictly smaller than the node (the sweep's rule): the recursion ends.
-    sp_best, sp_best_axis, sp_best_bin, sp_best_left, sp_best_right = best_bin_split(
+    sp_best, sp_best_axis, sp_best_bin, sp_best_left, sp_best_right = best_split_of_bins(
         boxes_lo, boxes_hi, entries, exits, size, num_bins, n)
     sp_axis[s] = sp_best_axis
     sp_bin[s] = sp_best_bin
@@ -358,7 +386,7 @@ def distribute_kernel(
             a = vertices[faces[tri, 0]]
             bv = vertices[faces[tri, 1]]
             cv = vertices[faces[tri, 2]]
-            polygon, count = triangle_in_box(a, bv, cv, lo, hi)
+            polygon, count = reference_polygon(a, bv, cv, lo, hi)
             margin = clip_margin(a, bv, cv)
             part_lo, part_hi = slab_part_box(polygon, count, axis, lo, hi, lo[axis], plane, margin)
             out_tri[left] = tri
