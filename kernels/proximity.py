@@ -383,7 +383,8 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     stack_d = vec64f()
     top = int(0)
     node = int(-1)
-    if point_is_valid(p, max_dist) == 1:
+    # A view of a box BVH has no triangles (its faces are empty): nothing to find.
+    if bvh.faces.shape[0] > 0 and point_is_valid(p, max_dist) == 1:
         if box_distance_sq(p, bvh.node_lowers[0], bvh.node_uppers[0]) * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
             node = 0
     while node >= 0:

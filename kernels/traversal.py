@@ -81,7 +81,8 @@ class BvhView:
     """Everything a query reads, passed by value into user kernels (see ``hlbvh_warp.query.view``).
 
     Node fields follow ``hlbvh_warp.bvh.Bvh``; ``vertices`` and ``faces`` are empty arrays for a
-    BVH built from bare boxes, which supports box queries only. ``packed_nodes`` and
+    BVH built from bare boxes, which supports box queries only (ray and closest-point queries on
+    its view find nothing). ``packed_nodes`` and
     ``packed_triangles`` are the ray traversal layout of the module docstring; ray queries on a view
     without them (empty arrays) walk the canonical arrays instead, with the same results.
     """
@@ -298,7 +299,8 @@ def canonical_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max
     stack_t = vec64f()
     top = int(0)
     inv = wp.vec3(0.0)
-    if ray_is_valid(origin, direction, t_max) == 1:
+    # A view of a box BVH has no triangles to test (its faces are empty): nothing to find.
+    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, direction, t_max) == 1:
         inv = ray_inverse_direction(direction)
         if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], best_t) < INF:
             node = 0
@@ -587,7 +589,7 @@ def bvh_ray_all_hits(
     top = int(0)
     node = int(-1)
     inv = wp.vec3(0.0)
-    if ray_is_valid(origin, direction, t_max) == 1:
+    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, direction, t_max) == 1:
         inv = ray_inverse_direction(direction)
         if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], t_max) < INF:
             node = 0

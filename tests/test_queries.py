@@ -175,6 +175,37 @@ def test_queries_from_a_user_kernel(device, rng, scene):
     assert np.array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], ref_pairs)
 
 
+@wp.kernel
+def _closest_point_from_view_kernel(bvh: query.BvhView, points: wp.array(dtype=wp.vec3), prim: wp.array(dtype=int)):
+    tid = wp.tid()
+    prim[tid] = query.bvh_closest_point(bvh, points[tid], 1.0e30).prim
+
+
+def test_triangle_queries_on_a_box_view_find_nothing(device, rng):
+    """A box BVH's view has no triangles: from a user kernel, rays and closest points aimed right
+    through its boxes find nothing (they once read its empty faces out of bounds), while its box
+    queries still count against the brute force."""
+    centers = rng.random((500, 3)).astype(np.float32)
+    lo, hi = centers - 0.02, centers + 0.02
+    bvh = hlbvh_warp.build_from_bounds(lo, hi, device=device)
+    n = 64
+    o = np.tile(np.array([[0.5, 0.5, -2.0]], np.float32), (n, 1))
+    d = (centers[:n] - o).astype(np.float32)
+    out = [wp.full(n, 7.0, dtype=float, device=device), wp.full(n, 7, dtype=int, device=device),
+           wp.full(n, 7, dtype=int, device=device), wp.zeros(n, dtype=int, device=device)]
+    pairs = wp.zeros(100_000, dtype=wp.vec2i, device=device)
+    pair_count = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(_user_queries_kernel, dim=n, device=device,
+              inputs=[query.view(bvh)] + [wp.array(a, dtype=wp.vec3, device=device) for a in (o, d, lo[:n], hi[:n])]
+              + out + [pairs, pair_count])
+    assert (out[1].numpy() == -1).all() and np.isinf(out[0].numpy()).all() and (out[2].numpy() == 0).all()
+    assert np.array_equal(out[3].numpy(), brute_overlaps(lo, hi, lo[:n], hi[:n]).sum(axis=1))
+    prim = wp.full(n, 7, dtype=int, device=device)
+    wp.launch(_closest_point_from_view_kernel, dim=n, device=device,
+              inputs=[query.view(bvh), wp.array(centers[:n], dtype=wp.vec3, device=device), prim])
+    assert (prim.numpy() == -1).all()
+
+
 def test_example_user_kernel_runs_headless(device):
     path = REPO_ROOT / "examples" / "example_user_kernel.py"
     spec = importlib.util.spec_from_file_location("example_user_kernel", path)
