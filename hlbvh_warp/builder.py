@@ -30,7 +30,9 @@ refreshed there, not by the graph).
 from __future__ import annotations
 
 import collections
+import functools
 import math
+import threading
 import time
 
 import numpy as np
@@ -71,6 +73,18 @@ def _finite_or_none(cost: float) -> float | None:
     return cost if math.isfinite(cost) else None
 
 
+def _one_call_at_a_time(method):
+    """Calls on one `Builder` from several Python threads take turns: a frame rewrites the
+    builder's buffers and its tree in place, and two frames at once crashed the process."""
+
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return locked
+
+
 class Builder:
     """BVH builds over a triangle mesh with a fixed face count, reusing every buffer.
 
@@ -99,7 +113,8 @@ class Builder:
             would otherwise grow the list by one dict per frame for as long as it runs).
         record_launches: pack each kernel launch's arguments once and replay the launch every
             frame (`hlbvh_warp.launches`). Turn it off for builders driven from several Python
-            threads at once: Warp 1.19's recorded CPU launches are not safe side by side.
+            threads at once: Warp 1.19's recorded CPU launches are not safe side by side. (Calls
+            on one builder from several threads take turns either way.)
 
     Example::
 
@@ -126,6 +141,8 @@ class Builder:
         if not large_motion > 0.0:
             raise ValueError(f"large_motion must be > 0, got {large_motion}")
         self.num_prims = n = _count(num_prims, "num_prims", 1)
+        # Reentrant: `update` runs `rebuild` or `refit` under the same lock.
+        self._lock = threading.RLock()
         self.config = config
         self.device = device = wp.get_device(device)
         self.method = method
@@ -357,6 +374,7 @@ class Builder:
         self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_sq, used, self.stats])
 
     # ---------------------------------------------------------------- build
+    @_one_call_at_a_time
     def build(self, vertices, faces) -> Bvh:
         """Set the mesh (faces are fixed from now on) and build its BVH from scratch.
 
@@ -374,6 +392,7 @@ class Builder:
         self.kind, self.snapshots = "triangles", [self.previous_vertices]
         return self._first_build(vertices=self.vertices, faces=self.faces)
 
+    @_one_call_at_a_time
     def build_from_bounds(self, lowers, uppers) -> Bvh:
         """Set up the builder for arbitrary primitives given by their boxes, ``(N, 3)`` lowers and
         uppers (particles, spheres, capsules: a simulation's broad phase), and build their BVH.
@@ -539,6 +558,7 @@ class Builder:
         timings = timer.finish()
         return dict(timings)
 
+    @_one_call_at_a_time
     def rebuild(self, vertices=None, *, bounds=None) -> Bvh:
         """Full build over new vertices (or the current contents of ``self.vertices``); for a
         builder set up with `build_from_bounds`, over new ``bounds=(lowers, uppers)`` (or the
@@ -564,6 +584,7 @@ class Builder:
         self._report("rebuild", "rebuild requested", start, stages)
         return self.bvh
 
+    @_one_call_at_a_time
     def refit(self, vertices=None, *, bounds=None) -> Bvh:
         """Recompute every box for new vertices (or boxes, ``bounds=(lowers, uppers)``), keeping
         the topology."""
@@ -577,6 +598,7 @@ class Builder:
         self._report("refit", "refit requested", start, stages)
         return self.bvh
 
+    @_one_call_at_a_time
     def update(self, vertices=None, *, bounds=None) -> dict:
         """One frame under the builder's policy, over new vertices (or boxes, ``bounds=(lowers,
         uppers)``); returns the frame report (also `last_report`)."""
@@ -590,6 +612,7 @@ class Builder:
         return self.last_report
 
     # ----------------------------------------------------------------- auto
+    @_one_call_at_a_time
     def sah_cost(self) -> float:
         """SAH cost of the current tree (paper eq. 1, costs from the config), read to the host."""
         self._require_built()
