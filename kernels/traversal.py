@@ -182,9 +182,40 @@ def intersect_triangle_watertight(
         # same path keeps coordinates near 1e19 (products overflow float32) finite, and those
         # near 1e-19 exact: their products fall among float32's subnormals, where 1 / det
         # overflows and the edge functions lose their digits.
-        u64 = wp.float64(cx) * wp.float64(by) - wp.float64(cy) * wp.float64(bx)
-        v64 = wp.float64(ax) * wp.float64(cy) - wp.float64(ay) * wp.float64(cx)
-        w64 = wp.float64(bx) * wp.float64(ay) - wp.float64(by) * wp.float64(ax)
+        ax64 = wp.float64(ax)
+        ay64 = wp.float64(ay)
+        bx64 = wp.float64(bx)
+        by64 = wp.float64(by)
+        cx64 = wp.float64(cx)
+        cy64 = wp.float64(cy)
+        az64 = wp.float64(az)
+        bz64 = wp.float64(bz)
+        cz64 = wp.float64(cz)
+        sheared = wp.vec3(ax, ay, bx) + wp.vec3(by, cx, cy) + wp.vec3(az, bz, cz)
+        if not (wp.isfinite(sheared[0]) and wp.isfinite(sheared[1]) and wp.isfinite(sheared[2])):
+            # Coordinates beyond about 1e38 overflow float32 in the shear itself (a difference
+            # of two such values, or one scaled by 1 / dz): shear them in float64 instead. Only
+            # then, so that finite sheared values, which neighbours sharing an edge compute
+            # alike, still decide that edge.
+            dz64 = wp.float64(dz)
+            sx64 = wp.float64(direction[kx]) / dz64
+            sy64 = wp.float64(direction[ky]) / dz64
+            o64 = wp.vec3d(wp.float64(origin[0]), wp.float64(origin[1]), wp.float64(origin[2]))
+            pa64 = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2])) - o64
+            pb64 = wp.vec3d(wp.float64(b[0]), wp.float64(b[1]), wp.float64(b[2])) - o64
+            pc64 = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2])) - o64
+            ax64 = pa64[kx] - sx64 * pa64[kz]
+            ay64 = pa64[ky] - sy64 * pa64[kz]
+            bx64 = pb64[kx] - sx64 * pb64[kz]
+            by64 = pb64[ky] - sy64 * pb64[kz]
+            cx64 = pc64[kx] - sx64 * pc64[kz]
+            cy64 = pc64[ky] - sy64 * pc64[kz]
+            az64 = pa64[kz] / dz64
+            bz64 = pb64[kz] / dz64
+            cz64 = pc64[kz] / dz64
+        u64 = cx64 * by64 - cy64 * bx64
+        v64 = ax64 * cy64 - ay64 * cx64
+        w64 = bx64 * ay64 - by64 * ax64
         zero = wp.float64(0.0)
         if (u64 < zero or v64 < zero or w64 < zero) and (u64 > zero or v64 > zero or w64 > zero):
             return result
@@ -193,7 +224,7 @@ def intersect_triangle_watertight(
         # a segment); both count as a miss, as in the paper.
         if det64 == zero:
             return result
-        t = float((u64 * wp.float64(az) + v64 * wp.float64(bz) + w64 * wp.float64(cz)) / det64)
+        t = float((u64 * az64 + v64 * bz64 + w64 * cz64) / det64)
         bary_b = float(v64 / det64)
         bary_c = float(w64 / det64)
     else:

@@ -146,6 +146,26 @@ def test_tiny_triangles_at_every_scale(device, rng):
             assert np.array_equal(query.occluded(bvh, o, d), prim >= 0), (scale, kind)
 
 
+def test_huge_triangles_up_to_the_float32_limit(device, rng):
+    # Above about 2.7e38 the watertight test's shear overflowed float32 (a sheared coordinate is
+    # a difference of two such values): rays from the centre of a sphere that large missed it,
+    # 46 of 256 at 3e38. Hits are found as long as their distance is a float32.
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    d = rng.normal(size=(256, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    o = np.zeros_like(d)
+    for scale in (1e30, 2.6e38, 3e38, 3.3e38):
+        verts = (mesh.vertices * scale).astype(np.float32)
+        faces = np.asarray(mesh.faces, np.int32)
+        bvh = api.build(verts, faces, device=device)
+        t, prim = query.intersect(bvh, o, d)
+        t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+        assert (prim_ref >= 0).all()
+        _, unexplained = stress_report.classify(verts, faces, o, d, t, prim, t_ref, prim_ref)
+        assert unexplained == 0, scale
+        assert query.occluded(bvh, o, d).all(), scale
+
+
 def test_nan_inf_rays_miss_and_bad_shapes_raise(device, rng):
     verts, faces = stress_report.scene_soup(rng)
     bvh = api.build(verts, faces, device=device)
