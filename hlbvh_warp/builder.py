@@ -202,11 +202,11 @@ class Builder:
                     (hi - lo, [self.prim_order[lo:hi], self.user_codes, self.input_order[lo:hi],
                                pipe.morton_codes[lo:hi]])
                     for lo, hi in zip(cuts, cuts[1:])]
-        self.stats = wp.zeros(2, dtype=wp.float32, device=device)  # max displacement, root diagonal
-        # The motion measure's squared maxima, one per slice of vertices run side by side.
+        self.stats = wp.zeros(2, dtype=wp.float64, device=device)  # max displacement, root diagonal
+        # The motion measure's maxima, one per slice of vertices run side by side.
         self.motion_threads = threads_module.resolved_threads(config, device) if device.is_cpu else 1
-        self.largest_sq = wp.zeros(max(self.motion_threads, 1), dtype=wp.float32, device=device)
-        self.largest_sq_views = [self.largest_sq[j : j + 1] for j in range(self.largest_sq.shape[0])]
+        self.largest_move = wp.zeros(max(self.motion_threads, 1), dtype=wp.float32, device=device)
+        self.largest_move_views = [self.largest_move[j : j + 1] for j in range(self.largest_move.shape[0])]
         # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
         self.sah_scratch = wp.empty(metrics.sah_scratch_size(pipe.node_left.shape[0], device), dtype=wp.float64,
                                     device=device)
@@ -347,7 +347,7 @@ class Builder:
 
     def _measure(self, pairs: list):
         """stats[0] = the largest |source - dest| over every pair of arrays, then dest = source."""
-        self.largest_sq.zero_()
+        self.largest_move.zero_()
         used = 1
         for source, dest in pairs:
             count = dest.shape[0]
@@ -359,19 +359,19 @@ class Builder:
                 # on the CPU device are not atomic across threads): 1.7 ms on two cores for 1.2M
                 # vertices against 3.2 ms on one (the plain copy every policy makes: 0.8 ms).
                 cuts = threads_module.split_bounds(num_chunks, threads)
-                parts = [(hi - lo, [count, chunk, lo, source, dest, self.largest_sq_views[j]])
+                parts = [(hi - lo, [count, chunk, lo, source, dest, self.largest_move_views[j]])
                          for j, (lo, hi) in enumerate(zip(cuts, cuts[1:]))]
                 threads_module.launch_parts(dynamic.load_and_measure_kernel, self.device, parts, threads)
                 used = max(used, threads)
             else:
-                args = [count, chunk, 0, source, dest, self.largest_sq]
+                args = [count, chunk, 0, source, dest, self.largest_move]
                 if self.pipeline.launches is None:
                     wp.launch(dynamic.load_and_measure_kernel, dim=num_chunks, inputs=args, device=self.device)
                 else:
                     # The source is often the caller's array, a new one every frame: swapped into one
                     # record, not recorded anew (each record kept its array alive with the builder).
                     self.pipeline.launches.launch(dynamic.load_and_measure_kernel, num_chunks, args, vary=(3,))
-        self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_sq, used, self.stats])
+        self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_move, used, self.stats])
 
     # ---------------------------------------------------------------- build
     @_one_call_at_a_time

@@ -12,6 +12,11 @@ from .morton import morton_code
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
+# A NaN coordinate's move, squared: its square root is infinite as a float32, the largest move.
+NAN_MOVE_SQ = wp.constant(1.0e300)
+# The smallest float32 above zero: a move that rounds below it still counts as a move.
+SMALLEST_MOVE = wp.constant(1.0e-45)
+
 
 # ------------------------------------------------------------------ resorting
 @wp.kernel
@@ -67,9 +72,18 @@ def sample_run_breaks_kernel(
 
 # --------------------------------------------------------- motion and quality
 @wp.kernel
-def reset_stats_kernel(stats: wp.array(dtype=wp.float32)):
-    stats[0] = 0.0
-    stats[1] = 0.0
+def reset_stats_kernel(stats: wp.array(dtype=wp.float64)):
+    stats[0] = wp.float64(0.0)
+    stats[1] = wp.float64(0.0)
+
+
+@wp.func
+def vec3_difference64(p: wp.vec3, q: wp.vec3):
+    # p - q in float64, where a difference of float32 values is exact and its square neither
+    # overflows (coordinates near 1e20 square past float32's range) nor underflows (a move of
+    # 1e-23 squares to zero in float32): the motion measure holds at every scene scale.
+    return wp.vec3d(wp.float64(p[0]) - wp.float64(q[0]), wp.float64(p[1]) - wp.float64(q[1]),
+                    wp.float64(p[2]) - wp.float64(q[2]))
 
 
 @wp.kernel
@@ -79,52 +93,48 @@ def load_and_measure_kernel(
     first_chunk: int,
     source: wp.array(dtype=wp.vec3),
     dest: wp.array(dtype=wp.vec3),
-    largest_sq: wp.array(dtype=wp.float32),
+    largest_move: wp.array(dtype=wp.float32),
 ):
-    # One pass that loads a frame's vertices and measures how far they moved: largest_sq[0] =
-    # max |source - dest|^2 (a NaN coordinate counts as the largest float), then dest = source.
+    # One pass that loads a frame's vertices and measures how far they moved: largest_move[0] =
+    # max |source - dest| (a NaN coordinate counts as an infinite move), then dest = source.
     # Copying the last frame aside and comparing afterwards took three passes over the vertices
     # (about 2.6 ms a frame for the 300k vertices of the exploding armadillo on the CPU). A thread
-    # takes a chunk and does one atomic, not one per vertex; squared lengths leave one square root
-    # for `finish_motion_kernel`. Launches from different `first_chunk`s, each with its own
-    # `largest_sq`, run side by side on a multi-core CPU.
+    # takes a chunk and does one square root and one atomic, not one per vertex. Launches from
+    # different `first_chunk`s, each with its own `largest_move`, run side by side on a
+    # multi-core CPU.
     c = wp.tid() + first_chunk
     begin = c * chunk
     end = wp.min(begin + chunk, num_vertices)
-    largest = float(0.0)
+    largest = wp.float64(0.0)
     for i in range(begin, end):
         p = source[i]
-        q = dest[i]
-        d = wp.length_sq(p - q)
-        if d != d:
-            d = 3.4e38
-        elif d == 0.0:
-            # A move below about 1e-19 squares to zero in float32 (a particle near the origin),
-            # and "nothing moved" would keep a stale tree: it counts as the smallest normal square.
-            if p[0] != q[0] or p[1] != q[1] or p[2] != q[2]:
-                d = 1.17549435e-38
-        largest = wp.max(largest, d)
+        d = vec3_difference64(p, dest[i])
+        d2 = wp.dot(d, d)
+        if d2 != d2:
+            d2 = wp.float64(NAN_MOVE_SQ)
+        largest = wp.max(largest, d2)
         dest[i] = p
-    if largest > 0.0:
-        wp.atomic_max(largest_sq, 0, largest)
+    if largest > wp.float64(0.0):
+        # Rounded up to float32 as a length: a move is never reported as none.
+        wp.atomic_max(largest_move, 0, wp.max(float(wp.sqrt(largest)), SMALLEST_MOVE))
 
 
 @wp.kernel
-def finish_motion_kernel(largest_sq: wp.array(dtype=wp.float32), count: int, stats: wp.array(dtype=wp.float32)):
+def finish_motion_kernel(largest_move: wp.array(dtype=wp.float32), count: int, stats: wp.array(dtype=wp.float64)):
     # stats[0]: the largest displacement over the `count` partial maxima of the measure.
     largest = float(0.0)
     for j in range(count):
-        largest = wp.max(largest, largest_sq[j])
-    stats[0] = wp.sqrt(largest)
+        largest = wp.max(largest, largest_move[j])
+    stats[0] = wp.float64(largest)
 
 
 @wp.kernel
 def root_diagonal_kernel(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
-    stats: wp.array(dtype=wp.float32),
+    stats: wp.array(dtype=wp.float64),
 ):
-    stats[1] = wp.length(node_uppers[0] - node_lowers[0])
+    stats[1] = wp.length(vec3_difference64(node_uppers[0], node_lowers[0]))
 
 
 # --------------------------------------------------------------- deformations

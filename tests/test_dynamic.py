@@ -437,6 +437,24 @@ def test_auto_measures_the_motion_while_loading(device, small_scene):
         previous = frame.numpy().copy()
 
 
+@pytest.mark.parametrize("scale", [1e-30, 1e-20, 1e20, 1e37])
+def test_auto_measures_motion_at_every_scene_scale(device, small_scene, scale):
+    # The measure once squared float32 differences: at 1e20 the root diagonal's square overflowed
+    # (a 0.1% move read as "moved inf%" and rebuilt), at 1e-20 a move's square underflowed and was
+    # reported as 1e-19 (313% of the scene). Both against NumPy in float64, and a 0.1% move refits.
+    v, f = small_scene
+    verts = (v.astype(np.float64) * scale).astype(np.float32)
+    moved = (verts.astype(np.float64) * 1.001).astype(np.float32)
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(verts, f)
+    report = builder.update(moved)
+    expected = np.linalg.norm(moved.astype(np.float64) - verts, axis=1).max()
+    diagonal = np.linalg.norm(verts.astype(np.float64).max(0) - verts.astype(np.float64).min(0))
+    assert report["max_displacement"] == pytest.approx(expected, rel=1e-6)
+    assert report["relative_motion"] == pytest.approx(expected / diagonal, rel=1e-6)
+    assert report["decision"] == "refit", report["reason"]
+
+
 def test_auto_with_vertices_written_in_place(device, small_scene, rng):
     # update() with no argument: the caller wrote the frame into builder.vertices. The first such
     # frame has nothing to compare with and rebuilds; later ones measure against a snapshot.
