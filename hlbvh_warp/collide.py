@@ -17,10 +17,7 @@ import warp as wp
 from . import inputs
 from .bvh import Bvh
 from .kernels import collide, traversal
-from .query import _require_mesh, _require_whole_boxes, view
-
-#: Candidate pairs are counted in int32 on the device.
-MAX_PAIRS = 2**31 - 1
+from .query import _offsets, _require_mesh, _require_whole_boxes, view
 
 
 def _check_tree(bvh, name: str, mesh: bool):
@@ -62,14 +59,9 @@ def _candidates(queries: Bvh, tree: Bvh, self_pairs: bool) -> wp.array:
     counts = wp.zeros(queries.num_prims, dtype=wp.int32, device=device)
     none = wp.empty(0, dtype=wp.vec2i, device=device)
     launch_box_pairs(queries, tree, self_pairs, counts, counts, none)
-    # Summed in int64 on the host first: a device scan of counts past 2^31 would wrap.
-    total = int(counts.numpy().sum(dtype=np.int64))
-    if total > MAX_PAIRS:
-        raise ValueError(f"{total} overlapping pairs: more than the {MAX_PAIRS} a query can return")
+    offsets, total = _offsets(counts, "overlapping pairs")
     if total == 0:
         return none
-    offsets = wp.empty_like(counts)
-    wp.utils.array_scan(counts, offsets, inclusive=False)
     pairs = wp.empty(total, dtype=wp.vec2i, device=device)
     launch_box_pairs(queries, tree, self_pairs, offsets, counts, pairs)
     return pairs

@@ -254,12 +254,22 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     return hit
 
 
-def _offsets(counts: wp.array) -> tuple[wp.array, int]:
-    """Exclusive prefix sum of the per-query counts, and the total (the one host read)."""
+#: The most results one query call returns: offsets into its output are int32.
+MAX_RESULTS = 2**31 - 1
+
+
+def _offsets(counts: wp.array, what: str) -> tuple[wp.array, int]:
+    """Exclusive prefix sum of the per-query counts, and the total (read to the host).
+
+    The total is summed on the host in int64 first: the device's int32 scan of counts past
+    2^31 would wrap, and the write pass would then write outside the output it sized.
+    """
+    total = int(counts.numpy().sum(dtype=np.int64))
+    if total > MAX_RESULTS:
+        raise ValueError(f"{total} {what}: more than the {MAX_RESULTS} one query call can return")
     offsets = wp.empty_like(counts)
-    wp.utils.array_scan(counts, offsets, inclusive=False)
-    n = counts.shape[0]
-    total = int(offsets[n - 1 : n].numpy()[0] + counts[n - 1 : n].numpy()[0])
+    if total:
+        wp.utils.array_scan(counts, offsets, inclusive=False)
     return offsets, total
 
 
@@ -284,7 +294,7 @@ def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
     # Count pass, prefix sum, write pass: each ray owns a slice, no atomics, deterministic.
     wp.launch(traversal.all_hits_kernel, dim=num_rays,
               inputs=[view(bvh), ow, dw, t_max, counts, counts, none_i, none_f], device=device)
-    offsets, total = _offsets(counts)
+    offsets, total = _offsets(counts, "ray hits")
     if total == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
     out_prim = wp.empty(total, dtype=wp.int32, device=device)
@@ -343,7 +353,7 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
               inputs=[view(bvh), lw, hw, no_order, 0, counts, counts, none])
     if not return_pairs:
         return counts.numpy()
-    offsets, total = _offsets(counts)
+    offsets, total = _offsets(counts, "overlapping pairs")
     pairs = np.zeros((0, 2), np.int64)
     if total:
         out = wp.empty(total, dtype=wp.vec2i, device=device)

@@ -472,3 +472,14 @@ def test_query_boxes_are_validated(device, scene):
         query.query_aabb(bvh, lo.astype(np.complex64), lo + 1)
     with pytest.raises(ValueError, match="real numbers"):
         query.query_aabb(bvh, lo, np.ones((4, 3), bool))
+
+
+def test_result_totals_past_int32_are_refused_before_any_write(device):
+    # The offsets of query_aabb's pairs and intersect_all's hits were an int32 device scan: counts
+    # summing past 2^31 wrapped, and the write pass would have written outside the output it sized.
+    counts = wp.array(np.array([2**30, 2**30, 7], np.int32), dtype=wp.int32, device=device)
+    with pytest.raises(ValueError, match="2147483655 overlapping pairs"):
+        query._offsets(counts, "overlapping pairs")
+    counts = wp.array(np.array([3, 0, 5, 2], np.int32), dtype=wp.int32, device=device)
+    offsets, total = query._offsets(counts, "ray hits")
+    assert total == 10 and offsets.numpy().tolist() == [0, 3, 3, 8]
