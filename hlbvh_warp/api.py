@@ -82,7 +82,7 @@ def _resolve(method: str, config: BuildConfig | None, device):
     elif not isinstance(config, BuildConfig):
         raise ValueError(f"config must be a BuildConfig, got {type(config).__name__}")
     _load_optional_builders()
-    if method not in BUILDERS:
+    if not isinstance(method, str) or method not in BUILDERS:
         raise ValueError(f"unknown method {method!r}; choose one of {sorted(BUILDERS)}")
     return config, wp.get_device(device)
 

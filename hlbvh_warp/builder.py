@@ -53,6 +53,7 @@ POLICIES = ("rebuild", "refit", "auto")
 MAX_CHAOTIC_BACKOFF = 8
 # Vertices per thread of the auto policy's motion measure on the CPU (one atomic per chunk).
 MOTION_CHUNK_CPU = 4096
+MAX_PRIMS = inputs.MAX_PRIMS
 PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 # Adjacent pairs of the previous tree's order sampled to decide whether resorting pays (the
 # estimate of M / N is within about 0.03 (one standard error) of the whole order's).
@@ -141,6 +142,8 @@ class Builder:
         if not large_motion > 0.0:
             raise ValueError(f"large_motion must be > 0, got {large_motion}")
         self.num_prims = n = _count(num_prims, "num_prims", 1)
+        if n >= MAX_PRIMS:
+            raise ValueError(f"num_prims must be below {MAX_PRIMS} (int32 node ids, 2N - 1 nodes), got {n}")
         # Reentrant: `update` runs `rebuild` or `refit` under the same lock.
         self._lock = threading.RLock()
         self.config = config

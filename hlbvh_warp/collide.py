@@ -150,6 +150,8 @@ def triangles_intersect(tri_a, tri_b, neighbours: bool = False, device=None) -> 
     Returns:
         ``(K,)`` bool.
     """
+    if not isinstance(neighbours, (bool, np.bool_)):
+        raise ValueError(f"neighbours must be True or False, got {neighbours!r}")
     ta, tb = _triangle_rows(tri_a, "tri_a"), _triangle_rows(tri_b, "tri_b")
     if ta.shape != tb.shape:
         raise ValueError(f"tri_a and tri_b differ in shape: {ta.shape} vs {tb.shape}")

@@ -6,6 +6,10 @@ import numpy as np
 import warp as wp
 
 
+#: Primitives one tree can hold: node ids are int32 and the arena holds 2N - 1 nodes.
+MAX_PRIMS = 1 << 30
+
+
 def _to_numpy(values, name: str) -> np.ndarray:
     if isinstance(values, wp.array):
         return values.numpy()
@@ -42,14 +46,22 @@ def check_float32_range(arr: np.ndarray, name: str):
 
 def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
     """(vertices float32 (V, 3), faces int32 (F, 3)) from a trimesh.Trimesh or two arrays."""
+    is_mesh = hasattr(mesh, "vertices") and hasattr(mesh, "faces")
     if faces is None:
-        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+        if not is_mesh:
             raise ValueError("build() takes a trimesh.Trimesh, or vertices with faces=")
         vertices, faces = mesh.vertices, mesh.faces
+    elif is_mesh:
+        raise ValueError("build() takes a trimesh.Trimesh alone, or vertices with faces=; got a mesh and faces=")
     else:
         vertices = mesh
+    # An empty list reads as a float array of shape (0,): name the empty mesh, not the shape or dtype.
+    if _to_numpy(vertices, "vertices").size == 0:
+        raise ValueError("the mesh is empty: vertices has no rows")
     verts = _check_points(vertices, "vertices")
     tris = _to_numpy(faces, "faces")
+    if tris.size == 0:
+        raise ValueError("the mesh is empty: faces has no rows")
     if tris.dtype.kind not in "iu":
         raise ValueError(f"faces must hold integers, got dtype {tris.dtype}")
     if tris.ndim == 1 and tris.size % 3 == 0:
@@ -65,7 +77,7 @@ def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
         bad = lo if lo < 0 else hi
         row = int(np.argwhere((tris < 0) | (tris >= verts.shape[0]))[0][0])
         raise ValueError(f"face index {bad} out of range [0, {verts.shape[0]}) (first at face {row})")
-    if tris.shape[0] >= 1 << 30:
+    if tris.shape[0] >= MAX_PRIMS:
         raise ValueError(f"too many faces ({tris.shape[0]}): indices are int32 and the arena holds 2F - 1 nodes")
     return verts, np.ascontiguousarray(tris, dtype=np.int32)
 
@@ -77,6 +89,8 @@ def bounds_arrays(lowers, uppers) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"lowers and uppers differ in shape: {lo.shape} vs {hi.shape}")
     if lo.shape[0] == 0:
         raise ValueError("no primitives: lowers has no rows")
+    if lo.shape[0] >= MAX_PRIMS:
+        raise ValueError(f"too many boxes ({lo.shape[0]}): node ids are int32 and the arena holds 2N - 1 nodes")
     inverted = lo > hi
     if inverted.any():
         row = int(np.argwhere(inverted)[0][0])

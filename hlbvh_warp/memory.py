@@ -26,6 +26,7 @@ import threading
 import weakref
 from collections import OrderedDict
 
+import numpy as np
 import warp as wp
 
 #: Arrays smaller than this come from `wp.empty` directly: the C allocator keeps small blocks.
@@ -185,9 +186,16 @@ def empty(shape, dtype, device) -> wp.array:
     return _POOL.empty(shape, dtype, device)
 
 
+def _non_negative_int(value, name: str) -> int:
+    # 1.5 bytes or True sets is a caller's mistake, not a value to round.
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+    return int(value)
+
+
 def set_host_cache_limit(limit_bytes: int):
     """Cap the idle host memory kept for later builds (0 disables the pool)."""
-    _POOL.limit = int(limit_bytes)
+    _POOL.limit = _non_negative_int(limit_bytes, "limit_bytes")
     if _POOL.idle_bytes > _POOL.limit:
         _POOL.clear()
     if _POOL.limit <= 0:
@@ -199,10 +207,7 @@ def set_host_cache_limit(limit_bytes: int):
 def set_scratch_cache_sets(count: int):
     """Keep at most `count` one-shot pipeline scratch sets (default 16; 0 keeps none, while the
     pool still recycles blocks). One per mesh a program builds one-shot in turn is enough."""
-    count = int(count)
-    if count < 0:
-        raise ValueError(f"count must be >= 0, got {count}")
-    _SCRATCH.max_entries = count
+    _SCRATCH.max_entries = _non_negative_int(count, "count")
     _SCRATCH.trim(_POOL.limit)
 
 

@@ -20,14 +20,33 @@ from .bvh import Bvh
 from .kernels import metrics as kernels
 
 
+def check_costs(t_traversal, t_intersect) -> tuple[float, float]:
+    """The SAH constants as floats: real and finite, T1 >= 0 and T2 > 0 (a NaN would make every
+    cost NaN, not an error)."""
+    values = []
+    for name, value in (("t_traversal", t_traversal), ("t_intersect", t_intersect)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{name} must be a number, got {value!r}")
+        values.append(float(value))
+    t1, t2 = values
+    if not (np.isfinite(t1) and np.isfinite(t2) and t1 >= 0 and t2 > 0):
+        raise ValueError(f"need finite t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    return t1, t2
+
+
+def require_bvh(bvh, name: str):
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
+
+
 def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scratch=None) -> wp.array:
     """SAH cost of every node's subtree (float64, arena-sized; the used part is ``num_nodes``).
 
     ``scratch``: an optional ``(visits int32, costs float64)`` pair of arena-sized arrays, so that a
     per-frame caller (``Builder``) allocates nothing; the returned array is then ``costs``.
     """
-    if t_traversal < 0 or t_intersect <= 0:
-        raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    require_bvh(bvh, "node_costs")
+    t_traversal, t_intersect = check_costs(t_traversal, t_intersect)
     device = bvh.device
     capacity = bvh.node_left.shape[0]
     if scratch is None:
@@ -65,8 +84,8 @@ def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scrat
     ``scratch``: an optional float64 array of at least ``ceil(capacity / chunk)`` entries, so
     that a per-frame caller allocates nothing (`sah_scratch_size`).
     """
-    if t_traversal < 0 or t_intersect <= 0:
-        raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    require_bvh(bvh, "sah_cost")
+    t_traversal, t_intersect = check_costs(t_traversal, t_intersect)
     device = bvh.device
     chunk = CPU_SAH_CHUNK if device.is_cpu else CUDA_SAH_CHUNK
     size = sah_scratch_size(bvh.node_left.shape[0], device)
@@ -108,6 +127,8 @@ def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> 
     ``leaf_size_histogram[k]`` is the number of leaves holding k primitives (references, in a
     spatial-split tree: ``num_refs`` counts them).
     """
+    require_bvh(bvh, "tree_stats")
+    t_traversal, t_intersect = check_costs(t_traversal, t_intersect)
     device = bvh.device
     num_nodes = bvh.num_nodes
     depths = wp.empty(num_nodes, dtype=wp.int32, device=device)
@@ -182,12 +203,10 @@ def end_point_overlap(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1
     it is a measurement, not a per-frame stage. Returns the EPO (a float), or with `per_node` the
     float64 array of each node's term(n) * A(...) (not yet divided by A(S)) as well.
     """
-    if not isinstance(bvh, Bvh):
-        raise ValueError(f"end_point_overlap() takes a Bvh, got {type(bvh).__name__}")
+    require_bvh(bvh, "end_point_overlap")
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError("end_point_overlap() needs a BVH built over a mesh (build()), not over bare boxes")
-    if t_traversal < 0 or t_intersect <= 0:
-        raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    t_traversal, t_intersect = check_costs(t_traversal, t_intersect)
     from . import threads as threads_module
 
     device = bvh.device

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from . import inputs
+from . import inputs, metrics
 from .bvh import Bvh
 from .kernels import wide as kernels
 from .kernels.traversal import PackedTriangle
@@ -146,8 +146,9 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
     """Pantaleoni & Luebke's eq. (1) on the wide tree: C(node) = T1 * N_children + sum of
     C(child) * area(child) / area(node), C(leaf) = T2 * N_prims. At width 2 it is
     `metrics.sah_cost` of the binary tree."""
-    if t_traversal < 0 or t_intersect <= 0:
-        raise ValueError(f"need t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+    if not isinstance(wide, WideBvh):
+        raise ValueError(f"sah_cost() takes a WideBvh (wide.collapse), got {type(wide).__name__}")
+    t_traversal, t_intersect = metrics.check_costs(t_traversal, t_intersect)
     bvh = wide.bvh
     if int(bvh.node_left[0:1].numpy()[0]) < 0:
         # A single leaf: no traversal step at all.

@@ -1062,6 +1062,9 @@ def test_errors(device):
             hlbvh_warp.triangles_intersect(a, b, device=device)
     with pytest.raises(ValueError, match=r"(?i)differ|same|match|length|number|count|shape"):
         hlbvh_warp.triangles_intersect(tri, tri[:3], device=device)
+    for flag in ("no", 0, None):  # "no" was taken as True
+        with pytest.raises(ValueError, match="neighbours"):
+            hlbvh_warp.triangles_intersect(tri, tri, neighbours=flag, device=device)
     for value in (np.nan, np.inf, -np.inf):
         bad = tri.copy()
         bad[2, 1, 0] = value

@@ -406,6 +406,12 @@ def test_builder_counts_must_be_integers(field, value):
     assert Builder(np.int64(100), device="cpu", max_refits=np.int32(2)).num_prims == 100
 
 
+def test_builder_refuses_more_primitives_than_int32_node_ids_hold():
+    # Warp's own error ("Array shapes must not exceed ...") named no argument.
+    with pytest.raises(ValueError, match="num_prims must be below 1073741824"):
+        Builder(1 << 30, device="cpu")
+
+
 def test_frames_take_integer_vertices_as_build_does(device, rng):
     # `build` takes integer coordinates; a later frame of the same kind used to be refused.
     v, f = default_scene(500)

@@ -184,10 +184,21 @@ def test_scratch_cache_sets_setting(pool, device, rng):
         memory.set_scratch_cache_sets(0)
         hw.build(*random_soup(rng, 3000), device=device)
         assert not memory._SCRATCH._entries and memory._SCRATCH.held_bytes == 0
-        with pytest.raises(ValueError, match="count"):
-            memory.set_scratch_cache_sets(-1)
+        for bad in (-1, 2.5, True, "3"):
+            with pytest.raises(ValueError, match="count"):
+                memory.set_scratch_cache_sets(bad)
+        assert memory._SCRATCH.max_entries == 0
     finally:
         memory.set_scratch_cache_sets(old)
+
+
+def test_host_cache_limit_must_be_a_byte_count(pool):
+    # -1 and 1.5 were taken as limits (int() of them), "x" failed inside int().
+    old = memory._POOL.limit
+    for bad in (-1, 1.5, True, "x"):
+        with pytest.raises(ValueError, match="limit_bytes"):
+            memory.set_host_cache_limit(bad)
+    assert memory._POOL.limit == old
 
 
 GC_REENTRY_SCRIPT = """

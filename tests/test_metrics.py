@@ -201,12 +201,25 @@ def test_tree_stats_counts_and_mean_leaf_size(device, rng):
     assert stats["mean_leaf_size"] > 1.0
 
 
-@pytest.mark.parametrize("t1, t2", [(-0.5, 1.0), (1.0, 0.0), (1.0, -1.0)])
+@pytest.mark.parametrize("t1, t2", [(-0.5, 1.0), (1.0, 0.0), (1.0, -1.0), (float("nan"), 1.0), (1.0, float("inf")),
+                                    ("1", 1.0), (1.0, None)])
 def test_cost_functions_reject_bad_constants(device, t1, t2):
     from hlbvh_warp.metrics import node_costs
 
     lo = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
     bvh = hw.build_from_bounds(lo, lo + 1, device=device)
     for cost in (sah_cost, node_costs, tree_stats):
-        with pytest.raises(ValueError, match="t_intersect"):
+        with pytest.raises(ValueError, match="t_intersect|t_traversal"):
             cost(bvh, t1, t2)
+
+
+def test_cost_functions_name_a_tree_that_is_not_one(device):
+    from hlbvh_warp.metrics import end_point_overlap, node_costs
+
+    lo = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
+    builder = hw.Builder(2, device=device)
+    builder.build_from_bounds(lo, lo + 1)
+    for cost in (sah_cost, node_costs, tree_stats, end_point_overlap):
+        for not_a_tree in (None, builder):
+            with pytest.raises(ValueError, match="takes a Bvh"):
+                cost(not_a_tree)

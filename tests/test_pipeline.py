@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 import warp as wp
 from oracles import (
     assert_hits_match,
@@ -627,6 +628,10 @@ def test_degenerate_triangles_are_valid(device, rng):
         (np.zeros((0, 3)), np.zeros((0, 3), np.int32), "empty"),
         (np.eye(3), np.zeros((0, 3), np.int32), "empty"),
         (np.array([["a", "b", "c"]]), [[0, 0, 0]], "real numbers"),
+        # Empty lists read as float arrays of shape (0,): the message names the empty mesh.
+        (np.eye(3), [], "empty: faces"),
+        ([], [], "empty: vertices"),
+        ([], [[0, 1, 2]], "empty: vertices"),
     ],
 )
 def test_bad_input_raises(device, vertices, faces, message):
@@ -639,6 +644,10 @@ def test_bad_bounds_and_options(device):
         hb.build_from_bounds(np.ones((2, 3)), np.zeros((2, 3)), device=device)
     with pytest.raises(ValueError, match="unknown method"):
         hb.build(np.eye(3), [[0, 1, 2]], method="nope", device=device)
+    with pytest.raises(ValueError, match="unknown method"):
+        hb.build(np.eye(3), [[0, 1, 2]], method=["hlbvh"], device=device)
+    with pytest.raises(ValueError, match="alone, or vertices with faces="):
+        hb.build(trimesh.creation.box(), faces=[[0, 1, 2]], device=device)
     with pytest.raises(ValueError, match="planes_per_pass"):
         hb.BuildConfig(planes_per_pass=9)
     with pytest.raises(ValueError, match="global_sort_runs"):

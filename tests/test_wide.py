@@ -195,6 +195,8 @@ def test_bad_arguments(device):
         wide.intersect(bvh, v, v)
     with pytest.raises(ValueError, match="t_intersect"):
         wide.sah_cost(w, 1.0, 0.0)
+    with pytest.raises(ValueError, match="takes a WideBvh"):
+        wide.sah_cost(bvh)
 
 
 def wide_bench_rows(tmp_path, widths: str) -> list:
