@@ -441,6 +441,10 @@ def parse_args(argv):
     args = parser.parse_args(argv)
     args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
     api._load_optional_builders()
+    if not args.builders:
+        # Named here: an empty list used to reach the plot and end in matplotlib's "Number of
+        # columns must be a positive integer, not 0".
+        parser.error(f"--builders names no builder; choose from {sorted(api.BUILDERS) + list(PEERS)}")
     unknown = [b for b in args.builders if b not in api.BUILDERS and b not in PEERS]
     if unknown:
         parser.error(f"unknown builders {unknown}; choose from {sorted(api.BUILDERS) + list(PEERS)}")

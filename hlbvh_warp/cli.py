@@ -54,6 +54,8 @@ def device_name(text: str) -> str:
 
 def mesh_file(text: str) -> str:
     """argparse type: a path to an existing file (read later by trimesh)."""
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text} is a directory, not a mesh file")
     if not os.path.isfile(text):
         raise argparse.ArgumentTypeError(f"no such mesh file: {text}")
     return text

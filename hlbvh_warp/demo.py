@@ -40,6 +40,16 @@ def rays_at(vertices, count: int, seed: int = 0):
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
+def check_out_folder(path: str):
+    """Make the output folder ``path`` (and its parents), or raise a ValueError naming ``--out``."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ValueError(f"--out {path} is a file, not a folder")
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"--out {path}: cannot make the folder ({error.strerror or error})") from None
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp demo", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -57,27 +67,43 @@ def main(argv=None) -> int:
 
     wp.config.quiet = True
     wp.init()
-    from . import api
+    from . import api, inputs
     from .builder import Builder
     from .dynamic import Animation, ExplodingMesh
     from .render import Camera
     from .scenes import scene
 
+    # Every method name checked before the first build, not when the loop reaches it.
+    api._load_optional_builders()
+    if args.methods is None:
+        methods = [m for m in api.BUILDERS if m not in api.OFFLINE_BUILDERS]
+    elif not args.methods.strip():
+        # An empty list used to read as no list at all: every method ran.
+        raise ValueError(f"--methods {args.methods!r} names no method; choose from {sorted(api.BUILDERS)}")
+    else:
+        methods = args.methods.split(",")
+    unknown = [m for m in methods if m not in api.BUILDERS]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown} in --methods; choose from {sorted(api.BUILDERS)}")
+    # The output folder before any work: a path that cannot be a folder used to fail only after
+    # every build and the whole animation had run.
+    check_out_folder(args.out)
+
     failures = 0
     with wp.ScopedDevice(args.device):
         device = wp.get_device()
         vertices, faces = scene(args.mesh, args.num_tris)
+        # The library's checks (face indices in range, finite coordinates) before the float64
+        # reference below indexes the vertices with the faces: a PLY face naming vertex 9 of 3
+        # ended in NumPy's IndexError there, not in build()'s message.
+        try:
+            vertices, faces = inputs.mesh_arrays(vertices, faces)
+        except ValueError as error:
+            raise ValueError(f"{args.mesh}: {error}" if args.mesh else str(error)) from None
         print(f"scene: {'generated torus knot' if not args.mesh else args.mesh}, {len(faces)} triangles, "
               f"device {device}")
 
         # 1. Every build method on the static scene, checked against a float64 brute force.
-        api._load_optional_builders()
-        methods = (args.methods.split(",") if args.methods
-                   else [m for m in api.BUILDERS if m not in api.OFFLINE_BUILDERS])
-        # Every name checked before the first build, not when the loop reaches it.
-        unknown = [m for m in methods if m not in api.BUILDERS]
-        if unknown:
-            raise ValueError(f"unknown method(s) {unknown} in --methods; choose from {sorted(api.BUILDERS)}")
         origins, directions = rays_at(vertices, args.rays)
         reference = brute_force_closest_hit(vertices, faces, origins, directions)
         for method in methods:

@@ -30,15 +30,35 @@ from .collide import _candidates, launch_box_pairs
 from .ray_bench import best_times, mesh_method_parser, run_rows
 
 
+#: Largest finite float32: the trees are built over float32 coordinates.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def moved_copy(vertices: np.ndarray) -> np.ndarray:
-    """The mesh turned by 30 degrees about y through its centre and moved by a tenth of its diagonal."""
-    lo, hi = vertices.min(0), vertices.max(0)
+    """The mesh turned by 30 degrees about y through its centre and moved by a tenth of its diagonal.
+
+    Computed in float64: a finite float32 mesh whose box spans more than float32's range (corners
+    near -3e38 and +3e38) overflowed in its own diagonal, and the build then blamed the file for
+    the NaN this made.
+
+    Raises:
+        ValueError: the moved copy leaves float32's range (a mesh reaching near +-3.4e38, which
+            the turn's corners or the shift push past it); the mesh itself is not at fault.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    lo, hi = v.min(0), v.max(0)
     center = 0.5 * (lo + hi)
     angle = np.radians(30.0)
     c, s = np.cos(angle), np.sin(angle)
     turn = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     shift = 0.1 * np.linalg.norm(hi - lo) * np.array([1.0, 0.0, 0.0])
-    return ((vertices - center) @ turn.T + center + shift).astype(np.float32)
+    moved = (v - center) @ turn.T + center + shift
+    largest = float(np.abs(moved).max())
+    if not largest <= FLOAT32_MAX:
+        raise ValueError(f"the benchmark's moved copy of the mesh (turned by 30 degrees and shifted by {shift[0]:.3g} "
+                         f"along x) overflows float32: a coordinate reaches {largest:.3g}, past {FLOAT32_MAX:.3g}; "
+                         "the mesh is finite, but too near float32's limit for the 'moved' scene")
+    return moved.astype(np.float32)
 
 
 def count_disagreements(ours: np.ndarray, reference: np.ndarray, order: np.ndarray, self_pairs: bool) -> int:
@@ -63,12 +83,17 @@ def run(mesh_path: pathlib.Path, method: str, count: int, repeats: int, device, 
     from .scenes import load_mesh
 
     vertices, faces = load_mesh(mesh_path)
+    # Before any build: a copy that cannot be moved within float32 is named before the work.
+    try:
+        moved = moved_copy(vertices)
+    except ValueError as error:
+        raise ValueError(f"{mesh_path}: {error}") from None
     config = BuildConfig(max_leaf_size=max_leaf_size)
     bvh = api.build(vertices, faces, method=method, device=device, config=config)
     points = wp.array(vertices, dtype=wp.vec3, device=device)
     indices = wp.array(faces.ravel(), dtype=wp.int32, device=device)
     wmesh = wp.Mesh(points=points, indices=indices)
-    other = api.build(moved_copy(vertices), faces, method=method, device=device, config=config)
+    other = api.build(moved, faces, method=method, device=device, config=config)
     rows = []
     for scene, queries, self_pairs in (("self", bvh, 1), ("moved", other, 0)):
         n = faces.shape[0]

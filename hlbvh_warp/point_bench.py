@@ -30,10 +30,24 @@ from .ray_bench import best_times, mesh_method_parser, run_rows
 DISAGREE_RTOL = 1e-5
 
 
+def bench_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(lo, hi, diag)``: the box the point sets fill and its diagonal, the scale of every
+    tolerance and offset. A mesh whose vertices all coincide (degenerate triangles are valid
+    input) has no box: a cube around its one point stands in, as large as its coordinates (1 at
+    the origin), so the sets still spread around it and the tolerances are not zero."""
+    v = np.asarray(vertices, dtype=np.float64)
+    lo, hi = v.min(0), v.max(0)
+    diag = float(np.linalg.norm(hi - lo))
+    if not diag > 0.0:
+        side = float(np.abs(v).max()) or 1.0
+        lo, hi = lo - 0.5 * side, hi + 0.5 * side
+        diag = float(np.linalg.norm(hi - lo))
+    return lo, hi, diag
+
+
 def point_sets(rng, vertices: np.ndarray, num_points: int) -> dict:
     """The benchmark's point sets, with each one's max_dist (inf when unbounded)."""
-    lo, hi = vertices.min(0), vertices.max(0)
-    diag = float(np.linalg.norm(hi - lo))
+    lo, hi, diag = bench_box(vertices)
     box = lo - 0.2 * (hi - lo) + rng.random((num_points, 3)) * 1.4 * (hi - lo)
     near = vertices[rng.integers(0, len(vertices), num_points)] + rng.normal(0.0, 0.01 * diag, (num_points, 3))
     return {
@@ -65,7 +79,7 @@ def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, dev
         indices=wp.array(faces.ravel(), dtype=wp.int32, device=device),
     )
     bvh_view = query.view(bvh)
-    scale = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    _, _, scale = bench_box(vertices)
     rng = np.random.default_rng(seed)
     rows = []
     for kind, (points, max_dist) in point_sets(rng, vertices, num_points).items():

@@ -98,10 +98,29 @@ def progress(text: str):
 
 
 def load_mesh(path):
-    """``(vertices float32, faces int32)`` of a mesh file (anything trimesh reads), unprocessed."""
+    """``(vertices float32, faces int32)`` of a mesh file (anything trimesh reads), unprocessed.
+
+    Raises:
+        ValueError: ``path`` is a folder, trimesh fails to read the file (its reason named), or the
+            mesh has no triangles. Face indices are checked later, by the build.
+    """
+    import os
+
     import trimesh
 
-    mesh = trimesh.load(path, process=False, force="mesh")
+    if os.path.isdir(path):
+        # trimesh reads a folder's name as a mesh's text and says "string is not a file".
+        raise ValueError(f"{path} is a directory, not a mesh file")
+    try:
+        mesh = trimesh.load(path, process=False, force="mesh")
+    except (ValueError, OSError, NotImplementedError):
+        raise  # trimesh's own message names the problem (a missing file, an unsupported type)
+    except Exception as error:
+        # trimesh's parsers index with the file's numbers before checking them (an OBJ face
+        # naming vertex 9 of 3 is an IndexError inside its loader): whatever fails in there is
+        # the file's problem, named as such, not a traceback.
+        hint = "; a face refers to a vertex the file does not have?" if isinstance(error, IndexError) else ""
+        raise ValueError(f"{path}: trimesh could not read the mesh ({type(error).__name__}: {error}{hint})") from None
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int32).reshape(-1, 3)
     if faces.shape[0] == 0:
         # Named here, before a command computes bounds or rays over it (NumPy's reductions over

@@ -8,7 +8,9 @@ trimesh's tolerance-based one: a hit needs t > 0 (trimesh also accepts hits up t
 origin), and rays lying in a triangle's plane or hitting zero-area triangles do not hit them.
 
 `ProximityQuery` answers ``on_surface`` and ``signed_distance`` as trimesh 5.2 does, without
-trimesh's r-tree dependency (``rtree``, which trimesh needs for them and this package does not).
+trimesh's r-tree dependency (``rtree``, which trimesh needs for them and this package does not),
+except that a point whose closest triangle has zero area is signed by ray parity (trimesh's sign
+of its zero normal gives -0.0), and a single ``(3,)`` point is one row (trimesh refuses it).
 """
 
 from __future__ import annotations
@@ -149,34 +151,57 @@ class ProximityQuery:
 
     def signed_distance(self, points):
         """Distance to the surface, positive inside the mesh and within 1e-8 (trimesh's
-        ``tol.merge``) of the surface, negative outside, decided as trimesh 5.2 decides it:
-        ``(m,) float64``.
+        ``tol.merge``) of the surface, negative outside, decided as trimesh 5.2 decides it.
 
         Where the point's projection onto its closest triangle's plane falls inside that
         triangle, the triangle's normal gives the sign (so an open mesh has a side); elsewhere, a
-        ray-parity test against the whole mesh (`contains_points`). The band is taken on the
-        float32 point and mesh this package queries: a float64 point 1e-8 from the surface may
-        round to either side of it. A point with a NaN or Inf coordinate gets NaN.
+        ray-parity test against the whole mesh (`contains_points`). A closest triangle of zero
+        area has no normal (trimesh's is zero, its barycentrics NaN): the ray-parity test signs
+        those points too, where trimesh multiplies the distance by the sign of zero. A point the
+        normal cannot side (exactly in the triangle's plane) goes to the ray-parity test as well.
+        The band is taken on the float32 point and mesh this package queries: a float64 point 1e-8
+        from the surface may round to either side of it.
+
+        Args:
+            points: ``(m, 3)`` points, or a single ``(3,)`` point (answered as ``(1, 3)``, as
+                `on_surface` answers it).
+
+        Returns:
+            ``(m,) float64``: the unsigned distance of `on_surface` with the sign above, never
+            ``-0.0``. A point with a NaN or Inf coordinate gets NaN.
         """
         from trimesh.constants import tol
         from trimesh.triangles import points_to_barycentric
 
-        points = np.asanyarray(points, dtype=np.float64)
         closest, distance, triangle_id = self.on_surface(points)
+        # on_surface checked the shape; a single (3,) point is one row, as its answers are (the
+        # (3,) array broadcast against the (1, 3) closest point gave a sign from the wrong axis).
+        points = np.asanyarray(points, dtype=np.float64).reshape(-1, 3)
         distance[triangle_id < 0] = np.nan
         far = np.nonzero((triangle_id >= 0) & (distance > tol.merge))[0]
         if len(far) == 0:
             return distance
         normals = self.mesh.face_normals[triangle_id[far]]
+        # A zero-area triangle's normal is zero: its barycentrics are NaN, which no comparison
+        # rejects, and the sign of zero would wipe out the distance.
+        has_normal = np.einsum("ij,ij->i", normals, normals) > 0.0
         offset = np.einsum("ij,ij->i", points[far] - closest[far], normals)
         projection = points[far] - normals * offset[:, None]
-        barycentric = points_to_barycentric(self.mesh.triangles[triangle_id[far]], projection)
-        on_triangle = ~((barycentric < -tol.merge) | (barycentric > 1 + tol.merge)).any(axis=1)
+        on_triangle = np.zeros(len(far), dtype=bool)
+        if has_normal.any():
+            barycentric = points_to_barycentric(self.mesh.triangles[triangle_id[far[has_normal]]],
+                                                projection[has_normal])
+            on_triangle[has_normal] = ~((barycentric < -tol.merge) | (barycentric > 1 + tol.merge)
+                                        | ~np.isfinite(barycentric)).any(axis=1)
+        facing = np.einsum("ij,ij->i", normals, points[far] - projection)
+        # A point in the triangle's plane (facing 0) has no side by the normal either.
+        by_normal = on_triangle & (facing != 0.0)
         # The normal's side is outside: negative there.
-        facing = np.einsum("ij,ij->i", normals[on_triangle], points[far[on_triangle]] - projection[on_triangle])
-        distance[far[on_triangle]] *= -np.sign(facing)
-        rest = far[~on_triangle]
-        if len(rest):
-            inside = self._rays.contains_points(points[rest])
-            distance[rest] *= np.where(inside, 1.0, -1.0)
+        outside = np.zeros(len(far), dtype=bool)
+        outside[by_normal] = facing[by_normal] > 0.0
+        rest = ~by_normal
+        if rest.any():
+            outside[rest] = ~self._rays.contains_points(points[far[rest]])
+        magnitude = np.abs(distance[far])
+        distance[far] = np.where(outside, -magnitude, magnitude)
         return distance

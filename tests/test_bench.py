@@ -198,3 +198,78 @@ def test_point_bench_disagreement_rule():
     # agrees, row 3 both found nothing, row 4 one found nothing.
     assert count_disagreements(d_a, p_a, d_b, p_b, scale=1.0) == 2
     assert count_disagreements(d_a, p_a, d_b, p_b, scale=10.0) == 1
+
+
+def test_bench_rejects_an_empty_builder_list(capsys):
+    # An empty list reached the plot and ended in matplotlib's "Number of columns must be a
+    # positive integer, not 0": an argument error naming --builders now.
+    for builders in ("", " , "):
+        with pytest.raises(SystemExit) as exit_:
+            bench.parse_args(["--builders", builders])
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and "--builders names no builder" in err, (builders, err)
+
+
+def test_bench_points_runs_on_a_mesh_whose_vertices_coincide(device, tmp_path, capsys):
+    # Every vertex at one point (two zero-area triangles: valid input) gave a box diagonal of 0,
+    # a ZeroDivisionError in the distance check. A cube around the point stands in for the box:
+    # the sets spread around it, and every distance agrees with wp.Mesh's.
+    from hlbvh_warp import cli, point_bench
+
+    for corner in ((0.0, 0.0, 0.0), (1e3, -2e3, 5e2)):
+        path = tmp_path / "degenerate.obj"
+        path.write_text("".join(f"v {corner[0]} {corner[1]} {corner[2]}\n" for _ in range(3)) + "f 1 2 3\nf 1 2 3\n")
+        rc = cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1", "--device", device])
+        out = capsys.readouterr().out
+        rows = [line.split() for line in out.splitlines() if line.startswith("degenerate ")]
+        assert rc == 0 and "disagreements in total: 0" in out, out
+        assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
+        assert all(r[5] == "64" and r[6] == "0" for r in rows), out
+        # The sets lie around the point, at distances of the cube's size (1 at the origin, else
+        # the largest coordinate), not all on it.
+        vertices = np.array([corner] * 3, np.float32)
+        side = max(np.abs(corner)) or 1.0
+        sets = point_bench.point_sets(np.random.default_rng(0), vertices, 200)
+        for kind, (points, _) in sets.items():
+            distance = np.linalg.norm(points.astype(np.float64) - np.asarray(corner), axis=1)
+            assert distance.max() > 1e-3 * side and distance.max() < 2.0 * side, kind
+
+
+def test_bench_pairs_moves_a_mesh_near_float32s_limit_without_overflow(device, tmp_path, capsys):
+    # A finite mesh spanning -2e38..2e38: its float32 box diagonal overflowed, the moved copy came
+    # out [inf, nan, nan] and the build blamed the file. The move is computed in float64 now; the
+    # oracle is the move's own definition: a rigid turn (float64 distances between vertices kept)
+    # and a shift of the centre by a tenth of the box diagonal along x.
+    from hlbvh_warp import cli
+    from hlbvh_warp.pair_bench import moved_copy
+
+    vertices = np.array([[-2e38, 0, 0], [2e38, 1e37, 0], [0, 0, 1e37], [-1e38, 1e37, 1e37]], np.float32)
+    moved = moved_copy(vertices)
+    assert moved.dtype == np.float32 and np.isfinite(moved).all()
+    v, m = vertices.astype(np.float64), moved.astype(np.float64)
+    pairwise = np.linalg.norm(v[:, None] - v[None], axis=-1)
+    np.testing.assert_allclose(np.linalg.norm(m[:, None] - m[None], axis=-1), pairwise, rtol=1e-6)
+    np.testing.assert_array_equal(m[:, 1], v[:, 1])  # turned about y, shifted along x
+    # Less the shift, the vertices' mean sits as far from the box centre as before, 30 degrees
+    # round it in the xz-plane.
+    centre = 0.5 * (v.min(0) + v.max(0))
+    before = v.mean(0) - centre
+    after = m.mean(0) - np.array([0.1 * np.linalg.norm(v.max(0) - v.min(0)), 0.0, 0.0]) - centre
+    assert np.linalg.norm(after) == pytest.approx(np.linalg.norm(before), rel=1e-6)
+    turn = np.arctan2(after[0], after[2]) - np.arctan2(before[0], before[2])
+    assert np.degrees(np.abs(np.angle(np.exp(1j * turn)))) == pytest.approx(30.0, rel=1e-5)
+
+    path = tmp_path / "huge.obj"
+    path.write_text("".join(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in vertices) + "f 1 2 3\nf 2 3 4\n")
+    rc = cli.main(["bench-pairs", "--mesh", str(path), "--repeats", "1", "--device", device])
+    captured = capsys.readouterr()
+    assert rc == 0 and "disagreements in total: 0" in captured.out, captured
+
+    # Corners near +-3.3e38 along x and z: turned by 30 degrees they pass float32's limit. The
+    # error says the benchmark's move overflowed, not that the (finite) file holds NaN or Inf.
+    over = tmp_path / "over.obj"
+    over.write_text("v 3.3e38 0 3.3e38\nv -3.3e38 0 -3.3e38\nv 0 1e37 0\nf 1 2 3\n")
+    rc = cli.main(["bench-pairs", "--mesh", str(over), "--repeats", "1", "--device", device])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and "NaN or Inf" not in err, err
+    assert f"{over}: the benchmark's moved copy of the mesh" in err and "overflows float32" in err, err

@@ -96,3 +96,76 @@ def test_demo_checks_every_method_name_before_building(tmp_path, monkeypatch, ca
         rc = cli.main(["demo", "--methods", methods, "--num-frames", "1", "--out", str(tmp_path / "out")])
         err = capsys.readouterr().err
         assert rc == 2 and "unknown method" in err and "Traceback" not in err, (methods, err)
+
+
+def _exit_code(argv):
+    """cli.main's status, argparse's own errors (SystemExit) included."""
+    try:
+        return cli.main(argv)
+    except SystemExit as exit_:
+        return exit_.code
+
+
+def test_mesh_file_trimesh_cannot_read_is_one_line_in_every_command(tmp_path, capsys):
+    # An OBJ face naming vertex 9 of 3 raised an IndexError inside trimesh's loader, a traceback
+    # in every command; each names the file and the problem now (the load comes first: no work).
+    bad = tmp_path / "bad_face.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n")
+    for command in ("demo", "bench", "bench-rays", "bench-points", "bench-pairs", "bench-wide", "quality"):
+        argv = [command, "--mesh", str(bad), "--repeats", "1"] if command.startswith("bench-") else \
+            [command, "--mesh", str(bad)]
+        rc = _exit_code(argv + (["--out", str(tmp_path / "out")] if command == "demo" else []))
+        err = capsys.readouterr().err
+        assert rc == 2 and "Traceback" not in err, (command, rc, err)
+        assert len(err.strip().splitlines()) == 1, (command, err)
+        assert str(bad) in err and "IndexError" in err and "a vertex the file does not have" in err, (command, err)
+
+
+def test_demo_checks_the_mesh_before_its_reference(tmp_path, monkeypatch, capsys):
+    # A PLY face naming vertex 9 of 3 (trimesh reads it without a word) failed with NumPy's
+    # IndexError in the float64 reference, which ran before build() validated the mesh.
+    from hlbvh_warp import api
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("built before the mesh was checked")
+
+    monkeypatch.setattr(api, "build", no_build)
+    ply = tmp_path / "bad_face.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                   "0 0 0\n1 0 0\n0 1 0\n3 0 1 9\n")
+    rc = _exit_code(["demo", "--mesh", str(ply), "--rays", "4", "--num-frames", "1", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err, err
+    assert f"{ply}: face index 9 out of range [0, 3)" in err, err
+
+
+def test_demo_refuses_bad_arguments_before_any_work(tmp_path, monkeypatch, capsys):
+    # --out naming a file failed with "[Errno 17] File exists" after every build and the whole
+    # animation; --methods "" ran every method; --mesh naming a folder said "no such mesh file".
+    from hlbvh_warp import api, scenes
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("worked before the arguments were checked")
+
+    monkeypatch.setattr(api, "build", no_work)
+    monkeypatch.setattr(scenes, "default_scene", no_work)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    fast = ["--num-tris", "100", "--rays", "4", "--num-frames", "1", "--image-size", "8"]
+    cases = [
+        (["demo", *fast, "--out", str(a_file)], f"--out {a_file} is a file, not a folder"),
+        (["demo", *fast, "--out", str(a_file / "inside")], f"--out {a_file / 'inside'}: cannot make the folder"),
+        (["demo", *fast, "--methods", "", "--out", str(tmp_path / "out")], "--methods '' names no method"),
+        (["demo", *fast, "--methods", " ", "--out", str(tmp_path / "out")], "--methods ' ' names no method"),
+        (["demo", "--mesh", str(tmp_path)], f"{tmp_path} is a directory, not a mesh file"),
+        (["bench", "--mesh", str(tmp_path)], f"{tmp_path} is a directory, not a mesh file"),
+        (["quality", "--mesh", str(tmp_path)], f"{tmp_path} is a directory, not a mesh file"),
+        (["bench-wide", "--mesh", str(tmp_path)], f"{tmp_path} is a directory, not a mesh file"),
+        (["bench-points", "--mesh", str(tmp_path)], f"{tmp_path} is a directory, not a mesh file"),
+    ]
+    for argv, message in cases:
+        rc = _exit_code(argv)
+        err = capsys.readouterr().err
+        assert rc == 2 and message in err and "Traceback" not in err, (argv, rc, err)
+    assert a_file.is_file() and not (tmp_path / "out").exists()

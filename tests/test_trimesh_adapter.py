@@ -176,3 +176,94 @@ def test_repeated_rays_and_triangle_zero(device, reference):
 def test_intersector_builds_with_the_chosen_method(device, method):
     mesh = trimesh.creation.icosphere(subdivisions=1)
     assert RayMeshIntersector(mesh, device=device, method=method).bvh.method == method
+
+
+# ----------------------------------------------------------------- ProximityQuery.signed_distance
+def _brute_distance(vertices, faces, points):
+    """Float64 distance from each point to the nearest triangle: the nearer of the plane's foot
+    (where it falls inside a triangle of nonzero area) and the three edges as segments, which also
+    covers zero-area triangles. O(points x faces): for tiny meshes only."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    p = np.asarray(points, np.float64)[:, None, :]
+    best = np.full(p.shape[:2], np.inf)
+    for i in range(3):
+        a, b = tri[None, :, i], tri[None, :, (i + 1) % 3]
+        ab = b - a
+        length2 = np.einsum("...k,...k", ab, ab)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.clip(np.einsum("...k,...k", p - a, ab) / length2, 0.0, 1.0)
+        s = np.where(length2 > 0, s, 0.0)
+        best = np.minimum(best, np.linalg.norm(p - (a + s[..., None] * ab), axis=-1))
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm2 = np.einsum("ij,ij->i", normal, normal)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        offset = np.einsum("pfk,fk->pf", p - tri[None, :, 0], normal) / np.sqrt(norm2)
+        foot = p - offset[..., None] * normal / np.sqrt(norm2)[:, None]
+        inside = np.ones(best.shape, dtype=bool)
+        for i in range(3):
+            a, b = tri[None, :, i], tri[None, :, (i + 1) % 3]
+            inside &= np.einsum("pfk,fk->pf", np.cross(b - a, foot - a), normal) >= 0
+    best = np.where(inside & (norm2 > 0), np.minimum(best, np.abs(offset)), best)
+    return best.min(axis=1)
+
+
+def test_signed_distance_of_a_single_point_is_one_row(device, reference):
+    # A (3,) point broadcast against the (1, 3) closest point: the sign came from the wrong axis
+    # ([0, 0, 3] read 2 outside, where [[0, 0, 3]] read -2) or NumPy raised ([2, 0, 0]). It is one
+    # row now, as on_surface answers it; trimesh itself takes only (n, 3), so its answer for the
+    # point as one row is the oracle, with the sphere's own side (radius 1) beside it.
+    import trimesh.proximity
+
+    from hlbvh_warp import ProximityQuery
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    pq = ProximityQuery(mesh, device=device)
+    for point in ([0.0, 0.0, 3.0], [2.0, 0.0, 0.0], [0.1, -0.2, 0.15], (0, 0, 3)):
+        single = pq.signed_distance(point)
+        expected = trimesh.proximity.signed_distance(mesh, np.array([point], dtype=np.float64))
+        assert single.shape == (1,) and single.dtype == np.float64, point
+        assert np.sign(single[0]) == np.sign(1.0 - np.linalg.norm(point)), (point, single)
+        np.testing.assert_allclose(single, expected, rtol=1e-6)
+        np.testing.assert_array_equal(single, pq.signed_distance([point]))
+
+
+def test_signed_distance_near_zero_area_triangles_keeps_its_magnitude(device, reference):
+    # A zero-area closest triangle has a zero normal and NaN barycentrics: the point counted as
+    # "on the triangle" and the sign of zero made the distance -0.0. Its sign now comes from the
+    # ray-parity test trimesh uses off the triangles. Oracles: a float64 brute force for the
+    # magnitude; trimesh's own signed_distance where the closest triangle has an area, and
+    # trimesh's own ray parity (mesh.contains) where it has none.
+    import trimesh.proximity
+
+    from hlbvh_warp import ProximityQuery
+
+    # The brief's case: a triangle and, beside it, a zero-area one with a repeated vertex.
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 0, 0], [5, 0, 0], [6, 0, 0]],
+                           [[0, 1, 2], [3, 4, 5]], process=False)
+    sd = ProximityQuery(flat, device=device).signed_distance([[5.5, 0.3, 0.0]])
+    assert sd[0] == pytest.approx(-0.3, rel=1e-6) and np.abs(sd[0]) > 0
+
+    # A closed sphere with zero-area triangles inside it (repeated vertex; three distinct
+    # collinear vertices) and outside it.
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    n = len(sphere.vertices)
+    extra = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.3, 0.0, 0.0],
+                      [0.0, -0.3, 0.1], [0.0, -0.1, 0.1], [0.0, 0.3, 0.1],
+                      [3.0, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    mesh = trimesh.Trimesh(np.concatenate([sphere.vertices, extra]),
+                           np.concatenate([sphere.faces, n + np.arange(9).reshape(3, 3)]), process=False)
+    degenerate = len(sphere.faces) + np.arange(3)
+    points = np.array([[0.15, 0.05, 0.0], [0.1, 0.0, -0.04], [0.02, 0.0, 0.15], [0.0, 0.2, 0.14],
+                       [3.5, 0.3, 0.0], [3.5, 0.0, -0.2], [4.2, 0.1, 0.0],     # near a zero-area triangle
+                       [0.0, 0.0, 0.6], [0.5, 0.5, 0.5], [0.0, 1.5, 0.0], [2.0, 0.2, 0.1]])
+    pq = ProximityQuery(mesh, device=device)
+    sd = pq.signed_distance(points)
+    _, _, triangle_id = pq.on_surface(points)
+    at_degenerate = np.isin(triangle_id, degenerate)
+    assert at_degenerate[:7].all() and not at_degenerate[7:].any(), triangle_id
+    np.testing.assert_allclose(np.abs(sd), _brute_distance(mesh.vertices, mesh.faces, points), rtol=1e-5)
+    inside = mesh.contains(points[at_degenerate])
+    assert inside.tolist() == [True] * 4 + [False] * 3
+    np.testing.assert_array_equal(np.signbit(sd[at_degenerate]), ~inside)
+    expected = trimesh.proximity.signed_distance(mesh, points[~at_degenerate])
+    np.testing.assert_allclose(sd[~at_degenerate], expected, rtol=1e-6)
