@@ -35,6 +35,8 @@ from .query import (  # noqa: E402
     query_aabb,
     view,
 )
+from .storage import load as load_bvh  # noqa: E402
+from .storage import save as save_bvh  # noqa: E402
 from .trimesh_adapter import ProximityQuery, RayMeshIntersector  # noqa: E402
 
 __all__ = [
@@ -59,10 +61,12 @@ __all__ = [
     "intersect",
     "intersect_all",
     "intersecting_pairs",
+    "load_bvh",
     "neighbours_meet",
     "occluded",
     "overlapping_pairs",
     "query_aabb",
+    "save_bvh",
     "triangles_intersect",
     "triangles_meet",
     "view",

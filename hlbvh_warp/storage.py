@@ -1,0 +1,225 @@
+"""Saving a BVH to a file and loading it back: for the offline builders (``sbvh``, seconds at
+100k triangles; ``recursive_sah``, minutes), whose trees are worth building once.
+
+The file is NumPy's ``.npz``: the used part of every node array (`hlbvh_warp.bvh.Bvh`'s layout),
+``prim_order``, the primitive boxes of a tree over bare boxes, the vertices and faces of a mesh
+tree, and a JSON record of the method, the primitive count and the `BuildConfig`. No pickles:
+loading a file never runs code from it.
+
+A loaded file is input like any other, and a tree whose child ids or ranges point outside its
+arrays would send the traversal kernels out of bounds: `load` checks the whole structure (every
+child id, range, parent link and primitive id) and the boxes (finite, children inside their
+parents, primitives inside their leaves; for a mesh, the primitive boxes are the triangles'),
+and names the first problem in a ValueError.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import zipfile
+
+import numpy as np
+import warp as wp
+
+from . import inputs
+from .bvh import NODE_FIELDS, Bvh
+from .config import BuildConfig
+
+#: What a file says it is, and the layout version this module writes and reads.
+FORMAT = "hlbvh_warp.bvh"
+VERSION = 1
+_INT_FIELDS = ("node_left", "node_right", "node_parent", "node_begin", "node_end")
+_BOX_FIELDS = ("node_lowers", "node_uppers")
+
+
+def save(bvh: Bvh, path, compressed: bool = False) -> None:
+    """Write ``bvh`` to ``path`` (an ``.npz`` file; NumPy adds the suffix if it is missing).
+
+    ``compressed``: zlib the arrays: for the armadillo's ``sbvh`` tree (100k triangles) 5.8 MB
+    written in about 0.6 s, against 11.7 MB in 20 ms uncompressed; either loads in under 0.1 s.
+    """
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"save() takes a Bvh, got {type(bvh).__name__}")
+    tree = bvh.to_numpy()
+    arrays = {name: tree[name] for name in NODE_FIELDS + ("prim_order",)}
+    if bvh.vertices is not None and bvh.faces is not None:
+        arrays["vertices"] = bvh.vertices.numpy()
+        arrays["faces"] = bvh.faces.numpy().reshape(-1, 3)
+    else:
+        arrays["prim_lowers"] = tree["prim_lowers"]
+        arrays["prim_uppers"] = tree["prim_uppers"]
+    meta = {"format": FORMAT, "version": VERSION, "method": bvh.method, "num_prims": bvh.num_prims,
+            "config": dataclasses.asdict(bvh.config)}
+    # A 0-d unicode array: read back without allow_pickle.
+    arrays["meta"] = np.array(json.dumps(meta))
+    (np.savez_compressed if compressed else np.savez)(os.fspath(path), **arrays)
+
+
+def load(path, device=None) -> Bvh:
+    """The BVH saved in ``path``, on ``device`` (default: Warp's default device).
+
+    Raises:
+        ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
+    """
+    try:
+        with np.load(os.fspath(path), allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as error:
+        # Not a zip, a truncated one, a pickled member (never unpickled: allow_pickle=False).
+        raise ValueError(f"{path}: not a saved BVH ({error})") from None
+    try:
+        return _from_arrays(arrays, device)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+def _meta(arrays: dict) -> dict:
+    if "meta" not in arrays or arrays["meta"].dtype.kind != "U" or arrays["meta"].ndim != 0:
+        raise ValueError("not a saved BVH (no meta record)")
+    try:
+        meta = json.loads(str(arrays["meta"]))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"the meta record is not JSON ({error})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise ValueError("not a saved BVH (the meta record names another format)")
+    if meta.get("version") != VERSION:
+        raise ValueError(f"saved in layout version {meta.get('version')!r}; this version reads {VERSION}")
+    num_prims = meta.get("num_prims")
+    if isinstance(num_prims, bool) or not isinstance(num_prims, int) or not 1 <= num_prims < inputs.MAX_PRIMS:
+        raise ValueError(f"num_prims must be an integer in [1, {inputs.MAX_PRIMS}), got {num_prims!r}")
+    if not isinstance(meta.get("method"), str):
+        raise ValueError(f"method must be a string, got {meta.get('method')!r}")
+    config = meta.get("config")
+    if not isinstance(config, dict):
+        raise ValueError("the meta record has no config")
+    known = {field.name for field in dataclasses.fields(BuildConfig)}
+    unknown = sorted(set(config) - known)
+    if unknown:
+        raise ValueError(f"unknown BuildConfig fields {unknown}")
+    meta["config"] = BuildConfig(**config)  # its own checks name a bad value
+    return meta
+
+
+def _array(arrays: dict, name: str, kind: str, shape_tail: tuple) -> np.ndarray:
+    if name not in arrays:
+        raise ValueError(f"no {name} array")
+    a = arrays[name]
+    if a.dtype.kind not in kind or a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
+        raise ValueError(f"{name} must be a {'(n, 3) float' if shape_tail else '(n,) integer'} array, "
+                         f"got {a.dtype} {a.shape}")
+    return a
+
+
+def check_tree(tree: dict, num_prims: int, duplicates: bool) -> None:
+    """Raise a ValueError naming the first way ``tree`` (`Bvh.to_numpy`'s arrays) is not a valid
+    BVH over ``num_prims`` primitives: the conditions every traversal kernel relies on.
+
+    ``duplicates``: ``prim_order`` may list a primitive more than once (a spatial-split tree),
+    whose leaf boxes bound parts of primitives, not their whole boxes.
+    """
+    left, right, parent = tree["node_left"], tree["node_right"], tree["node_parent"]
+    begin, end, order = tree["node_begin"], tree["node_end"], tree["prim_order"]
+    lo, hi = tree["node_lowers"], tree["node_uppers"]
+    n, refs = left.shape[0], order.shape[0]
+    if n == 0:
+        raise ValueError("the tree has no nodes")
+    if any(tree[name].shape[0] != n for name in NODE_FIELDS):
+        raise ValueError(f"the node arrays differ in length: {[tree[name].shape[0] for name in NODE_FIELDS]}")
+    ids = np.arange(n)
+    leaf = left < 0
+    if not np.array_equal(leaf, right < 0) or not ((left == -1) == leaf).all() or not ((right == -1) == leaf).all():
+        raise ValueError("a node has exactly one child, or a child id below -1")
+    interior = np.nonzero(~leaf)[0]
+    kids_l, kids_r = left[interior].astype(np.int64), right[interior].astype(np.int64)
+    # Children after their parents (the layout's rule, which also rules out cycles), inside the arrays.
+    if not ((kids_l > interior) & (kids_l < n) & (kids_r > interior) & (kids_r < n)).all():
+        raise ValueError("a child id is not after its parent's, or past the last node")
+    times = np.bincount(np.concatenate([kids_l, kids_r]), minlength=n)
+    if times[0] != 0 or not (times[1:] == 1).all():
+        raise ValueError("some node is not the child of exactly one node (or the root is a child)")
+    expected_parent = np.full(n, -1, dtype=np.int64)
+    expected_parent[kids_l], expected_parent[kids_r] = interior, interior
+    if not np.array_equal(parent, expected_parent):
+        first = int(ids[parent != expected_parent][0])
+        raise ValueError(f"node_parent disagrees with the child links (first at node {first})")
+    if refs < num_prims or (not duplicates and refs != num_prims):
+        raise ValueError(f"prim_order has {refs} entries for {num_prims} primitives")
+    if begin[0] != 0 or end[0] != refs or not (begin < end).all():
+        raise ValueError(f"the root must cover [0, {refs}) and every node a non-empty range")
+    # Each interior range is its children's, adjacent: with the root covering every position,
+    # the leaves then partition prim_order.
+    adjacent = (begin[kids_l] == begin[interior]) & (end[kids_l] == begin[kids_r]) & (end[kids_r] == end[interior])
+    if not adjacent.all():
+        raise ValueError("an interior node's range is not its two children's ranges side by side")
+    if refs and (order.min() < 0 or order.max() >= num_prims):
+        raise ValueError(f"prim_order holds an id outside [0, {num_prims})")
+    seen = np.bincount(order, minlength=num_prims)
+    if (seen == 0).any():
+        raise ValueError(f"primitive {int(np.argmin(seen))} is in no leaf")
+    for name, box in (("node boxes", (lo, hi)), ("primitive boxes", (tree["prim_lowers"], tree["prim_uppers"]))):
+        if not (np.isfinite(box[0]).all() and np.isfinite(box[1]).all()) or (box[0] > box[1]).any():
+            raise ValueError(f"the {name} must be finite, lowers <= uppers")
+    for kids in (kids_l, kids_r):
+        if (lo[kids] < lo[interior]).any() or (hi[kids] > hi[interior]).any():
+            raise ValueError("a child's box is not inside its parent's")
+    if not duplicates:
+        # The leaf holding each position of prim_order: the leaves' ranges in order of their begin.
+        leaves = np.nonzero(leaf)[0]
+        leaves = leaves[np.argsort(begin[leaves], kind="stable")]
+        leaf_of = np.repeat(leaves, (end - begin)[leaves])
+        p_lo, p_hi = tree["prim_lowers"][order], tree["prim_uppers"][order]
+        if (p_lo < lo[leaf_of]).any() or (p_hi > hi[leaf_of]).any():
+            raise ValueError("a primitive's box is not inside its leaf's")
+
+
+def _from_arrays(arrays: dict, device) -> Bvh:
+    meta = _meta(arrays)
+    num_prims, config = meta["num_prims"], meta["config"]
+    tree = {name: _array(arrays, name, "iu", ()) for name in _INT_FIELDS + ("prim_order",)}
+    tree.update({name: _array(arrays, name, "f", (3,)) for name in _BOX_FIELDS})
+    mesh = "vertices" in arrays or "faces" in arrays
+    if mesh:
+        vertices, faces = inputs.mesh_arrays(arrays.get("vertices", np.zeros((0, 3))), arrays.get("faces", []))
+        if faces.shape[0] != num_prims:
+            raise ValueError(f"faces has {faces.shape[0]} rows for {num_prims} primitives")
+        tri = vertices[faces]
+        tree["prim_lowers"], tree["prim_uppers"] = tri.min(axis=1), tri.max(axis=1)
+    else:
+        tree["prim_lowers"] = _array(arrays, "prim_lowers", "f", (3,))
+        tree["prim_uppers"] = _array(arrays, "prim_uppers", "f", (3,))
+        if tree["prim_lowers"].shape[0] != num_prims or tree["prim_uppers"].shape[0] != num_prims:
+            raise ValueError(f"the primitive boxes must have {num_prims} rows")
+    # Ids past int32 would wrap when narrowed below: range-check them in int64 first.
+    for name in _INT_FIELDS + ("prim_order",):
+        a = tree[name].astype(np.int64)
+        if a.size and (a.min() < -(1 << 31) or a.max() >= 1 << 31):
+            raise ValueError(f"{name} holds an id outside int32")
+        tree[name] = a
+    for name in _BOX_FIELDS + ("prim_lowers", "prim_uppers"):
+        tree[name] = np.ascontiguousarray(tree[name], dtype=np.float32)
+    check_tree(tree, num_prims, duplicates=tree["prim_order"].shape[0] != num_prims)
+
+    device = wp.get_device(device)
+
+    def ints(a):
+        return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=device)
+
+    def vecs(a):
+        return wp.array(a, dtype=wp.vec3, device=device)
+
+    return Bvh(
+        method=meta["method"], config=config, device=device,
+        prim_lowers=vecs(tree["prim_lowers"]), prim_uppers=vecs(tree["prim_uppers"]),
+        prim_order=ints(tree["prim_order"]),
+        node_lowers=vecs(tree["node_lowers"]), node_uppers=vecs(tree["node_uppers"]),
+        node_left=ints(tree["node_left"]), node_right=ints(tree["node_right"]),
+        node_parent=ints(tree["node_parent"]),
+        node_begin=ints(tree["node_begin"]), node_end=ints(tree["node_end"]),
+        node_count=ints([tree["node_left"].shape[0]]),
+        vertices=vecs(vertices) if mesh else None, faces=ints(faces) if mesh else None,
+        num_prims=num_prims,
+    )

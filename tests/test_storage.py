@@ -1,0 +1,208 @@
+"""Saved and loaded BVHs: the same tree back, queries against the brute force, and every corrupted
+file refused with a ValueError naming the problem (a bad id would send the traversal out of bounds)."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants, random_rays
+
+import hlbvh_warp as hb
+from hlbvh_warp import metrics, storage
+from hlbvh_warp.bvh import NODE_FIELDS
+from hlbvh_warp.config import BuildConfig
+
+
+def _mesh():
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4)).apply_translation((1.5, 0, 0))
+    mesh = trimesh.util.concatenate([mesh, box])
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+
+
+@pytest.mark.parametrize("method, config", [("hlbvh", None), ("sweep_sah", BuildConfig(max_leaf_size=4)),
+                                            ("sbvh", BuildConfig(sbvh_alpha=0.0, morton_bounds=((-2, -2, -2),
+                                                                                                (2, 2, 2))))])
+def test_a_mesh_tree_comes_back_the_same(device, rng, tmp_path, method, config):
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, method=method, device=device, config=config)
+    path = tmp_path / "tree.npz"
+    hb.save_bvh(bvh, path)
+    loaded = hb.load_bvh(path, device=device)
+    before, after = bvh.to_numpy(), loaded.to_numpy()
+    for name in NODE_FIELDS + ("prim_order", "prim_lowers", "prim_uppers"):
+        np.testing.assert_array_equal(after[name], before[name], err_msg=name)
+    assert (loaded.method, loaded.config, loaded.num_prims, loaded.num_refs) == \
+        (method, bvh.config, bvh.num_prims, bvh.num_refs)
+    np.testing.assert_array_equal(loaded.vertices.numpy(), verts)
+    np.testing.assert_array_equal(loaded.faces.numpy(), faces)
+    if method != "sbvh":
+        check_tree_invariants(after, len(faces), max_leaf_size=bvh.config.max_leaf_size)
+    else:
+        assert loaded.has_duplicates
+    o, d = random_rays(rng, verts, 300)
+    t, prim = hb.intersect(loaded, o, d)
+    assert_hits_match(t, prim, *brute_force_closest_hit(verts, faces, o, d))
+    assert metrics.sah_cost(loaded) == metrics.sah_cost(bvh)
+
+
+def test_a_box_tree_comes_back_the_same(device, rng, tmp_path):
+    lo = rng.random((400, 3)).astype(np.float32)
+    hi = lo + np.float32(0.05)
+    bvh = hb.build_from_bounds(lo, hi, method="binned_sah", device=device)
+    hb.save_bvh(bvh, tmp_path / "boxes")  # NumPy adds .npz
+    loaded = hb.load_bvh(tmp_path / "boxes.npz", device=device)
+    assert loaded.vertices is None and loaded.faces is None
+    np.testing.assert_array_equal(loaded.to_numpy()["prim_lowers"], lo)
+    q_lo, q_hi = lo[:50] - 0.01, hi[:50] + 0.01
+    counts, pairs = hb.query_aabb(loaded, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(counts, brute_overlaps(lo, hi, q_lo, q_hi).sum(axis=1))
+    ref_counts, ref_pairs = hb.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(pairs, ref_pairs)
+
+
+def _saved(tmp_path, device):
+    verts, faces = _mesh()
+    path = tmp_path / "tree.npz"
+    hb.save_bvh(hb.build(verts, faces, device=device, config=BuildConfig(max_leaf_size=2)), path)
+    with np.load(path) as data:
+        return {name: data[name].copy() for name in data.files}
+
+
+def _write(tmp_path, arrays, name="bad.npz"):
+    path = tmp_path / name
+    np.savez(path, **arrays)
+    return path
+
+
+def _meta(arrays, **changes):
+    meta = json.loads(str(arrays["meta"]))
+    meta.update(changes)
+    return np.array(json.dumps(meta))
+
+
+def _interior(arrays):
+    return np.nonzero(arrays["node_left"] >= 0)[0]
+
+
+def _leaves(arrays):
+    return np.nonzero(arrays["node_left"] < 0)[0]
+
+
+def _corruptions(arrays):
+    """(what, changed arrays, words the error must contain) for each way a file can be wrong."""
+    i = _interior(arrays)[3]
+    leaf = _leaves(arrays)[5]
+    n = len(arrays["node_left"])
+
+    def changed(name, index, value):
+        a = {k: v.copy() for k, v in arrays.items()}
+        a[name][index] = value
+        return a
+
+    def without(name):
+        return {k: v for k, v in arrays.items() if k != name}
+
+    swapped = {k: v.copy() for k, v in arrays.items()}
+    swapped["node_left"][i], swapped["node_right"][i] = arrays["node_right"][i], arrays["node_left"][i]
+    other = _interior(arrays)[4]
+    stolen = changed("node_left", other, arrays["node_left"][i])
+    return [
+        ("child past the last node", changed("node_left", i, n), "past the last node"),
+        ("child before its parent", changed("node_right", i, 0), "not after its parent"),
+        ("one child only", changed("node_right", i, -1), "exactly one child"),
+        ("child id below -1", changed("node_left", leaf, -7), "exactly one child"),
+        ("a node with two parents", stolen, "exactly one node"),
+        ("parent link", changed("node_parent", leaf, 0), "node_parent"),
+        ("children swapped (ranges no longer side by side)", swapped, "side by side"),
+        ("range end", changed("node_end", leaf, arrays["node_end"][leaf] + 1), "side by side"),
+        ("empty range", changed("node_end", leaf, arrays["node_begin"][leaf]), "non-empty"),
+        ("root range", changed("node_end", 0, len(arrays["prim_order"]) + 1), "root"),
+        ("primitive id", changed("prim_order", 7, 10**6), "outside"),
+        ("negative primitive id", changed("prim_order", 7, -1), "outside"),
+        ("primitive listed twice", changed("prim_order", 7, arrays["prim_order"][8]), "in no leaf"),
+        ("NaN node box", changed("node_lowers", leaf, np.nan), "finite"),
+        ("inverted node box", changed("node_lowers", leaf, arrays["node_uppers"][leaf] + 1), "lowers <= uppers"),
+        ("child outside its parent", changed("node_uppers", leaf, arrays["node_uppers"][0] + 1), "inside its parent"),
+        ("leaf too small for its triangles", changed("node_uppers", leaf, arrays["node_lowers"][leaf]),
+         "inside its leaf"),
+        ("face index", changed("faces", 3, [0, 1, 10**6]), "out of range"),
+        ("NaN vertex", changed("vertices", 3, np.nan), "NaN or Inf"),
+        ("fewer faces", {**arrays, "faces": arrays["faces"][:-1]}, "rows for"),
+        ("node arrays of different lengths", {**arrays, "node_end": arrays["node_end"][:-1]}, "differ in length"),
+        ("float ids", {**arrays, "node_left": arrays["node_left"].astype(np.float32)}, "node_left"),
+        ("ids past int32", {**arrays, "prim_order": arrays["prim_order"].astype(np.int64) + (1 << 32)}, "int32"),
+        ("2-D boxes", {**arrays, "node_lowers": arrays["node_lowers"][:, :2]}, "node_lowers"),
+        ("missing array", without("node_begin"), "no node_begin"),
+        ("missing meta", without("meta"), "no meta"),
+        ("other format", {**arrays, "meta": _meta(arrays, format="something")}, "another format"),
+        ("newer version", {**arrays, "meta": _meta(arrays, version=99)}, "version 99"),
+        ("unknown config field", {**arrays, "meta": _meta(arrays, config={"bogus": 1})}, "bogus"),
+        ("bad config value", {**arrays, "meta": _meta(arrays, config={"bits_per_axis": 99})}, "bits_per_axis"),
+        ("bad primitive count", {**arrays, "meta": _meta(arrays, num_prims=0)}, "num_prims"),
+        ("meta not JSON", {**arrays, "meta": np.array("{")}, "JSON"),
+    ]
+
+
+def test_every_corrupted_file_is_refused_by_name(device, tmp_path):
+    arrays = _saved(tmp_path, device)
+    hb.load_bvh(_write(tmp_path, arrays, "good.npz"), device=device)  # the unchanged file loads
+    for what, bad, words in _corruptions(arrays):
+        path = _write(tmp_path, bad)
+        with pytest.raises(ValueError, match=words) as error:
+            hb.load_bvh(path, device=device)
+        assert str(path) in str(error.value), what
+
+
+def test_files_that_are_no_saved_tree(tmp_path):
+    text = tmp_path / "text.npz"
+    text.write_text("not a zip")
+    with pytest.raises(ValueError, match="not a saved BVH"):
+        hb.load_bvh(text)
+    pickled = tmp_path / "pickled.npz"
+    np.savez(pickled, meta=np.array([{"format": storage.FORMAT}], dtype=object))
+    with pytest.raises(ValueError, match="not a saved BVH"):  # never unpickled
+        hb.load_bvh(pickled)
+    truncated = tmp_path / "truncated.npz"
+    good = tmp_path / "good.npz"
+    hb.save_bvh(hb.build(*_mesh(), device="cpu"), good)
+    truncated.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(ValueError, match="not a saved BVH"):
+        hb.load_bvh(truncated)
+    assert zipfile.is_zipfile(good)
+    with pytest.raises(FileNotFoundError):
+        hb.load_bvh(tmp_path / "absent.npz")
+    with pytest.raises(ValueError, match="takes a Bvh"):
+        hb.save_bvh("tree", tmp_path / "x.npz")
+
+
+_SAVED: dict = {}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(field=st.sampled_from(["node_left", "node_right", "node_parent", "node_begin", "node_end", "prim_order"]),
+       position=st.integers(0, 10**6), value=st.integers(-3, 1200))
+def test_a_loaded_tree_is_refused_or_answers_right(tmp_path, field, position, value):
+    """One integer of the file changed at random: either the load names a problem, or the tree is
+    a valid one (the change kept it consistent) and its rays match the brute force."""
+    if "arrays" not in _SAVED:  # one build for every example
+        _SAVED["arrays"] = _saved(tmp_path, "cpu")
+    arrays = _SAVED["arrays"]
+    bad = {k: v.copy() for k, v in arrays.items()}
+    bad[field][position % len(bad[field])] = value
+    path = _write(tmp_path, bad)
+    try:
+        tree = hb.load_bvh(path, device="cpu")
+    except ValueError:
+        return
+    verts, faces = arrays["vertices"], arrays["faces"]
+    o, d = random_rays(np.random.default_rng(position), verts, 64)
+    t, prim = hb.intersect(tree, o, d)
+    assert_hits_match(t, prim, *brute_force_closest_hit(verts, faces, o, d))
+
