@@ -191,12 +191,12 @@ def intersect_triangle_watertight(
         az64 = wp.float64(az)
         bz64 = wp.float64(bz)
         cz64 = wp.float64(cz)
-        sheared = wp.vec3(ax, ay, bx) + wp.vec3(by, cx, cy) + wp.vec3(az, bz, cz)
-        if not (wp.isfinite(sheared[0]) and wp.isfinite(sheared[1]) and wp.isfinite(sheared[2])):
+        if not (wp.isfinite(ax) and wp.isfinite(ay) and wp.isfinite(bx) and wp.isfinite(by) and wp.isfinite(cx)
+                and wp.isfinite(cy) and wp.isfinite(az) and wp.isfinite(bz) and wp.isfinite(cz)):
             # Coordinates beyond about 1e38 overflow float32 in the shear itself (a difference
             # of two such values, or one scaled by 1 / dz): shear them in float64 instead. Only
             # then, so that finite sheared values, which neighbours sharing an edge compute
-            # alike, still decide that edge.
+            # alike, still decide that edge. (The same shear as above, in the wider type.)
             dz64 = wp.float64(dz)
             sx64 = wp.float64(direction[kx]) / dz64
             sy64 = wp.float64(direction[ky]) / dz64
