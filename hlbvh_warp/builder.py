@@ -60,14 +60,6 @@ PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 RESORT_SAMPLES = 256
 
 
-def _count(value, name: str, minimum: int) -> int:
-    # A count given as 2.5 (or True) is a caller's mistake, not 2 (or 1): refused as BuildConfig's
-    # integer fields are; NumPy integers are counts like any other.
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
 def _finite_or_none(cost: float) -> float | None:
     """A tree's SAH cost as the auto policy's reference, or None for a tree boxed over a NaN or
     Inf frame, whose cost would make every later growth NaN and never exceed the limit."""
@@ -141,7 +133,7 @@ class Builder:
             raise ValueError(f"sah_growth_limit must be >= 0, got {sah_growth_limit}")
         if not large_motion > 0.0:
             raise ValueError(f"large_motion must be > 0, got {large_motion}")
-        self.num_prims = n = _count(num_prims, "num_prims", 1)
+        self.num_prims = n = inputs.count_arg(num_prims, "num_prims", 1)
         if n >= MAX_PRIMS:
             raise ValueError(f"num_prims must be below {MAX_PRIMS} (int32 node ids, 2N - 1 nodes), got {n}")
         # Reentrant: `update` runs `rebuild` or `refit` under the same lock.
@@ -153,7 +145,7 @@ class Builder:
         self.policy = policy
         self.sah_growth_limit = float(sah_growth_limit)
         self.large_motion = float(large_motion)
-        self.max_refits = _count(max_refits, "max_refits", 0)
+        self.max_refits = inputs.count_arg(max_refits, "max_refits", 0)
         self.refits_since_rebuild = 0
         # SAH growth of the latest refit frame (over the best cost since the last rebuild).
         self.last_growth = 0.0
@@ -228,7 +220,7 @@ class Builder:
         self.frame = 0
         self.sah_reference = None
         self.last_report: dict = {}
-        self.reports: collections.deque = collections.deque(maxlen=_count(keep_reports, "keep_reports", 1))
+        self.reports: collections.deque = collections.deque(maxlen=inputs.count_arg(keep_reports, "keep_reports", 1))
 
     # --------------------------------------------------------------- inputs
     @staticmethod

@@ -10,6 +10,14 @@ import warp as wp
 MAX_PRIMS = 1 << 30
 
 
+def count_arg(value, name: str, minimum: int) -> int:
+    """An integer argument of at least ``minimum``: 2.5 (or True) is a caller's mistake, not 2
+    (or 1), refused as BuildConfig's integer fields are; NumPy integers count like any other."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
 def _to_numpy(values, name: str) -> np.ndarray:
     if isinstance(values, wp.array):
         return values.numpy()

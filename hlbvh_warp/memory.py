@@ -26,8 +26,9 @@ import threading
 import weakref
 from collections import OrderedDict
 
-import numpy as np
 import warp as wp
+
+from . import inputs
 
 #: Arrays smaller than this come from `wp.empty` directly: the C allocator keeps small blocks.
 MIN_POOLED_BYTES = 1 << 16
@@ -186,16 +187,9 @@ def empty(shape, dtype, device) -> wp.array:
     return _POOL.empty(shape, dtype, device)
 
 
-def _non_negative_int(value, name: str) -> int:
-    # 1.5 bytes or True sets is a caller's mistake, not a value to round.
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-        raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
-    return int(value)
-
-
 def set_host_cache_limit(limit_bytes: int):
     """Cap the idle host memory kept for later builds (0 disables the pool)."""
-    _POOL.limit = _non_negative_int(limit_bytes, "limit_bytes")
+    _POOL.limit = inputs.count_arg(limit_bytes, "limit_bytes", 0)
     if _POOL.idle_bytes > _POOL.limit:
         _POOL.clear()
     if _POOL.limit <= 0:
@@ -207,7 +201,7 @@ def set_host_cache_limit(limit_bytes: int):
 def set_scratch_cache_sets(count: int):
     """Keep at most `count` one-shot pipeline scratch sets (default 16; 0 keeps none, while the
     pool still recycles blocks). One per mesh a program builds one-shot in turn is enough."""
-    _SCRATCH.max_entries = _non_negative_int(count, "count")
+    _SCRATCH.max_entries = inputs.count_arg(count, "count", 0)
     _SCRATCH.trim(_POOL.limit)
 
 

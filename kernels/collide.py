@@ -99,7 +99,7 @@ def expansion_sign(e: vec48d, n: int):
 
 @wp.func
 def to_d(p: wp.vec3):
-    return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+    return wp.vec3d(p)
 
 
 @wp.func

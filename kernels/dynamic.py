@@ -77,15 +77,6 @@ def reset_stats_kernel(stats: wp.array(dtype=wp.float64)):
     stats[1] = wp.float64(0.0)
 
 
-@wp.func
-def vec3_difference64(p: wp.vec3, q: wp.vec3):
-    # p - q in float64, where a difference of float32 values is exact and its square neither
-    # overflows (coordinates near 1e20 square past float32's range) nor underflows (a move of
-    # 1e-23 squares to zero in float32): the motion measure holds at every scene scale.
-    return wp.vec3d(wp.float64(p[0]) - wp.float64(q[0]), wp.float64(p[1]) - wp.float64(q[1]),
-                    wp.float64(p[2]) - wp.float64(q[2]))
-
-
 @wp.kernel
 def load_and_measure_kernel(
     num_vertices: int,
@@ -108,7 +99,10 @@ def load_and_measure_kernel(
     largest = wp.float64(0.0)
     for i in range(begin, end):
         p = source[i]
-        d = vec3_difference64(p, dest[i])
+        # In float64, where a difference of float32 values is exact and its square neither
+        # overflows (coordinates near 1e20 square past float32's range) nor underflows (a move of
+        # 1e-23 squares to zero in float32): the measure holds at every scene scale.
+        d = wp.vec3d(p) - wp.vec3d(dest[i])
         d2 = wp.dot(d, d)
         if d2 != d2:
             d2 = wp.float64(NAN_MOVE_SQ)
@@ -134,7 +128,7 @@ def root_diagonal_kernel(
     node_uppers: wp.array(dtype=wp.vec3),
     stats: wp.array(dtype=wp.float64),
 ):
-    stats[1] = wp.length(vec3_difference64(node_uppers[0], node_lowers[0]))
+    stats[1] = wp.length(wp.vec3d(node_uppers[0]) - wp.vec3d(node_lowers[0]))
 
 
 # --------------------------------------------------------------- deformations

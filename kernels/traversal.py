@@ -200,10 +200,10 @@ def intersect_triangle_watertight(
             dz64 = wp.float64(dz)
             sx64 = wp.float64(direction[kx]) / dz64
             sy64 = wp.float64(direction[ky]) / dz64
-            o64 = wp.vec3d(wp.float64(origin[0]), wp.float64(origin[1]), wp.float64(origin[2]))
-            pa64 = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2])) - o64
-            pb64 = wp.vec3d(wp.float64(b[0]), wp.float64(b[1]), wp.float64(b[2])) - o64
-            pc64 = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2])) - o64
+            o64 = wp.vec3d(origin)
+            pa64 = wp.vec3d(a) - o64
+            pb64 = wp.vec3d(b) - o64
+            pc64 = wp.vec3d(c) - o64
             ax64 = pa64[kx] - sx64 * pa64[kz]
             ay64 = pa64[ky] - sy64 * pa64[kz]
             bx64 = pb64[kx] - sx64 * pb64[kz]
