@@ -43,6 +43,11 @@ INF = wp.constant(float("inf"))
 # Below this the float32 determinant is near the subnormals (2^-126 = 1.2e-38): decided in float64.
 DET_FLOOR = wp.constant(1.0e-35)
 STACK_SIZE = wp.constant(TRAVERSAL_STACK_SIZE)
+# A direction whose largest component is below 2^-64 is scaled by powers of 2^32 into range (at
+# most 2^96: 2^128 is past float32): below about 3e-39, 1 / d overflows and every box test missed.
+TINY_DIRECTION = wp.constant(5.421010862427522e-20)
+DIRECTION_STEP = wp.constant(4294967296.0)
+FLOAT32_MAX = wp.constant(3.4028234663852886e38)
 
 
 @wp.struct
@@ -245,6 +250,31 @@ def intersect_triangle_watertight(
     result.v = bary_c
     result.hit = 1
     return result
+
+
+@wp.func
+def ray_direction_scale(direction: wp.vec3):
+    """A power of two s that brings a tiny direction's largest component to at least 2^-64; 1.0
+    for every other direction (NaN, Inf and zero included), whose rays are left bit for bit alone.
+
+    Scaling the direction by s is exact, and so is the hit distance: the query runs with
+    ``direction * s`` and ``min(t_max, FLT_MAX) / s`` and multiplies the t it finds by s. The clamp
+    keeps that product finite: a true distance past float32's range is a miss, as it is unscaled.
+    """
+    m = wp.max(wp.abs(direction[0]), wp.max(wp.abs(direction[1]), wp.abs(direction[2])))
+    s = float(1.0)
+    if m > 0.0:
+        while m * s < TINY_DIRECTION:
+            s = s * DIRECTION_STEP
+    return s
+
+
+@wp.func
+def ray_scaled_t_max(t_max: float, scale: float):
+    """`t_max` in units of the scaled direction (see `ray_direction_scale`)."""
+    if scale == 1.0:
+        return t_max
+    return wp.min(t_max, FLOAT32_MAX) / scale
 
 
 @wp.func
@@ -553,11 +583,15 @@ def packed_ray_query(
 @wp.func
 def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
     """Front-to-back traversal shared by the closest-hit and the any-hit query."""
+    scale = ray_direction_scale(direction)
+    d = direction * scale
+    limit = ray_scaled_t_max(t_max, scale)
+    h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
         # The root's record is at position 0; a root that is a leaf has none.
         root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
-        return packed_ray_query(
+        h = packed_ray_query(
             bvh.packed_nodes,
             bvh.packed_triangles,
             bvh.prim_order,
@@ -566,11 +600,15 @@ def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: floa
             root_begin,
             root,
             origin,
-            direction,
-            t_max,
+            d,
+            limit,
             any_hit,
         )
-    return canonical_ray_query(bvh, origin, direction, t_max, any_hit)
+    else:
+        h = canonical_ray_query(bvh, origin, d, limit, any_hit)
+    if h.prim >= 0:
+        h.t = h.t * scale
+    return h
 
 
 @wp.func
@@ -620,29 +658,32 @@ def bvh_ray_all_hits(
     top = int(0)
     node = int(-1)
     inv = wp.vec3(0.0)
-    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, direction, t_max) == 1:
-        inv = ray_inverse_direction(direction)
-        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], t_max) < INF:
+    scale = ray_direction_scale(direction)
+    d = direction * scale
+    limit = ray_scaled_t_max(t_max, scale)
+    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, d, limit) == 1:
+        inv = ray_inverse_direction(d)
+        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], limit) < INF:
             node = 0
     while node >= 0:
         left = bvh.node_left[node]
         if left < 0 or top >= STACK_SIZE - 1:
             for k in range(bvh.node_begin[node], bvh.node_end[node]):
                 p = bvh.prim_order[k]
-                h = bvh_triangle(bvh, p, origin, direction, t_max)
+                h = bvh_triangle(bvh, p, origin, d, limit)
                 if h.hit == 1:
                     if count < capacity:
                         out_prim[offset + count] = p
-                        out_t[offset + count] = h.t
+                        out_t[offset + count] = h.t * scale
                     count += 1
             node = -1
         else:
             right = bvh.node_right[node]
             node = -1
-            if ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], t_max) < INF:
+            if ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], limit) < INF:
                 stack[top] = left
                 top += 1
-            if ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], t_max) < INF:
+            if ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], limit) < INF:
                 stack[top] = right
                 top += 1
         if top > 0:

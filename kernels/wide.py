@@ -16,8 +16,8 @@ triangles are the range), or ``EMPTY`` past the last child. The child boxes sit 
 import warp as wp
 
 from .metrics import box_area64
-from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, ray_box_entry, ray_inverse_direction,
-                        ray_is_valid)
+from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, ray_box_entry, ray_direction_scale,
+                        ray_inverse_direction, ray_is_valid, ray_scaled_t_max)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -263,8 +263,12 @@ def wide_closest_hit(
     stack_t = vec256f()
     top = int(0)
     inv = wp.vec3(0.0)
-    if ray_is_valid(origin, direction, t_max) == 1:
-        inv = ray_inverse_direction(direction)
+    # A tiny direction is scaled into range, exactly (see `ray_direction_scale`).
+    scale = ray_direction_scale(direction)
+    d = direction * scale
+    best_t = ray_scaled_t_max(t_max, scale)
+    if ray_is_valid(origin, d, best_t) == 1:
+        inv = ray_inverse_direction(d)
         t_root = ray_box_entry(origin, inv, root_lower, root_upper, best_t)
         if t_root < INF:
             stack[0] = 0
@@ -319,7 +323,7 @@ def wide_closest_hit(
             for k in range(first, last):
                 tested += 1
                 tri = triangles[k]
-                h = intersect_triangle_watertight(origin, direction, tri.a, tri.b, tri.c, best_t)
+                h = intersect_triangle_watertight(origin, d, tri.a, tri.b, tri.c, best_t)
                 if h.hit == 1:
                     best_t = h.t
                     best_prim = prim_order[k]
@@ -327,7 +331,7 @@ def wide_closest_hit(
     result.t = INF
     result.prim = best_prim
     if best_prim >= 0:
-        result.t = best_t
+        result.t = best_t * scale
     result.nodes_visited = visited
     result.boxes_tested = boxes
     result.prims_tested = tested

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracles import brute_force_closest_hit
 
-from hlbvh_warp import api, query, stress_report
+from hlbvh_warp import api, query, stress_report, wide
 from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
 
 api._load_optional_builders()
@@ -164,6 +164,45 @@ def test_huge_triangles_up_to_the_float32_limit(device, rng):
         _, unexplained = stress_report.classify(verts, faces, o, d, t, prim, t_ref, prim_ref)
         assert unexplained == 0, scale
         assert query.occluded(bvh, o, d).all(), scale
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "sbvh"])
+def test_tiny_directions_find_what_the_same_ray_scaled_up_finds(device, rng, method):
+    # Below about 3e-39 in every component, 1 / d overflowed and every box test missed: rays
+    # into a 1e-30 scene whose hits lie at t = 1e12 found nothing. The query now scales such a
+    # direction by a power of two, exactly, so a ray must give the same triangle as the ray
+    # with 2^100 times its direction, at exactly 2^100 times the distance.
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    scale = 1e-30
+    verts = (mesh.vertices * scale).astype(np.float32)
+    faces = np.asarray(mesh.faces, np.int32)
+    o = (rng.normal(size=(256, 3)) * 3 * scale).astype(np.float32)
+    aim = verts[rng.integers(0, len(verts), 256)].astype(np.float64) * 0.5
+    bvh = api.build(verts, faces, method=method, device=device)
+    w = wide.collapse(bvh, 8)
+    for shrink in (1e-9, 1e-12, 1e-15):
+        d = ((aim - o) * shrink).astype(np.float32)
+        assert (np.abs(d).max(axis=1) < 1.17e-38).all()  # float32 subnormals only
+        d_up = (d.astype(np.float64) * 2.0**100).astype(np.float32)
+        assert (d_up.astype(np.float64) == d.astype(np.float64) * 2.0**100).all()
+        t_up, prim_up = query.intersect(bvh, o, d_up)
+        assert (prim_up >= 0).mean() > 0.5, shrink  # subnormal directions keep few bits: some turn aside
+        t, prim = query.intersect(bvh, o, d)
+        np.testing.assert_array_equal(prim, prim_up)
+        hit = prim >= 0
+        np.testing.assert_array_equal(t[hit].astype(np.float64), t_up[hit].astype(np.float64) * 2.0**100)
+        np.testing.assert_array_equal(query.occluded(bvh, o, d), hit)
+        wide_t, wide_prim = wide.intersect(w, o, d)
+        np.testing.assert_array_equal(wide_t, t)
+        ray, all_prim, all_t = query.intersect_all(bvh, o, d)
+        ray_up, all_prim_up, all_t_up = query.intersect_all(bvh, o, d_up)
+        np.testing.assert_array_equal(ray, ray_up)
+        np.testing.assert_array_equal(all_prim, all_prim_up)
+        np.testing.assert_array_equal(all_t.astype(np.float64), all_t_up.astype(np.float64) * 2.0**100)
+    # A hit whose distance is past float32's range is still a miss, scaled or not.
+    d = ((aim - o) * 1e-12).astype(np.float32)
+    t, prim = query.intersect(bvh, o * np.float32(1e30), d)
+    assert (prim == -1).all() and np.isinf(t).all()
 
 
 def test_nan_inf_rays_miss_and_bad_shapes_raise(device, rng):
