@@ -127,6 +127,9 @@ def view(bvh: Bvh) -> BvhView:
     else:
         v.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=device)
         v.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=device)
+    # Box queries in user kernels cannot raise as `query_aabb` does on such a tree: they test
+    # every primitive instead (slow, but right; see `traversal.scan_aabb_query`).
+    v.split_prims = 1 if bvh.has_duplicates else 0
     bvh._cache["view"] = v
     return v
 
@@ -373,7 +376,8 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         points: ``(P, 3)`` query points (NumPy or Warp, any real dtype; a single ``(3,)`` point is
             accepted). A point with a NaN or Inf coordinate finds nothing.
         max_dist: only triangles within this distance (inclusive) count; a point with none finds
-            nothing. A smaller bound is faster: boxes beyond it are never opened.
+            nothing. A smaller bound is faster: boxes beyond it are never opened. Taken as the
+            float32 at or above it.
         return_barycentrics: also return ``u, v``, the weights of the triangle's second and third
             vertex at the closest point (0 where nothing was found).
         stats: also return a `TraversalStats` (nodes visited, triangles tested per point).
@@ -397,6 +401,13 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         raise ValueError(f"max_dist must be a number, got {max_dist!r}") from exc
     if not max_dist >= 0.0:
         raise ValueError(f"max_dist must be >= 0, got {max_dist}")
+    # The kernel takes a float32 bound: round up, never to nearest, so that a triangle at exactly
+    # max_dist still counts (inclusive); past float32's range it is unbounded.
+    with np.errstate(over="ignore"):
+        bound = np.float32(max_dist)
+    if float(bound) < max_dist:
+        bound = np.nextafter(bound, np.float32(np.inf))
+    max_dist = float(bound)
     num_points = p.shape[0]
     device = bvh.device
     order = _point_order(p, device)

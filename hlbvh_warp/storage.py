@@ -114,7 +114,7 @@ def _array(arrays: dict, name: str, kind: str, shape_tail: tuple) -> np.ndarray:
     return a
 
 
-def check_tree(tree: dict, num_prims: int, duplicates: bool) -> None:
+def check_tree(tree: dict, num_prims: int, duplicates: bool, triangles: np.ndarray | None = None) -> None:
     """Raise a ValueError naming the first way ``tree`` (`Bvh.to_numpy`'s arrays) is not a valid
     BVH over ``num_prims`` primitives: the conditions every traversal kernel relies on.
 
@@ -174,6 +174,43 @@ def check_tree(tree: dict, num_prims: int, duplicates: bool) -> None:
         p_lo, p_hi = tree["prim_lowers"][order], tree["prim_uppers"][order]
         if (p_lo < lo[leaf_of]).any() or (p_hi > hi[leaf_of]).any():
             raise ValueError("a primitive's box is not inside its leaf's")
+    elif triangles is not None:
+        _check_parts_covered(lo, hi, leaf, begin, end, order, triangles)
+
+
+# Barycentric weights of the points checked on each triangle of a spatial-split tree: the corners,
+# the edge midpoints, the centroid and three points between centroid and corners.
+_SAMPLE_WEIGHTS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5],
+                            [1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+
+
+def _check_parts_covered(lo, hi, leaf, begin, end, order, triangles) -> None:
+    """A spatial-split tree's leaves bound parts of triangles (Stich et al. 2009), so no single leaf
+    need hold a split triangle's box; what a ray needs is every point of the triangle inside some
+    leaf that lists it. A triangle listed once was never cut: its leaf holds its whole box. A
+    split one is checked at ten points. Both with a few float32 ulps of slack for the clipped
+    parts' rounding; the points are a sample, not a proof, that still names a leaf box shrunk or
+    moved off its triangles."""
+    leaves = np.nonzero(leaf)[0]
+    leaves = leaves[np.argsort(begin[leaves], kind="stable")]
+    leaf_of = np.repeat(leaves, (end - begin)[leaves])
+    split = np.bincount(order, minlength=triangles.shape[0])[order] > 1
+    tri = triangles[order].astype(np.float64)
+    slack = 4.0 * np.finfo(np.float32).eps * np.abs(tri).max(axis=(1, 2))[:, None]
+    box_lo, box_hi = lo[leaf_of].astype(np.float64) - slack, hi[leaf_of].astype(np.float64) + slack
+    whole = ~split
+    outside = (tri[whole].min(axis=1) < box_lo[whole]) | (tri[whole].max(axis=1) > box_hi[whole])
+    if outside.any():
+        prim = int(order[whole][np.argmax(outside.any(axis=1))])
+        raise ValueError(f"triangle {prim}, in one leaf only, is not inside that leaf's box")
+    tri, box_lo, box_hi, parts = tri[split], box_lo[split], box_hi[split], order[split]
+    for w in _SAMPLE_WEIGHTS:
+        point = np.einsum("k,rkj->rj", w, tri)
+        inside = ((point >= box_lo) & (point <= box_hi)).all(axis=1)
+        covered = np.bincount(parts, weights=inside, minlength=triangles.shape[0]) > 0
+        missed = ~covered & (np.bincount(parts, minlength=triangles.shape[0]) > 0)
+        if missed.any():
+            raise ValueError(f"a point of triangle {int(np.argmax(missed))} is in none of the leaves that list it")
 
 
 def _from_arrays(arrays: dict, device) -> Bvh:
@@ -189,6 +226,7 @@ def _from_arrays(arrays: dict, device) -> Bvh:
         tri = vertices[faces]
         tree["prim_lowers"], tree["prim_uppers"] = tri.min(axis=1), tri.max(axis=1)
     else:
+        tri = None
         tree["prim_lowers"] = _array(arrays, "prim_lowers", "f", (3,))
         tree["prim_uppers"] = _array(arrays, "prim_uppers", "f", (3,))
         if tree["prim_lowers"].shape[0] != num_prims or tree["prim_uppers"].shape[0] != num_prims:
@@ -201,7 +239,7 @@ def _from_arrays(arrays: dict, device) -> Bvh:
         tree[name] = a
     for name in _BOX_FIELDS + ("prim_lowers", "prim_uppers"):
         tree[name] = np.ascontiguousarray(tree[name], dtype=np.float32)
-    check_tree(tree, num_prims, duplicates=tree["prim_order"].shape[0] != num_prims)
+    check_tree(tree, num_prims, duplicates=tree["prim_order"].shape[0] != num_prims, triangles=tri)
 
     device = wp.get_device(device)
 

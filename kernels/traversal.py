@@ -90,6 +90,8 @@ class BvhView:
     its view find nothing). ``packed_nodes`` and
     ``packed_triangles`` are the ray traversal layout of the module docstring; ray queries on a view
     without them (empty arrays) walk the canonical arrays instead, with the same results.
+    ``split_prims`` is 1 for a spatial-split tree (Stich et al. 2009), whose leaf boxes bound parts
+    of triangles: its box queries test every primitive's box instead of walking the nodes.
     """
 
     node_lowers: wp.array(dtype=wp.vec3)
@@ -105,6 +107,7 @@ class BvhView:
     faces: wp.array(dtype=wp.int32, ndim=2)
     packed_nodes: wp.array(dtype=PackedNode)
     packed_triangles: wp.array(dtype=PackedTriangle)
+    split_prims: wp.int32
 
 
 @wp.struct
@@ -804,6 +807,32 @@ def packed_aabb_query(
 
 
 @wp.func
+def scan_aabb_query(
+    bvh: BvhView,
+    lower: wp.vec3,
+    upper: wp.vec3,
+    query: int,
+    after: int,
+    out_pairs: wp.array(dtype=wp.vec2i),
+    offset: int,
+    capacity: int,
+):
+    """`bvh_aabb_query` on a spatial-split tree: every primitive with an id above ``after``, each once.
+
+    Its node boxes bound the parts of triangles in their leaves (Stich et al. 2009), so a walk
+    that prunes by them misses a triangle whose box meets the query outside those parts, and
+    meets a split triangle once per part; no pruning is right here.
+    """
+    count = int(0)
+    for p in range(wp.max(after + 1, 0), bvh.prim_lowers.shape[0]):
+        if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
+            if count < capacity:
+                out_pairs[offset + count] = wp.vec2i(query, p)
+            count += 1
+    return count
+
+
+@wp.func
 def bvh_aabb_query(
     bvh: BvhView,
     lower: wp.vec3,
@@ -824,7 +853,9 @@ def bvh_aabb_query(
     before k is skipped whole, about half the tree's nodes (Karras, HPG 2012, Sec. 4).
     """
     count = int(0)
-    if bvh.packed_nodes.shape[0] > 0:
+    if bvh.split_prims != 0:
+        count = scan_aabb_query(bvh, lower, upper, query, after, out_pairs, offset, capacity)
+    elif bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
         if bvh.node_end[0] > after + 1 and box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
             # The root's record is at position 0; a root that is a leaf has none.
@@ -838,12 +869,18 @@ def bvh_aabb_query(
 
 @wp.func
 def bvh_aabb_count(bvh: BvhView, lower: wp.vec3, upper: wp.vec3):
-    """How many primitives have a box overlapping [lower, upper] (closed)."""
+    """How many primitives have a box overlapping [lower, upper] (closed).
+
+    On a spatial-split tree (``split_prims``) every primitive is tested: see `scan_aabb_query`.
+    """
     count = int(0)
     stack = vec64i()
     top = int(0)
     node = int(-1)
-    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+    if bvh.split_prims != 0:
+        for p in range(bvh.prim_lowers.shape[0]):
+            count += box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p])
+    elif box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
         node = 0
     while node >= 0:
         left = bvh.node_left[node]
@@ -881,13 +918,21 @@ def bvh_aabb_pairs(
     ``pair_count[0]`` ends as the number of pairs found by all threads; pairs beyond
     ``pairs.shape[0]`` are counted but not written, so a caller can detect overflow and rerun
     with a larger array. Returns this query's count. Pair order depends on thread scheduling.
+    On a spatial-split tree (``split_prims``) every primitive is tested: see `scan_aabb_query`.
     """
     count = int(0)
     stack = vec64i()
     top = int(0)
     node = int(-1)
     capacity = pairs.shape[0]
-    if box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+    if bvh.split_prims != 0:
+        for p in range(bvh.prim_lowers.shape[0]):
+            if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
+                slot = wp.atomic_add(pair_count, 0, 1)
+                if slot < capacity:
+                    pairs[slot] = wp.vec2i(query, p)
+                count += 1
+    elif box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
         node = 0
     while node >= 0:
         left = bvh.node_left[node]

@@ -441,6 +441,21 @@ def test_max_dist_is_inclusive(device, method):
                 assert prim[0] == -1 and np.isinf(distance[0]) and np.isnan(closest).all(), (p, d, scale)
 
 
+def test_max_dist_between_float32_values_still_includes_its_triangle(device, rng):
+    """The kernel takes max_dist in float32: the host rounds it up, never down, so a triangle at
+    exactly a float64 max_dist counts (half of these were dropped when it rounded to nearest)."""
+    verts, faces = random_soup(rng, 200)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    points = rng.uniform(-0.5, 1.5, (60, 3)).astype(np.float32)
+    exact, nearest, _ = oracle_closest(verts, faces, points)
+    assert (np.float32(exact) != exact).sum() > 50  # most distances fall between float32 values
+    for p, d, k in zip(points, exact, nearest):
+        _, distance, prim = hlbvh_warp.closest_point(bvh, p, max_dist=d)
+        assert prim[0] == k and abs(distance[0] - d) <= 1e-6 * d, (p, d)
+        # A relative 1e-6 below lies more than one float32 step below the distance: nothing.
+        assert hlbvh_warp.closest_point(bvh, p, max_dist=d * (1.0 - 1e-6))[2][0] == -1, (p, d)
+
+
 @pytest.mark.parametrize("method", METHODS)
 def test_exact_ties_go_to_the_lowest_id(device, rng, method):
     """Points midway between the two triangles of a pair are at bitwise equal distances from both

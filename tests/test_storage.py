@@ -160,6 +160,34 @@ def test_every_corrupted_file_is_refused_by_name(device, tmp_path):
         assert str(path) in str(error.value), what
 
 
+def test_a_spatial_split_file_whose_leaves_miss_their_triangles_is_refused(device, rng, tmp_path):
+    # Such a tree's leaves bound parts of triangles, so the whole-box check above does not apply;
+    # a file with every leaf box shrunk to a point loaded, and every ray then missed.
+    c = rng.uniform(0.0, 1.0, (120, 1, 3))
+    tris = np.concatenate([c + 0.03 * rng.normal(size=(120, 3, 3)), rng.uniform(0.0, 1.0, (8, 3, 3))])
+    verts = tris.reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    bvh = hb.build(verts, faces, method="sbvh", device=device, config=BuildConfig(sbvh_alpha=0.0))
+    assert bvh.has_duplicates
+    path = tmp_path / "sbvh.npz"
+    hb.save_bvh(bvh, path)
+    with np.load(path) as data:
+        arrays = {name: data[name].copy() for name in data.files}
+    hb.load_bvh(_write(tmp_path, arrays, "good.npz"), device=device)
+    leaves = _leaves(arrays)
+    counts = np.bincount(arrays["prim_order"])
+    ends = arrays["node_end"][leaves]
+    begins = arrays["node_begin"][leaves]
+    # A leaf listing only triangles that other leaves list too, and one listing a triangle no other does.
+    split_only = next(f for f, b, e in zip(leaves, begins, ends) if (counts[arrays["prim_order"][b:e]] > 1).all())
+    has_whole = next(f for f, b, e in zip(leaves, begins, ends) if (counts[arrays["prim_order"][b:e]] == 1).any())
+    for leaf, words in ((split_only, "none of the leaves that list it"), (has_whole, "in one leaf only")):
+        bad = {k: v.copy() for k, v in arrays.items()}
+        bad["node_uppers"][leaf] = bad["node_lowers"][leaf]
+        with pytest.raises(ValueError, match=words):
+            hb.load_bvh(_write(tmp_path, bad), device=device)
+
+
 def test_files_that_are_no_saved_tree(tmp_path):
     text = tmp_path / "text.npz"
     text.write_text("not a zip")
