@@ -79,10 +79,11 @@ def _one_call_at_a_time(method):
 
 
 class Builder:
-    """BVH builds over a triangle mesh with a fixed face count, reusing every buffer.
+    """BVH builds over a fixed number of primitives (a mesh's triangles, or boxes), reusing every buffer.
 
     Args:
-        num_prims: the number of triangles (faces) of every frame.
+        num_prims: the number of primitives of every frame: triangles (faces) for `build`, boxes
+            for `build_from_bounds`.
         config: `BuildConfig`; defaults when ``None``.
         device: Warp device; the current default device when ``None``.
         method: ``"hlbvh"``, ``"lbvh"`` or ``"hlbvh_sah"`` (SAH-optimized HLBVH, paper 3.3: the
@@ -411,11 +412,23 @@ class Builder:
         if self.resort:
             wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
         pipe = self.pipeline
-        self.bvh = Bvh(method=self.method, config=self.config, device=self.device, prim_lowers=self.prim_lowers,
-                       prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,
-                       node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
-                       node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
-                       node_count=pipe.node_count, vertices=vertices, faces=faces)
+        if self.bvh is None:
+            self.bvh = Bvh(method=self.method, config=self.config, device=self.device, prim_lowers=self.prim_lowers,
+                           prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,
+                           node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
+                           node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
+                           node_count=pipe.node_count, vertices=vertices, faces=faces)
+        else:
+            # One Bvh for the builder's life: its node arrays are the pipeline's, overwritten by
+            # this build, so a second object would leave the first one's traversal layout stale
+            # (rays through it reported the old mesh's distances with the new tree's face ids).
+            # The layout is kept and refreshed by the build, so earlier views see this mesh.
+            bvh = self.bvh
+            layout = bvh._cache.get("traversal_layout")
+            bvh._cache.clear()
+            bvh.vertices, bvh.faces = vertices, faces
+            if layout is not None and vertices is not None:
+                bvh._cache["traversal_layout"] = layout
         self.frame = 0
         self.reports.clear()
         self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait
@@ -434,7 +447,7 @@ class Builder:
     def _require_built(self):
         if self.bvh is None:
             raise RuntimeError("call build(vertices, faces) or build_from_bounds(lowers, uppers) once before "
-                               "rebuild/refit/update")
+                               "rebuild/refit/update/sah_cost")
 
     def _rebuild(self, timer: StageTimer):
         """The launches of one full build from `self.vertices` (or the boxes in `prim_lowers` /

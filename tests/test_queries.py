@@ -298,6 +298,27 @@ def test_view_stays_valid_after_refit_and_rebuild(device, rng, scene):
         assert (prim_ref >= 0).sum() > 50
 
 
+def test_tree_and_view_follow_a_second_build_of_the_builder(device, rng, scene):
+    """A second `build` sets the builder up for another mesh of the same face count: the tree
+    and views taken before it describe the new mesh (they reported the old mesh's distances
+    with the new tree's face ids), and so do they after a set-up with another vertex count."""
+    verts, faces = scene
+    builder = Builder(len(faces), device=device)
+    bvh = builder.build(verts, faces)
+    view = query.view(bvh)
+    o, d = random_rays(rng, verts, 300)
+    query.intersect(bvh, o, d)  # the traversal layout exists before the second set-up
+    moved = (verts[:, [2, 0, 1]] * np.float32(1.3) + np.float32(0.05)).astype(np.float32)
+    shuffled = faces[rng.permutation(len(faces))]
+    extra = np.concatenate([moved, moved[:7] + np.float32(9.0)])  # more vertices, same faces
+    for frame_verts, frame_faces in ((moved, shuffled), (extra, faces)):
+        assert builder.build(frame_verts, frame_faces) is bvh
+        t_ref, prim_ref = brute_force_closest_hit(frame_verts, frame_faces, o, d)
+        assert (prim_ref >= 0).sum() > 50
+        assert_hits_match(*query.intersect(bvh, o, d), t_ref, prim_ref)
+        assert_hits_match(*_trace_view(view, o, d, device), t_ref, prim_ref)
+
+
 # ----------------------------------------------------------------- pinned by the mutation audit
 def _numpy_all_hits(vertices, faces, origins, directions, t_max):
     """Every (ray, triangle) hit with t in (0, t_max), Moller-Trumbore in float64; the t of each pair,
