@@ -327,7 +327,8 @@ def _box_arrays(lowers, uppers):
 
 
 def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
-    """Primitives whose box overlaps each query box (closed boxes: touching counts).
+    """How many primitives' boxes overlap each query box (closed boxes: touching counts), and
+    with ``return_pairs`` which ones.
 
     Works on every BVH, built from a mesh (triangle boxes) or from bare boxes.
 
