@@ -64,12 +64,20 @@ def load(path, device=None) -> Bvh:
         ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
     """
     try:
+        # np.load takes any other file for a pickle and says so: name what the file is not instead.
+        with open(os.fspath(path), "rb") as file:
+            if file.read(4) != b"PK\x03\x04":
+                raise ValueError("not a saved BVH (not an .npz archive)")
         with np.load(os.fspath(path), allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
     except FileNotFoundError:
         raise
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as error:
-        # Not a zip, a truncated one, a pickled member (never unpickled: allow_pickle=False).
+    except ValueError as error:
+        if str(error).startswith("not a saved BVH"):
+            raise ValueError(f"{path}: {error}") from None
+        raise ValueError(f"{path}: not a saved BVH ({error})") from None
+    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as error:
+        # A truncated zip, a pickled member (never unpickled: allow_pickle=False), a folder.
         raise ValueError(f"{path}: not a saved BVH ({error})") from None
     try:
         return _from_arrays(arrays, device)
