@@ -22,8 +22,8 @@ import numpy as np
 import warp as wp
 
 import hlbvh_warp
-from hlbvh_warp import query, reference, render, scenes, wide
-from hlbvh_warp.cli import mesh_file, positive_int
+from hlbvh_warp import api, query, reference, render, scenes, wide
+from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh
 from hlbvh_warp.kernels import traversal
 from hlbvh_warp.kernels import wide as wide_kernels
 
@@ -109,9 +109,9 @@ class Example:
         return "\n".join(lines)
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--num-frames", type=positive_int, default=36, help="Frames of the orbit.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file (default: the generated scene).")
     parser.add_argument("--num-tris", type=positive_int, default=20000, help="Triangles of the generated scene.")
@@ -120,18 +120,34 @@ if __name__ == "__main__":
     parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
     parser.add_argument("--out", type=str, default="camera_orbit_out", help="Where the PNG and GIF go.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     widths = tuple(int(k) for k in args.widths.split(",") if k.strip().isdigit())
     if len(widths) != len(args.widths.split(",")) or not all(k in wide.WIDTHS for k in widths):
         parser.error(f"--widths takes branching factors from {wide.WIDTHS[0]} to {wide.WIDTHS[-1]}, got {args.widths}")
+    # Every builder name before the first build: a wrong one failed in build() and an empty list
+    # in indexing no methods, both as tracebacks.
+    api._load_optional_builders()
+    methods = tuple(dict.fromkeys(m.strip() for m in args.methods.split(",") if m.strip()))
+    if not methods:
+        parser.error(f"--methods {args.methods!r} names no builder; choose from {sorted(api.BUILDERS)}")
+    unknown = [m for m in methods if m not in api.BUILDERS]
+    if unknown:
+        parser.error(f"unknown builder(s) {unknown} in --methods; choose from {sorted(api.BUILDERS)}")
+    # The mesh file and the output folder before the first frame, not after the last.
+    with argument_errors(parser):
+        mesh = read_mesh(args.mesh) if args.mesh else None
+        if not args.headless:
+            check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
-        example = Example(args.mesh, args.num_tris, tuple(args.methods.split(",")),
-                          widths, args.resolution, args.num_frames,
-                          args.headless)
+        example = Example(mesh, args.num_tris, methods, widths, args.resolution, args.num_frames, args.headless)
         for _ in range(args.num_frames):
             example.step()
             example.render()
         print(example.table())
         for path in example.save(args.out):
             print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -9,7 +9,7 @@ import argparse
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
-from hlbvh_warp.cli import mesh_file, positive_int
+from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
 from hlbvh_warp.render import Camera
 from hlbvh_warp.scenes import scene
@@ -37,9 +37,9 @@ class Example:
         return self.animation.save(out_dir, "exploding_mesh")
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Build only: no ray-cast images.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
@@ -50,10 +50,15 @@ if __name__ == "__main__":
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
     parser.add_argument("--image-size", type=positive_int, default=256)
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    # The mesh file and the output folder before the first frame, not after the last.
+    with argument_errors(parser):
+        mesh = read_mesh(args.mesh) if args.mesh else None
+        if not args.headless:
+            check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
-        example = Example(args.mesh, args.num_tris, args.method, args.policy, not args.no_resort,
+        example = Example(mesh, args.num_tris, args.method, args.policy, not args.no_resort,
                           image_size=args.image_size, headless=args.headless)
         for _ in range(args.num_frames):
             example.step()
@@ -61,3 +66,7 @@ if __name__ == "__main__":
         print(example.animation.table())
         for path in example.save(args.out):
             print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -18,7 +18,8 @@ import warp as wp
 
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import mesh_file, non_negative_int, positive_int
+from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_int,
+                            positive_int, read_mesh)
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import scene, subdivide
@@ -176,9 +177,9 @@ class Example:
         return path
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No per-frame progress lines.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
@@ -198,16 +199,21 @@ if __name__ == "__main__":
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
     parser.add_argument("--subdivide", type=non_negative_int, default=0,
                         help="Split every triangle into four this many times (a mesh at the paper's sizes).")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     unknown = [m for m in args.modes.split(",") if m not in MODES]
     if unknown:
         parser.error(f"unknown mode(s) {unknown}; the modes are {list(MODES)}")
     unknown = [q for q in args.sequences.split(",") if q not in ("explode", "bend", "static")]
     if unknown:
         parser.error(f"unknown sequence(s) {unknown}; the sequences are explode, bend, static")
+    # The mesh file and the plot's folder (written even headless) before the first frame, not
+    # after the last.
+    with argument_errors(parser):
+        mesh = read_mesh(args.mesh) if args.mesh else None
+        check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
-        example = Example(args.mesh, args.num_tris, args.num_frames, args.sequences.split(","),
+        example = Example(mesh, args.num_tris, args.num_frames, args.sequences.split(","),
                           args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads,
                           fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide_times=args.subdivide)
         for _ in range(args.num_frames):
@@ -215,3 +221,7 @@ if __name__ == "__main__":
             example.render()
         print(example.table())
         print(f"wrote {example.plot(os.path.join(args.out, 'frame_timing.png'))}")
+
+
+if __name__ == "__main__":
+    main()

@@ -12,6 +12,7 @@
 #       [--headless]
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -19,7 +20,7 @@ import warp as wp
 
 import hlbvh_warp as hb
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import mesh_file, positive_int
+from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh
 from hlbvh_warp.scenes import scene
 
 # The copy starts and ends this many box diagonals from the mesh's centre along x: clear of it.
@@ -97,6 +98,7 @@ class Example:
             ax.scatter(centroids[:, 0], centroids[:, 2], s=2, c="tab:red", linewidths=0)
         ax.set_aspect("equal")
         ax.set_axis_off()
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         fig.savefig(path, dpi=120, bbox_inches="tight")
         plt.close(fig)
         return path
@@ -110,9 +112,9 @@ class Example:
         return "\n".join(lines)
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Run without writing the picture.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
@@ -120,10 +122,15 @@ if __name__ == "__main__":
     parser.add_argument("--num-tris", type=positive_int, default=20000, help="Size of the generated scene.")
     parser.add_argument("--out", type=str, default="example_mesh_collision.png",
                         help="The picture of the frame with the most contact.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    # The mesh file and the picture's path before the first frame, not after the last.
+    with argument_errors(parser):
+        mesh = read_mesh(args.mesh) if args.mesh else None
+        if not args.headless:
+            check_out_file(args.out, "--out")
 
     with wp.ScopedDevice(args.device):
-        example = Example(args.mesh, args.num_tris, args.num_frames, headless=args.headless)
+        example = Example(mesh, args.num_tris, args.num_frames, headless=args.headless)
         print(f"self-intersections of the resting mesh: {len(hb.intersecting_pairs(example.resting))}")
         for _ in range(args.num_frames):
             example.step()
@@ -131,3 +138,7 @@ if __name__ == "__main__":
         written = example.render(args.out)
         if written:
             print(f"wrote {written}")
+
+
+if __name__ == "__main__":
+    main()

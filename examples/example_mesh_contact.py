@@ -10,6 +10,7 @@
 #       [--headless]
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -17,7 +18,7 @@ import warp as wp
 
 from hlbvh_warp import query
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import mesh_file, positive_int
+from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh
 from hlbvh_warp.dynamic import BendingMesh
 from hlbvh_warp.scenes import scene
 
@@ -126,6 +127,7 @@ class Example:
         ax.scatter(pts[touching] @ across, pts[touching] @ up, s=1, c="tab:red", linewidths=0)
         ax.set_aspect("equal")
         ax.set_axis_off()
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         fig.savefig(path, dpi=120, bbox_inches="tight")
         plt.close(fig)
         return path
@@ -138,9 +140,9 @@ class Example:
         return "\n".join(lines)
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Run without writing the picture.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
@@ -148,13 +150,22 @@ if __name__ == "__main__":
     parser.add_argument("--num-tris", type=positive_int, default=20000, help="Size of the generated scene.")
     parser.add_argument("--num-particles", type=positive_int, default=20000)
     parser.add_argument("--out", type=str, default="example_mesh_contact.png", help="The picture of the last frame.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    # The mesh file and the picture's path before the first frame, not after the last.
+    with argument_errors(parser):
+        mesh = read_mesh(args.mesh) if args.mesh else None
+        if not args.headless:
+            check_out_file(args.out, "--out")
 
     with wp.ScopedDevice(args.device):
-        example = Example(args.mesh, args.num_tris, args.num_particles, args.num_frames, headless=args.headless)
+        example = Example(mesh, args.num_tris, args.num_particles, args.num_frames, headless=args.headless)
         for _ in range(args.num_frames):
             example.step()
         print(example.table())
         written = example.render(args.out)
         if written:
             print(f"wrote {written}")
+
+
+if __name__ == "__main__":
+    main()

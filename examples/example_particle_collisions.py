@@ -18,7 +18,7 @@ import warp as wp
 from hlbvh_warp import query
 from hlbvh_warp.bench import collector_paused
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
-from hlbvh_warp.cli import positive_int
+from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, positive_int
 
 
 @wp.kernel
@@ -200,9 +200,9 @@ class Example:
         return [path]
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No picture.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--num-particles", type=positive_int, default=100000)
@@ -210,7 +210,11 @@ if __name__ == "__main__":
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
     parser.add_argument("--no-peer", action="store_true", help="Do not time wp.Bvh beside it.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the picture.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    # The output folder before the first frame, not after the last.
+    if not args.headless:
+        with argument_errors(parser):
+            check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
         example = Example(args.num_particles, args.method, args.policy, peer=not args.no_peer,
@@ -221,3 +225,7 @@ if __name__ == "__main__":
         print(example.table())
         for path in example.save(args.out):
             print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

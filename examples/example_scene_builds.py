@@ -22,7 +22,7 @@ import hlbvh_warp
 from hlbvh_warp import memory
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import mesh_file, non_negative_int, positive_int
+from hlbvh_warp.cli import argument_errors, device_name, mesh_file, non_negative_int, positive_int, read_mesh
 from hlbvh_warp.scenes import scene
 
 MODES = ("hlbvh_warp.build", "Builder", "Builder, plain launches", "wp.Bvh sah")
@@ -119,20 +119,27 @@ class Example:
         return "\n".join(lines)
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--mesh", action="append", default=None, type=mesh_file,
                         help="a mesh file (repeatable); default: generated meshes of 40k, 20k, 6k and 1k triangles")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--headless", action="store_true", help="Run without printing every frame.")
     parser.add_argument("--scratch-sets", type=non_negative_int, default=None,
                         help="one-shot pipeline scratch sets kept (default: the library's, 16)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    # Every mesh file before the first build: one that is no mesh is an argument error naming it.
+    with argument_errors(parser):
+        meshes = [read_mesh(path) for path in args.mesh] if args.mesh else None
     with wp.ScopedDevice(args.device):
-        example = Example(args.mesh, num_frames=args.num_frames, headless=args.headless,
+        example = Example(meshes, num_frames=args.num_frames, headless=args.headless,
                           scratch_sets=args.scratch_sets)
         for _ in range(example.num_frames):
             example.step()
             example.render()
         print(example.table())
+
+
+if __name__ == "__main__":
+    main()

@@ -17,7 +17,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import query
-from hlbvh_warp.cli import positive_int
+from hlbvh_warp.cli import device_name, positive_int
 
 
 @wp.kernel
@@ -101,13 +101,13 @@ class Example:
         plt.imsave(path, self.image.numpy(), cmap="gray", vmin=0.0, vmax=1.0)
 
 
-if __name__ == "__main__":
+def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--num-frames", type=positive_int, default=8, help="Total number of frames.")
     parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     with wp.ScopedDevice(args.device):
         example = Example(resolution=args.resolution)
@@ -115,3 +115,7 @@ if __name__ == "__main__":
             example.step()
             example.render(None if args.headless else f"example_user_kernel_{k:03d}.png")
         print(f"{args.num_frames} frames, lit fraction {float((example.image.numpy() > 0.15).mean()):.3f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -32,7 +32,7 @@ import numpy as np
 import warp as wp
 
 from . import api, inputs, reference, scenes
-from .cli import device_name, mesh_file, non_negative_int, positive_int
+from .cli import argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -423,21 +423,26 @@ def parse_args(argv):
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
     parser.add_argument("--subdivide", type=non_negative_int, default=0,
-                        help="split every triangle of each mesh into four this many times (the paper's sizes)")
-    parser.add_argument("--scene-tris", type=positive_int, default=60000, help="triangles of the generated scene")
+                        help="split every triangle of each mesh into four this many times (the paper's sizes; "
+                             "default: %(default)s)")
+    parser.add_argument("--scene-tris", type=positive_int, default=60000,
+                        help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
                         help="comma-separated builders and peers (default: all)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
-    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder (default: %(default)s)")
     parser.add_argument("--warmup", type=non_negative_int, default=1,
-                        help="untimed runs first (kernel compilation, caches)")
-    parser.add_argument("--rays", type=non_negative_int, default=128, help="rays checked against the brute force")
+                        help="untimed runs first (kernel compilation, caches; default: %(default)s)")
+    parser.add_argument("--rays", type=non_negative_int, default=128,
+                        help="rays checked against the brute force (default: %(default)s)")
     parser.add_argument("--sweep", action="store_true", help="also sweep m, p, n, bins and leaf size")
-    parser.add_argument("--json", default="out/bench.json", help="where to write the rows")
+    parser.add_argument("--json", default="out/bench.json", help="where to write the rows (default: %(default)s)")
     parser.add_argument("--plot", default=None, help="PNG of time vs SAH ratio (default: beside the JSON)")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=1,
+                        help="seed of the generated scene and the checked rays (default: %(default)s)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
-                        help="BuildConfig.cpu_threads of our builders (0: every core; 1: one thread, like wp.Bvh)")
+                        help="BuildConfig.cpu_threads of our builders (0: every core; 1: one thread, like wp.Bvh; "
+                             "default: %(default)s)")
     args = parser.parse_args(argv)
     args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
     api._load_optional_builders()
@@ -448,6 +453,11 @@ def parse_args(argv):
     unknown = [b for b in args.builders if b not in api.BUILDERS and b not in PEERS]
     if unknown:
         parser.error(f"unknown builders {unknown}; choose from {sorted(api.BUILDERS) + list(PEERS)}")
+    # Before the run: a path that cannot be written failed only after every builder was timed.
+    with argument_errors(parser):
+        check_out_file(args.json, "--json")
+        if args.plot:
+            check_out_file(args.plot, "--plot")
     return args
 
 
@@ -480,6 +490,7 @@ def main(argv=None) -> int:
     json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "cpu_threads": args.cpu_threads,
                                      "rows": rows}, indent=1))
     plot_path = pathlib.Path(args.plot) if args.plot else json_path.with_suffix(".png")
+    plot_path.parent.mkdir(parents=True, exist_ok=True)
     plot(rows, plot_path)
     print(f"wrote {json_path} and {plot_path}")
     return 1 if any("error" in r and r["builder"] not in PEERS for r in rows) else 0

@@ -6,7 +6,9 @@ Each command lives in its own module with a ``main(argv)``; this file only dispa
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import math
 import os
 import sys
 
@@ -59,6 +61,92 @@ def mesh_file(text: str) -> str:
     if not os.path.isfile(text):
         raise argparse.ArgumentTypeError(f"no such mesh file: {text}")
     return text
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (costs, limits); "nan" and "inf" parse as floats but would
+    only fail mid-run, in the arithmetic they feed."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
+@contextlib.contextmanager
+def argument_errors(parser: argparse.ArgumentParser):
+    """A ValueError of the checks inside (an output path, a mesh file) ends the program as
+    argparse ends it on a bad option: ``parser.error``'s one line and exit status 2."""
+    try:
+        yield
+    except ValueError as error:
+        parser.error(str(error))
+
+
+def _nearest_existing(path: str) -> str:
+    path = os.path.abspath(path)
+    while not os.path.exists(path):
+        path = os.path.dirname(path)
+    return path
+
+
+def _check_can_make_folder(folder: str, label: str):
+    # os.makedirs names only the last path it tried ("[Errno 17] File exists: '/dev/null'" for
+    # /dev/null/x): the file in the way is named here instead.
+    existing = _nearest_existing(folder)
+    if not os.path.isdir(existing):
+        raise ValueError(f"{label}: cannot make the folder, {existing} is a file")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{label}: cannot make the folder, {existing} is not writable")
+
+
+def check_out_folder(path: str, option: str = "--out"):
+    """Raise a ValueError naming ``option`` and ``path`` unless ``path`` is a writable folder or
+    one that can be made. Nothing is made: the writer makes the folder when it writes, and a run
+    that fails later leaves no empty folder behind. Called before the long work, which used to
+    end in NotADirectoryError only after every frame had run."""
+    label = f"{option} {path}"
+    if os.path.exists(path):
+        if not os.path.isdir(path):
+            raise ValueError(f"{label} is a file, not a folder")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise ValueError(f"{label}: the folder is not writable")
+        return
+    _check_can_make_folder(path, label)
+
+
+def check_out_file(path: str, option: str):
+    """As `check_out_folder`, for an output file: ``path`` must not be a folder, and its folder
+    must be writable or possible to make."""
+    label = f"{option} {path}"
+    if os.path.isdir(path):
+        raise ValueError(f"{label} is a folder, not a file")
+    if os.path.exists(path):
+        if not os.access(path, os.W_OK):
+            raise ValueError(f"{label}: the file is not writable")
+        return
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(folder):
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise ValueError(f"{label}: the folder {folder} is not writable")
+        return
+    _check_can_make_folder(folder, label)
+
+
+def read_mesh(path: str):
+    """``(vertices, faces)`` of a mesh file, checked as a build checks them (face indices in
+    range, finite coordinates), or a ValueError naming the file: the examples read their
+    ``--mesh`` through this before any work, so a file trimesh cannot read (a text file, a
+    broken or points-only PLY) is one line, not a traceback from the first frame."""
+    from . import inputs, scenes
+
+    vertices, faces = scenes.load_mesh(path)
+    try:
+        return inputs.mesh_arrays(vertices, faces)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
 
 
 def main(argv=None) -> int:

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, mesh_file, non_negative_int, positive_int
+from .cli import check_out_folder, device_name, mesh_file, non_negative_int, positive_int
 from .reference import brute_force_closest_hit
 
 
@@ -38,16 +38,6 @@ def rays_at(vertices, count: int, seed: int = 0):
     origins = center - 2.0 * radius * dirs
     d = lo + rng.random((count, 3)) * (hi - lo) - origins
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
-
-
-def check_out_folder(path: str):
-    """Make the output folder ``path`` (and its parents), or raise a ValueError naming ``--out``."""
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise ValueError(f"--out {path} is a file, not a folder")
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError as error:
-        raise ValueError(f"--out {path}: cannot make the folder ({error.strerror or error})") from None
 
 
 def main(argv=None) -> int:

@@ -159,8 +159,17 @@ def format_row(r: dict) -> str:
 
 
 def main(argv=None) -> int:
+    from . import api
+
     parser = mesh_method_parser("python -m hlbvh_warp bench-pairs", __doc__.splitlines()[0])
     args = parser.parse_args(argv)
+    # A builder that cuts triangles (sbvh) lists some in several leaves, each under a box of its
+    # part only; the pair queries refuse such trees (`collide`), which surfaced only after the
+    # build, as a NumPy broadcast error in the disagreement count.
+    split = [m for m in dict.fromkeys(args.method or []) if api.needs_mesh(m)]
+    if split:
+        parser.error(f"--method {', '.join(split)}: spatial-split trees list a triangle in several leaves, which the "
+                     "pair queries do not take; choose an object-split method (hlbvh, lbvh, hlbvh_sah, sweep_sah, ...)")
     return run_rows(parser, args, 0, run, HEADER, format_row,
                     "ratio = wp.mesh_query_aabb time / ours (> 1: ours is faster); ns/pair = exact triangle test "
                     "per candidate pair; meet = pairs that intersect (self: beyond shared vertices)")

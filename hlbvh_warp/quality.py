@@ -23,7 +23,8 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
-from .cli import device_name, mesh_file, non_negative_int, positive_int
+from .cli import (argument_errors, check_out_file, device_name, finite_float, mesh_file, non_negative_int,
+                  positive_int)
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -166,29 +167,41 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp quality", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=positive_int, default=20000, help="triangles of the generated scene")
+    parser.add_argument("--scene-tris", type=positive_int, default=20000,
+                        help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--scene", default="knot", choices=["knot", "knot+large"],
-                        help="the generated scene: the torus knot, or with 8 large triangles across it")
+                        help="the generated scene: the torus knot, or with 8 large triangles across it "
+                             "(default: %(default)s)")
     parser.add_argument("--builders", default=",".join(BUILDERS),
                         help="comma-separated builders (default: all but the offline recursive_sah and sbvh)")
-    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit")
-    parser.add_argument("--side", type=positive_int, default=64, help="pixels per image side")
-    parser.add_argument("--ct", type=float, default=1.2, help="traversal cost c_t (Wodniok & Goesele: 1.2)")
-    parser.add_argument("--ci", type=float, default=1.0, help="intersection cost c_i (Wodniok & Goesele: 1.0)")
+    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit (default: %(default)s)")
+    parser.add_argument("--side", type=positive_int, default=64, help="pixels per image side (default: %(default)s)")
+    parser.add_argument("--ct", type=finite_float, default=1.2,
+                        help="traversal cost c_t, as Wodniok & Goesele (default: %(default)s)")
+    parser.add_argument("--ci", type=finite_float, default=1.0,
+                        help="intersection cost c_i, as Wodniok & Goesele (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
-                        help="BuildConfig.cpu_threads (0: every core)")
-    parser.add_argument("--json", default="out/quality.json", help="where to write the rows")
-    parser.add_argument("--seed", type=int, default=1)
+                        help="BuildConfig.cpu_threads (0: every core; default: %(default)s)")
+    parser.add_argument("--json", default="out/quality.json", help="where to write the rows (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, help="seed of the diffuse rays (default: %(default)s)")
     args = parser.parse_args(argv)
+    listed = args.builders
     args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
+    if not args.builders:
+        # An empty list used to run the reference alone (appended below) and exit 0, as if every
+        # builder had been compared.
+        parser.error(f"--builders {listed!r} names no builder; choose from {list(BUILDERS + SLOW_BUILDERS)}")
     unknown = [b for b in args.builders if b not in BUILDERS + SLOW_BUILDERS]
     if unknown:
         parser.error(f"unknown builders {unknown}; choose from {list(BUILDERS + SLOW_BUILDERS)}")
     if REFERENCE not in args.builders:
         args.builders.append(REFERENCE)
     if args.ct < 0 or args.ci <= 0:
-        parser.error("need --ct >= 0 and --ci > 0")
+        parser.error(f"need --ct >= 0 and --ci > 0, got --ct {args.ct} and --ci {args.ci}")
+    # Before the run: a path that cannot be written failed only after every builder had run.
+    with argument_errors(parser):
+        check_out_file(args.json, "--json")
     return args
 
 

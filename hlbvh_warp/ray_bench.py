@@ -149,9 +149,10 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
     if count_option is not None:
         parser.add_argument(count_option, type=positive_int, default=count_default, help=count_help)
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
-    parser.add_argument("--repeats", type=positive_int, default=3, help="launches timed per kernel; the best is kept")
+    parser.add_argument("--repeats", type=positive_int, default=3,
+                        help="launches timed per kernel; the best is kept (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the queries (default: %(default)s)")
     parser.add_argument("--max-leaf-size", type=positive_int, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
     return parser
@@ -166,6 +167,13 @@ def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: s
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         parser.error(f"mesh not found: {', '.join(missing)}")
+    from . import api
+
+    # Every name before the first mesh is read and built, not when the loop reaches it.
+    api._load_optional_builders()
+    unknown = [m for m in args.method or [] if m not in api.BUILDERS]
+    if unknown:
+        parser.error(f"unknown method(s) {unknown} in --method; choose from {sorted(api.BUILDERS)}")
     device = wp.get_device(args.device)
     print(header)
     total_disagree = 0

@@ -101,8 +101,8 @@ def load_mesh(path):
     """``(vertices float32, faces int32)`` of a mesh file (anything trimesh reads), unprocessed.
 
     Raises:
-        ValueError: ``path`` is a folder, trimesh fails to read the file (its reason named), or the
-            mesh has no triangles. Face indices are checked later, by the build.
+        ValueError: ``path`` is a folder, trimesh fails to read the file (its reason and the file
+            named), or the mesh has no triangles. Face indices are checked later, by the build.
     """
     import os
 
@@ -113,13 +113,17 @@ def load_mesh(path):
         raise ValueError(f"{path} is a directory, not a mesh file")
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
-    except (ValueError, OSError, NotImplementedError):
-        raise  # trimesh's own message names the problem (a missing file, an unsupported type)
+    except (ValueError, OSError, NotImplementedError) as error:
+        # trimesh's own message names the problem but seldom the file ("file_type 'txt' not
+        # supported", "Not a ply file!"): with several --mesh options, which one?
+        message = str(error)
+        raise ValueError(message if str(path) in message else f"{path}: {message}") from None
     except Exception as error:
         # trimesh's parsers index with the file's numbers before checking them (an OBJ face
         # naming vertex 9 of 3 is an IndexError inside its loader): whatever fails in there is
         # the file's problem, named as such, not a traceback.
-        hint = "; a face refers to a vertex the file does not have?" if isinstance(error, IndexError) else ""
+        hint = "; a face refers to a vertex the file does not have, or the file is cut short?" \
+            if isinstance(error, IndexError) else ""
         raise ValueError(f"{path}: trimesh could not read the mesh ({type(error).__name__}: {error}{hint})") from None
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int32).reshape(-1, 3)
     if faces.shape[0] == 0:
@@ -130,7 +134,11 @@ def load_mesh(path):
 
 
 def scene(mesh_path=None, num_tris: int = 60000):
-    """A mesh file when a path is given, else the generated default scene."""
+    """A mesh file when a path is given, else the generated default scene. A ``(vertices,
+    faces)`` pair is taken as it is: the examples read their ``--mesh`` before any work, to name
+    a file that is no mesh as an argument error, and hand the arrays on."""
+    if isinstance(mesh_path, tuple):
+        return mesh_path
     return load_mesh(mesh_path) if mesh_path else default_scene(num_tris)
 
 

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, mesh_file, non_negative_int, positive_int
+from .cli import argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int
 
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
@@ -131,19 +131,22 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-wide", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=positive_int, default=20000, help="triangles of the generated scene")
+    parser.add_argument("--scene-tris", type=positive_int, default=20000,
+                        help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--method", action="append", default=None,
-                        help="binary builder to collapse (repeatable; default hlbvh_sah)")
-    parser.add_argument("--widths", default="2,4,8,16", help="comma-separated branching factors, 2 to 16")
-    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit")
-    parser.add_argument("--side", type=positive_int, default=128, help="pixels per image side")
+                        help="binary builder to collapse (repeatable; default: hlbvh_sah)")
+    parser.add_argument("--widths", default="2,4,8,16",
+                        help="comma-separated branching factors, 2 to 16 (default: %(default)s)")
+    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit (default: %(default)s)")
+    parser.add_argument("--side", type=positive_int, default=128, help="pixels per image side (default: %(default)s)")
     parser.add_argument("--repeats", type=positive_int, default=5,
-                        help="launches timed per traversal; the best is kept")
+                        help="launches timed per traversal; the best is kept (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
-                        help="BuildConfig.cpu_threads (0: every core)")
-    parser.add_argument("--json", default="out/bench_wide.json", help="where to write the rows")
-    parser.add_argument("--seed", type=int, default=1)
+                        help="BuildConfig.cpu_threads (0: every core; default: %(default)s)")
+    parser.add_argument("--json", default="out/bench_wide.json",
+                        help="where to write the rows (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, help="seed of the diffuse rays (default: %(default)s)")
     args = parser.parse_args(argv)
     try:
         args.widths = [int(k) for k in args.widths.split(",") if k.strip()]
@@ -157,6 +160,9 @@ def parse_args(argv):
     unknown = [m for m in args.method if m not in api.BUILDERS]
     if unknown:
         parser.error(f"unknown methods {unknown}; choose from {sorted(api.BUILDERS)}")
+    # Before the run: a path that cannot be written failed only after every traversal was timed.
+    with argument_errors(parser):
+        check_out_file(args.json, "--json")
     return args
 
 

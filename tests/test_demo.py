@@ -29,7 +29,8 @@ def test_bad_arguments_end_in_one_line_errors(tmp_path, capsys):
         (["demo", "--num-frames", "-3"], "--num-frames: must be at least 1"),
         (["bench", "--scene-tris", "-5"], "--scene-tris: must be at least 1"),
         (["bench", "--warmup", "-2"], "--warmup: must be at least 0"),
-        (["quality", "--mesh", str(not_a_mesh)], "hlbvh_warp quality: error: file_type 'txt' not supported"),
+        (["quality", "--mesh", str(not_a_mesh)],
+         f"hlbvh_warp quality: error: {not_a_mesh}: file_type 'txt' not supported"),
         (["nosuch"], "unknown command 'nosuch'"),
     ]
     for argv, message in cases:

@@ -261,15 +261,143 @@ TINY_ARGS = {
 }
 
 
+#: The examples that read a --mesh, and those that write to --out (the folder's, or the picture's path).
+MESH_EXAMPLES = ["example_exploding_mesh", "example_bending_mesh", "example_frame_timing", "example_scene_builds",
+                 "example_mesh_contact", "example_mesh_collision", "example_camera_orbit"]
+OUT_FOLDER_EXAMPLES = ["example_exploding_mesh", "example_bending_mesh", "example_frame_timing",
+                       "example_particle_collisions", "example_camera_orbit"]
+OUT_FILE_EXAMPLES = ["example_mesh_contact", "example_mesh_collision"]
+
+
+def without_headless(args):
+    # Headless runs write nothing, so --out is checked only where it will be written.
+    return [a for a in args if a != "--headless"]
+
+
+def argument_error(name, argv, capsys, monkeypatch=None) -> str:
+    """The one-line error of ``examples/<name>.py argv`` (run in-process through its ``main``),
+    which must exit with status 2 before an `Example` is made."""
+    module = load_example(name)
+    if monkeypatch is not None:
+        def no_work(*args, **kwargs):
+            raise AssertionError("the example started its work before the arguments were checked")
+
+        monkeypatch.setattr(module, "Example", no_work)
+    with pytest.raises(SystemExit) as exit_:
+        module.main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2, (name, argv, exit_.value.code, err)
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and ": error: " in last, err
+    return last
+
+
 @pytest.mark.parametrize("name,extra,message", [
     *[(name, ["--num-frame-count", "2"], "unrecognized arguments: --num-frame-count") for name in TINY_ARGS],
     ("example_scene_builds", ["--scratch-sets", "-1"], "--scratch-sets: must be at least 0"),
     ("example_bending_mesh", ["--sah-growth-limit", "-1"], "--sah-growth-limit: must be a number >= 0"),
 ])
-def test_example_scripts_reject_bad_options_in_one_line(name, extra, message, tmp_path):
+def test_example_scripts_reject_bad_options_in_one_line(name, extra, message, capsys, monkeypatch):
     # A misspelt option used to be ignored (the run went on with the default) and a negative
     # count or limit ended in a library traceback.
-    run = subprocess.run([sys.executable, str(EXAMPLES / f"{name}.py"), *TINY_ARGS[name], *extra],
+    assert message in argument_error(name, [*TINY_ARGS[name], *extra], capsys, monkeypatch)
+
+
+@pytest.mark.parametrize("name", list(TINY_ARGS))
+@pytest.mark.parametrize("device_arg", ["foo", "cuda:99"] + ([] if wp.is_cuda_available() else ["cuda"]))
+def test_example_scripts_reject_a_device_this_machine_lacks(name, device_arg, capsys, monkeypatch):
+    # --device was a plain string handed to wp.ScopedDevice: a traceback from Warp.
+    err = argument_error(name, [*TINY_ARGS[name], "--device", device_arg], capsys, monkeypatch)
+    assert "argument --device:" in err and ("Invalid device identifier" in err or "CUDA" in err), err
+
+
+def not_meshes(folder: pathlib.Path) -> list:
+    """(file, what its error must say): files that pass `cli.mesh_file` (they exist) but are no mesh."""
+    text = folder / "notes.txt"
+    text.write_text("not a mesh\n")
+    cut_short = folder / "cut_short.ply"
+    cut_short.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n")
+    garbage = folder / "garbage.ply"
+    garbage.write_text("garbage\n")
+    points = folder / "points.ply"
+    points.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                      "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n")
+    bad_face = folder / "bad_face.ply"
+    bad_face.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                        "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                        "0 0 0\n1 0 0\n0 1 0\n3 0 1 9\n")
+    return [(text, "file_type 'txt' not supported"), (cut_short, "trimesh could not read the mesh"),
+            (garbage, "Not a ply file"), (points, "the mesh has no triangles"),
+            (bad_face, "face index 9 out of range")]
+
+
+@pytest.mark.parametrize("name", MESH_EXAMPLES)
+def test_example_scripts_name_a_mesh_file_they_cannot_read(name, tmp_path, capsys, monkeypatch):
+    # A file that exists but is no mesh passed the --mesh check and failed as a traceback when
+    # the first Example loaded it (trimesh's NotImplementedError or ValueError).
+    for path, problem in not_meshes(tmp_path):
+        err = argument_error(name, [*TINY_ARGS[name], "--mesh", str(path)], capsys, monkeypatch)
+        assert f"error: {path}: " in err and problem in err, (name, path, err)
+
+
+@pytest.mark.parametrize("name", OUT_FOLDER_EXAMPLES + OUT_FILE_EXAMPLES)
+def test_example_scripts_check_out_before_the_first_frame(name, tmp_path, capsys, monkeypatch):
+    # --out /dev/null/x (or a file where a folder goes) ended in NotADirectoryError after every frame.
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    args = without_headless(TINY_ARGS[name])
+    cases = [(a_file / "x", f"--out {a_file / 'x'}: cannot make the folder, {a_file} is a file")]
+    if name in OUT_FOLDER_EXAMPLES:
+        cases.append((a_file, f"--out {a_file} is a file, not a folder"))
+    else:
+        cases.append((tmp_path, f"--out {tmp_path} is a folder, not a file"))
+    for out, message in cases:
+        assert message in argument_error(name, [*args, "--out", str(out)], capsys, monkeypatch)
+    assert a_file.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+@pytest.mark.parametrize("methods,message", [
+    ("foo", "unknown builder(s) ['foo'] in --methods"),
+    ("hlbvh,foo", "unknown builder(s) ['foo'] in --methods"),
+    ("", "--methods '' names no builder"),
+    (" , ", "--methods ' , ' names no builder"),
+])
+def test_camera_orbit_checks_its_builders_first(methods, message, capsys, monkeypatch):
+    # Both used to end in a traceback: build()'s ValueError, or indexing an empty method list.
+    args = list(TINY_ARGS["example_camera_orbit"])
+    args[args.index("--methods") + 1] = methods
+    assert message in argument_error("example_camera_orbit", args, capsys, monkeypatch)
+
+
+def test_example_scripts_run_main_as_scripts(tmp_path):
+    # The in-process tests call main(); each script must also call it, and end a bad argument
+    # without a traceback when run as a program (one subprocess: each costs Warp's start-up).
+    for name in TINY_ARGS:
+        assert (EXAMPLES / f"{name}.py").read_text().rstrip().endswith('if __name__ == "__main__":\n    main()'), name
+    name = "example_exploding_mesh"
+    run = subprocess.run([sys.executable, str(EXAMPLES / f"{name}.py"), *TINY_ARGS[name], "--device", "foo"],
                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert run.returncode == 2 and message in run.stderr, (run.returncode, run.stderr[-2000:])
+    assert run.returncode == 2 and "argument --device: Invalid device identifier: foo" in run.stderr, run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_example_scripts_hand_the_mesh_they_checked_to_the_example(tmp_path, capsys, monkeypatch):
+    # main() reads --mesh once, before any work, and the Example takes the arrays it read.
+    import trimesh
+
+    path = tmp_path / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=2).export(path)
+    module = load_example("example_exploding_mesh")
+    made = []
+
+    class Recorded(module.Example):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(module, "Example", Recorded)
+    module.main(["--headless", "--num-frames", "1", "--mesh", str(path)])
+    assert len(made) == 1 and len(made[0].mesh.faces) == 320
+    load_example("example_scene_builds").main(["--headless", "--num-frames", "1", "--mesh", str(path),
+                                               "--mesh", str(path)])
+    assert "2 meshes (320, 320 triangles)" in capsys.readouterr().out
