@@ -23,6 +23,8 @@ def needs_mesh(method: str) -> bool:
 
 
 def register_builder(name: str):
+    """A decorator that registers the function it wraps in `BUILDERS` as the builder of method
+    `name`, called as ``fn(prim_lowers, prim_uppers, config, device, timer)`` and returning a `Bvh`."""
     def wrap(fn):
         BUILDERS[name] = fn
         return fn
@@ -52,6 +54,8 @@ def _pipeline_builder(method: str):
 
 
 def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict) -> Bvh:
+    """A `Bvh` over a finished pipeline's output arrays, without copying them (the pipeline renews
+    its outputs before it builds again)."""
     n = pipe.num_prims
     return Bvh(
         method=method,

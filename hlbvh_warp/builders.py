@@ -47,6 +47,9 @@ TOP_DOWN_MODES = {"sweep_sah": sah.MODE_SWEEP, "binned_sah": sah.MODE_BINNED, "m
 class TopDownBuilder:
     """Scratch of the level-parallel top-down build over `num_items` items, allocated once.
 
+    The greedy top-down builders of ``kernels/sah.py``: the full SAH sweep (MacDonald & Booth 1990,
+    as organized by Wald, Boulos & Shirley 2007), binned SAH (Wald 2007) and the object median.
+
     ``capacity`` (default `num_items`) sizes the scratch; `resize` then sets the item count of
     the next builds anywhere up to it without allocating, as the cluster tree of a per-frame
     ``hlbvh_sah`` build needs (its cluster count changes every frame).
@@ -241,7 +244,9 @@ def build_top_down(
     method: str = "sweep_sah",
     terminate_leaf_size: int = 0,
 ) -> Bvh:
-    """Top-down build over primitive boxes with the split rule of `method` (see `TOP_DOWN_MODES`).
+    """Top-down build over primitive boxes with the split rule of `method` (see `TOP_DOWN_MODES`):
+    the greedy SAH sweep (MacDonald & Booth 1990; Wald, Boulos & Shirley 2007), binned SAH (Wald
+    2007) or the object median.
 
     Args:
         terminate_leaf_size: nodes of up to this many primitives become leaves when splitting them
@@ -309,6 +314,7 @@ class _Arena:
         self.node_count = wp.zeros(1, dtype=wp.int32, device=device)
 
     def to_bvh(self, method, config, prim_lowers, prim_uppers, timings) -> Bvh:
+        """A `Bvh` over these arrays (no copy) and the given primitive boxes."""
         return Bvh(
             method=method,
             config=config,
@@ -348,6 +354,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
     OUTPUTS = HlbvhPipeline.OUTPUTS[:-1] + ("prim_order",)
 
     def held_bytes(self) -> int:
+        """Bytes of the arrays this pipeline holds, the cluster tree's scratch included."""
         return super().held_bytes() + (self.top.nbytes() if self.top is not None else 0)
 
     def max_clusters(self) -> int:
@@ -559,10 +566,12 @@ class _TopTree:
         self.builder = TopDownBuilder(c, device)
 
     def resize(self, num_clusters: int):
+        """Build over the first `num_clusters` clusters next (at most `capacity`); allocates nothing."""
         self.num_clusters = num_clusters
         self.builder.resize(num_clusters)
 
     def nbytes(self) -> int:
+        """Bytes of the arrays this scratch holds."""
         return array_bytes(self, self.arena, self.builder)
 
 

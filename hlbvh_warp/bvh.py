@@ -95,10 +95,12 @@ class Bvh:
 
     @property
     def num_nodes(self) -> int:
+        """Nodes in use, read from the device-side count (a wait for the device on CUDA)."""
         return int(self.node_count.numpy()[0])
 
     @property
     def num_leaves(self) -> int:
+        """Leaves (``node_left`` -1), counted on the host copy (`to_numpy`)."""
         return int((self.to_numpy()["node_left"] < 0).sum())
 
     @property

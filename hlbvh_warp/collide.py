@@ -82,6 +82,9 @@ def _sorted_pairs(pairs: np.ndarray, swapped: bool, self_pairs: bool) -> np.ndar
 def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
     """Pairs of primitives whose boxes overlap (closed boxes: touching counts): a broad phase.
 
+    One thread per primitive of the smaller side walks the other side's BVH with the primitive's
+    box, independently of the others: the broad phase of Karras (2012).
+
     Args:
         a, b: BVHs on one device, over meshes or bare boxes (`build_from_bounds`), from any
             object-split builder. ``b`` None asks for the pairs within ``a``.
@@ -99,6 +102,11 @@ def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
 def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
     """Pairs of triangles that intersect, touching included, decided exactly for the float32
     coordinates (``kernels/collide.py``).
+
+    The candidates of `overlapping_pairs`, then one exact test per pair: every edge of each
+    triangle against the other triangle in signed volumes (not Moeller's 1997 interval test nor
+    Guigue & Devillers' 2003 cascade), every sign from Shewchuk's filtered exact predicates
+    ("Adaptive Precision Floating-Point Arithmetic and Fast Robust Geometric Predicates", DCG 1997).
 
     Args:
         a, b: mesh BVHs on one device, from any object-split builder. ``b`` None asks for the
@@ -137,7 +145,8 @@ def _triangle_rows(values, name: str) -> np.ndarray:
 
 
 def triangles_intersect(tri_a, tri_b, neighbours: bool = False, device=None) -> np.ndarray:
-    """Whether triangle ``tri_a[k]`` and triangle ``tri_b[k]`` intersect, for every row k.
+    """Whether triangle ``tri_a[k]`` and triangle ``tri_b[k]`` intersect, for every row k: the
+    exact test of `intersecting_pairs` (edges against triangles, Shewchuk's predicates, DCG 1997).
 
     Args:
         tri_a, tri_b: ``(K, 3, 3)`` vertex coordinates (or one ``(3, 3)`` triangle each), narrowed

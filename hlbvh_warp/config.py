@@ -27,7 +27,8 @@ class BuildConfig:
         bits_per_axis: n, Morton bits per axis; codes have 3n bits (paper: n = 10, 30-bit codes).
         coarse_bits: m, bits per axis of the coarse voxel grid whose 3m-bit codes are run-length
             encoded and sorted by compress-sort-decompress. ``None`` picks it from the primitive
-            count as the paper does (m = 6 up to about 2M primitives, m = 7 above).
+            count after the paper, which used m = 6 for meshes up to 1M triangles and m = 7 for 10M
+            (section 3.1): here m = 6 up to 2^21 (about 2M) primitives, m = 7 above.
         planes_per_pass: p, Morton bit planes consumed by one treelet-emission pass (1 to 4);
             each pass emits treelets of up to 2^p leaves.
         block_capacity: voxel segments are grouped into blocks of about this many primitives
@@ -188,4 +189,5 @@ class BuildConfig:
         return "depth_first" if device.is_cpu else "treelets"
 
     def replace(self, **changes) -> "BuildConfig":
+        """A copy with the given fields changed (`dataclasses.replace`), validated like any new config."""
         return dataclasses.replace(self, **changes)

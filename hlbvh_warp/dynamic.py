@@ -1,7 +1,9 @@
-"""Animated test scenes after the paper's dynamic benchmarks (Pantaleoni & Luebke 2010, 2.2).
+"""Animated test scenes after the paper's dynamic benchmarks (Pantaleoni & Luebke 2010, section 4,
+Fig. 7).
 
 - `ExplodingMesh`: the "Exploding Turbine Blade" setup: the mesh is blasted into its
-  triangles, each flying with a random velocity and spinning about a random axis.
+  triangles, each flying with a random velocity (as in the paper) and spinning about a random
+  axis (an addition of ours).
 - `BendingMesh`: the "Bending Armadillo" setup: the mesh is bent progressively around an
   axis, a smooth deformation that keeps the topology and the neighbourhoods.
 
@@ -175,6 +177,7 @@ class Animation:
             self.images.append(render(self.builder.bvh, self.camera, self.image_size, self.image_size))
 
     def table(self) -> str:
+        """The per-frame rows as a fixed-width text table, with a summary line."""
         lines = []
         compare = self.reference is not None
         head = f"{'frame':>5}  {'decision':8}  {'ms':>8}"

@@ -36,6 +36,7 @@ class StageTimer:
         self._start = 0.0
 
     def stage(self, label: str):
+        """Close the running stage and start timing `label` (the device synchronized at both ends)."""
         if not self.enabled:
             return
         self._close()
@@ -57,6 +58,7 @@ class StageTimer:
             self._label = None
 
     def finish(self) -> dict:
+        """Close the running stage and return the timings with their ``total`` (empty when disabled)."""
         if self.enabled:
             self._close()
             self.timings["total"] = sum(v for k, v in self.timings.items() if k not in ("skipped",))
@@ -64,7 +66,9 @@ class StageTimer:
 
 
 class HlbvhPipeline:
-    """Scratch buffers for one primitive count, allocated once and reused by every build."""
+    """The HLBVH build of Pantaleoni & Luebke (HPG 2010): the primitive sort of their section 3.1
+    (Fig. 1) and the hierarchy emission of section 3.2 (Fig. 4), one method per stage, and the
+    scratch buffers for one primitive count, allocated once and reused by every build."""
 
     #: The arrays a `Bvh` takes over from a build (`api.bvh_from_pipeline`).
     OUTPUTS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_parent", "node_begin", "node_end",
@@ -97,6 +101,8 @@ class HlbvhPipeline:
         return memory.array_bytes(self)
 
     def renew_outputs(self):
+        """Replace the output arrays (`OUTPUTS`) with fresh ones; the old ones stay with the `Bvh`
+        that holds them."""
         for name in self.OUTPUTS:
             old = getattr(self, name)
             setattr(self, name, memory.empty(old.shape, dtype=old.dtype, device=self.device))
@@ -280,7 +286,8 @@ class HlbvhPipeline:
         )
 
     def run_length_encode(self, sync_free: bool = False) -> int:
-        """High 3m bits: the run_heads compaction (wp.utils.runlength_encode).
+        """Run-length encode the codes by their high 3m bits (Pantaleoni & Luebke 2010, section 3.1,
+        Fig. 1: the run_heads compaction), with wp.utils.runlength_encode.
 
         Returns M, the run count, read on the host (it sizes the top-level sort); with
         `sync_free` the count stays on the device and N, its bound, is returned instead.
@@ -321,7 +328,9 @@ class HlbvhPipeline:
         return int(self.out_of_order.numpy()[0]) == 0
 
     def top_level_sort(self, num_runs: int, sort: bool = True):
-        """Radix sort of the M run codes (3m bits) with their run ids as values."""
+        """The top-level sort of Pantaleoni & Luebke 2010 (section 3.1, Fig. 1): a radix sort of the
+        M run codes (3m bits) with their run ids as values; without `sort`, the ids alone (runs
+        already in order)."""
         self._launch(compress.iota_kernel, num_runs, [self.run_ids])
         if not sort:
             return
@@ -333,7 +342,8 @@ class HlbvhPipeline:
         wp.utils.radix_sort_pairs(self.run_codes, self.run_ids, num_runs, end_bit=end_bit)
 
     def run_length_decode(self, num_runs: int):
-        """Exclusive scan of the sorted run lengths, then every run expanded in sorted order."""
+        """Run-length decoding (Pantaleoni & Luebke 2010, section 3.1, Fig. 1): an exclusive scan of
+        the sorted run lengths, then every run expanded in sorted order, codes and ids."""
         self._launch(
             compress.gather_run_lengths_kernel,
             num_runs,
@@ -352,7 +362,8 @@ class HlbvhPipeline:
         self._launch(compress.decompress_runs_kernel, num_runs, args + [0])
 
     def voxel_sort(self, num_runs: int):
-        """Group voxel segments into blocks and sort every block by its codes in one launch."""
+        """The voxel sort (Pantaleoni & Luebke 2010, section 3.1): group voxel segments into blocks
+        of about ``block_capacity`` primitives and sort every block by its codes in one launch."""
         n = self.num_prims
         self._launch(compress.voxel_head_flags_kernel, num_runs, [self.run_count, self.run_codes, self.voxel_flags])
         wp.utils.array_scan(self.voxel_flags[:num_runs], self.voxel_index[:num_runs], inclusive=True)
@@ -395,8 +406,9 @@ class HlbvhPipeline:
         return int(self.blocks_sorted.numpy().sum()) > 0
 
     def global_sort(self, sort: bool = True):
-        """LBVH baseline (the paper's Table 1): one radix sort over all 3n bits; without `sort`,
-        the codes and ids copied as they are (input already in order)."""
+        """The LBVH baseline (Lauterbach et al. 2009; the LBVH column of Pantaleoni & Luebke 2010,
+        Table 1): one radix sort over all 3n bits; without `sort`, the codes and ids copied as they
+        are (input already in order)."""
         n = self.num_prims
         wp.copy(self.sorted_codes, self.morton_codes, count=n)
         if self.input_ids.shape[0] > 0:
@@ -467,7 +479,8 @@ class HlbvhPipeline:
         )
 
     def emit_hierarchy(self, top_bit: int, bottom_bit: int):
-        """Treelet passes over the bit planes [bottom_bit, top_bit), p planes at a time, MSB first."""
+        """Treelet passes over the bit planes [bottom_bit, top_bit), p planes at a time, MSB first:
+        the hierarchy emission of Pantaleoni & Luebke 2010 (section 3.2, Fig. 4)."""
         n = self.num_prims
         p = self.config.planes_per_pass
         stride = (1 << p) - 1
@@ -528,8 +541,10 @@ class HlbvhPipeline:
                          first_seed_node: int = 0, num_seeds: int = 1, node_cost: wp.array | None = None):
         """The depth-first schedule of the emission (``BuildConfig.emission``): one thread per
         seed segment (default: the root, [0, N)) emits its whole subtree with every box, and with
-        `node_cost` given, every node's SAH cost. With seeds given, the caller has set
-        `node_count` past the seeds' nodes and links their parents afterwards.
+        `node_cost` given, every node's SAH cost. The splits, and so the tree, are those of the
+        treelet passes of Pantaleoni & Luebke 2010 (section 3.2); the schedule is this library's,
+        for Warp's CPU device. With seeds given, the caller has set `node_count` past the seeds'
+        nodes and links their parents afterwards.
 
         On a multi-core CPU (``BuildConfig.cpu_threads``) with one primitive per leaf, the seeds
         are cut into runs of about equal primitive counts emitted side by side: a seed of k
@@ -608,6 +623,8 @@ class HlbvhPipeline:
         self._launch(bounds.gather_boxes_kernel, n, args)
 
     def compute_node_bounds(self):
+        """Boxes of all nodes bottom-up (`compute_bounds`): the "bbox computation" of Pantaleoni &
+        Luebke 2010, Table 2."""
         compute_bounds(
             self.device,
             self.node_count,
@@ -637,10 +654,10 @@ class HlbvhPipeline:
             self.compute_morton_codes(bounds_ready=inputs_ready == "bounds")
 
     def sort_codes(self, timer: StageTimer, sync_free: bool = False, need_voxels: bool = False) -> int:
-        """HLBVH's primitive sort (paper 2.1-2.2): run-length encoding by the high 3m bits,
-        compress-sort-decompress, the voxel sort; skips the sorts whose work is already done.
-        Returns M, the run count (its bound N with `sync_free`, or when the codes were already in
-        order and nothing was encoded). `need_voxels`: the caller reads
+        """HLBVH's primitive sort (Pantaleoni & Luebke 2010, section 3.1, Fig. 1): run-length
+        encoding by the high 3m bits, compress-sort-decompress, the voxel sort; skips the sorts
+        whose work is already done. Returns M, the run count (its bound N with `sync_free`, or when
+        the codes were already in order and nothing was encoded). `need_voxels`: the caller reads
         the voxel segments (`voxel_starts`, the SAH-optimized build's clusters)."""
         sort_stages = ("run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort")
         if self.device.is_cpu and not sync_free and not need_voxels:
@@ -687,8 +704,12 @@ class HlbvhPipeline:
               inputs_ready: str = "boxes"):
         """Run the pipeline on `prim_lowers` / `prim_uppers` (already filled); returns the timings.
 
+        The stages of Pantaleoni & Luebke 2010: Morton codes, the primitive sort (section 3.1), the
+        hierarchy emission (section 3.2) and the node boxes.
+
         Args:
-            method: ``"hlbvh"`` or ``"lbvh"`` (one global radix sort, the paper's Table 1 baseline).
+            method: ``"hlbvh"`` or ``"lbvh"`` (one global radix sort, the paper's Table 1 baseline,
+                after Lauterbach et al. 2009).
             timer: a `StageTimer`; stages are timed only when it is enabled.
             sync_free: keep every count on the device (launches sized by their bounds) so that the
                 build never waits for the device and can be captured in a CUDA graph.
@@ -780,7 +801,9 @@ def compute_bounds(device, node_count, node_left, node_right, node_parent, node_
 
 
 def refit_bounds(bvh: Bvh, node_visits: wp.array | None = None, strategy: str | None = None):
-    """Recompute every node box from the primitive boxes, keeping the topology (a refit)."""
+    """Recompute every node box from the primitive boxes, keeping the topology: a refit, as
+    Pantaleoni & Luebke 2010 (section 2.2) describe it. The paper itself always rebuilds, since a
+    refit tree degrades as primitives move; this is for callers who choose to refit."""
     if node_visits is None:
         node_visits = wp.empty(bvh.node_left.shape[0], dtype=wp.int32, device=bvh.device)
     compute_bounds(bvh.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent, bvh.node_begin,

@@ -20,7 +20,7 @@ def spread_bits(x: np.ndarray) -> np.ndarray:
 
 
 def morton_codes(points: np.ndarray) -> np.ndarray:
-    """30-bit Morton codes of the points over their bounding box (10 bits per axis), as int64;
+    """30-bit Morton codes (Morton 1966) of the points over their bounding box (10 bits per axis), as int64;
     `INVALID_CODE` for a point with a NaN or Inf coordinate."""
     finite = np.isfinite(points).all(axis=1)
     codes = np.full(points.shape[0], INVALID_CODE, dtype=np.int64)

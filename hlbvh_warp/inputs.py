@@ -91,6 +91,9 @@ def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def bounds_arrays(lowers, uppers) -> tuple[np.ndarray, np.ndarray]:
+    """Primitive boxes as float32 ``(N, 3)`` lowers and uppers, after the checks of a build: real,
+    finite and within float32, the same non-empty shape, fewer than `MAX_PRIMS`, lowers <= uppers.
+    Raises a ValueError naming the first problem."""
     lo = _check_points(lowers, "lowers")
     hi = _check_points(uppers, "uppers")
     if lo.shape != hi.shape:

@@ -56,6 +56,7 @@ class HostBufferPool:
         self._lock = threading.RLock()
 
     def empty(self, shape, dtype, device) -> wp.array:
+        """An uninitialized array like ``wp.empty``; a large CPU array is a view of a recycled block."""
         device = wp.get_device(device)
         dtype = {float: wp.float32, int: wp.int32}.get(dtype, dtype)
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
@@ -87,6 +88,7 @@ class HostBufferPool:
                 self.idle_bytes += size
 
     def clear(self):
+        """Drop every idle block."""
         with self._lock:
             self._idle.clear()
             self.idle_bytes = 0
@@ -151,6 +153,7 @@ class ScratchCache:
             self._trim(limit_bytes)
 
     def clear(self):
+        """Drop every kept scratch set."""
         with self._lock:
             self._entries.clear()
             self.held_bytes = 0

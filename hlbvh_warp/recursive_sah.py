@@ -74,6 +74,9 @@ def _side_costs(scratch: np.ndarray, firsts: np.ndarray, lasts: np.ndarray, prim
 
 def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device,
                         timer: StageTimer) -> Bvh:
+    """The RBVH of Wodniok & Goesele (GI 2016, Alg. 1) over the primitive boxes: level by level on
+    the host, every split candidate rated by the SAH cost of the temporary BVHs of its two sides, built
+    on the device (see the module docstring). Returns a `Bvh` boxed on the device."""
     device = wp.get_device(device)
     lowers = prim_lowers.numpy()
     uppers = prim_uppers.numpy()

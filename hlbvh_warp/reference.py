@@ -41,7 +41,8 @@ def _boxes_met(lower, upper, origins, directions):
 
 
 def _moller_trumbore(o, d, a, e1, e2, t_max, eps):
-    """Row-wise ray/triangle test in float64; t where accepted, inf elsewhere."""
+    """Row-wise ray/triangle test in float64 (Moeller & Trumbore, "Fast, Minimum Storage
+    Ray/Triangle Intersection", JGT 1997); t where accepted, inf elsewhere."""
     p = np.cross(d, e2)
     det = np.einsum("pk,pk->p", p, e1)
     inv = 1.0 / det
@@ -56,7 +57,7 @@ def _moller_trumbore(o, d, a, e1, e2, t_max, eps):
 
 def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, eps=BARYCENTRIC_EPS,
                             group_size=None, pair_budget=PAIR_BUDGET):
-    """Closest hit of every ray against every triangle (Moller-Trumbore, float64).
+    """Closest hit of every ray against every triangle (Moeller & Trumbore, JGT 1997; float64).
 
     Returns ``(t, prim)``; a miss is ``(inf, -1)``; of triangles hit at the same least t, the
     lowest face id. ``eps`` is the barycentric slack of the accept test.

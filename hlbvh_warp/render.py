@@ -29,6 +29,7 @@ class Camera:
 
     @classmethod
     def framing(cls, vertices, **kwargs) -> "Camera":
+        """A camera framing the bounding box of `vertices` (any shape reshaping to ``(V, 3)``)."""
         v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         return cls(v.min(axis=0), v.max(axis=0), **kwargs)
 
@@ -72,6 +73,8 @@ def render(bvh, camera: Camera, width: int = 256, height: int = 256) -> np.ndarr
 
 
 def save_png(image: np.ndarray, path) -> pathlib.Path:
+    """Write an ``(height, width, 3)`` uint8 image as a PNG, creating its folder; returns the path.
+    Needs Pillow."""
     from PIL import Image
 
     path = pathlib.Path(path)
@@ -81,6 +84,8 @@ def save_png(image: np.ndarray, path) -> pathlib.Path:
 
 
 def save_gif(images, path, ms_per_frame: int = 80) -> pathlib.Path:
+    """Write uint8 frames as a looping animated GIF of `ms_per_frame` per frame, creating its folder;
+    returns the path. Needs Pillow."""
     from PIL import Image
 
     path = pathlib.Path(path)

@@ -196,7 +196,8 @@ def build_sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
 def root_split_costs(vertices, faces, config: BuildConfig | None = None, device=None) -> dict:
     """The root's cheapest object split and cheapest spatial split as the split search prices them
     (A(L) N(L) + A(R) N(R), ``inf`` where there is none), and their axes and bin boundaries: what
-    `build_sbvh` chooses between at the top of the tree. For tests and diagnostics."""
+    `build_sbvh` chooses between at the top of the tree, the SBVH's choice of Stich, Friedrich &
+    Dietrich (HPG 2009). For tests and diagnostics."""
     from . import inputs
 
     config = config or BuildConfig()
@@ -253,10 +254,12 @@ class _SegmentArrays:
         getattr(self, name).assign(np.ascontiguousarray(values, dtype=np.int32))
 
     def upload(self, **values):
+        """Copy host values into the named int32 arrays, e.g. ``upload(begin=..., end=...)``."""
         for name, v in values.items():
             self._put(name, v)
 
     def download(self) -> dict:
+        """The split search's outputs as NumPy, keyed by name (side counts as int64)."""
         names = ("lo", "hi", "obj_axis", "obj_bin", "obj_left", "obj_cost", "sp_axis", "sp_bin", "sp_left",
                  "sp_right", "sp_cost")
         out = {name: getattr(self, name).numpy() for name in names}

@@ -27,6 +27,8 @@ _SIDE_BY_SIDE = 0
 
 
 def usable_cores() -> int:
+    """Cores this process may run on: its CPU affinity (``os.sched_getaffinity``, Linux), else
+    ``os.cpu_count()``; at least 1."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux

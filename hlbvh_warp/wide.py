@@ -37,6 +37,7 @@ class WideTraversalStats:
     prims_tested: np.ndarray
 
     def summary(self) -> dict:
+        """The three counters' means over the rays (0 for no rays)."""
         def mean(a):
             return float(a.mean()) if a.size else 0.0
 
@@ -65,9 +66,12 @@ class WideBvh:
 
     @property
     def device(self):
+        """The device of the binary tree it was collapsed from."""
         return self.bvh.device
 
     def to_numpy(self) -> dict:
+        """The slot and per-node range arrays, and the binary tree's ``prim_order``, as NumPy, keyed by
+        attribute name."""
         names = ("slot_lowers", "slot_uppers", "slot_child", "slot_begin", "slot_end", "wide_begin", "wide_end")
         out = {name: getattr(self, name).numpy() for name in names}
         out["prim_order"] = self.bvh.prim_order.numpy()
@@ -77,6 +81,10 @@ class WideBvh:
 def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
     """Collapse a binary BVH to one of up to `width` children per node (greedy: a wide node's
     interior child of largest surface area is replaced by its two children while there is room).
+
+    Garczorz (2026), whose comparison this module follows, collapses a binary BVH by merging nodes
+    with their children to double the branching factor (k = 2, 4, 8, 16); the largest-area rule
+    here, which allows any k from 2 to 16, is this library's own (`kernels.wide.expand_kernel`).
 
     One expand launch, one scan and one emit launch per level of the wide tree, and one count
     read on the host per level: a conversion after the build, not a per-frame stage.

@@ -1,6 +1,6 @@
 """Stage 5 of HLBVH: the voxel sort.
 
-Pantaleoni & Luebke 2010, section 2.2: after compress-sort-decompress the primitives are
+Pantaleoni & Luebke 2010, section 3.1: after compress-sort-decompress the primitives are
 ordered by coarse voxel; consecutive voxel segments are grouped into blocks of roughly
 `block_capacity` primitives and every block is sorted by its full codes (within a block the
 voxels are already in order, so this sorts each voxel by its low 3(n - m) bits) in one launch.
@@ -38,6 +38,8 @@ def compact_voxel_starts_kernel(
     voxel_starts: wp.array(dtype=wp.int32),
     voxel_count: wp.array(dtype=wp.int32),
 ):
+    """Compact the voxel heads: voxel_starts[v] = sorted position of voxel v's first primitive,
+    and voxel_count[0] = the number of voxels."""
     # voxel_index is the inclusive scan of voxel_flags.
     r = wp.tid()
     m = run_count[0]
@@ -56,6 +58,7 @@ def block_head_flags_kernel(
     block_capacity: int,
     block_flags: wp.array(dtype=wp.int32),
 ):
+    """1 where a voxel starts a new block of about `block_capacity` sorted positions, else 0."""
     # A block is the voxels whose first primitive lies in the same window of `block_capacity`
     # sorted positions: decided locally, so grouping needs no serial pass.
     v = wp.tid()
@@ -78,6 +81,8 @@ def compact_block_starts_kernel(
     block_starts: wp.array(dtype=wp.int32),
     block_count: wp.array(dtype=wp.int32),
 ):
+    """Compact the block heads: block_starts[b] = first sorted position of block b, and
+    block_count[0] = the number of blocks."""
     v = wp.tid()
     nv = voxel_count[0]
     if v >= nv:
@@ -98,6 +103,7 @@ def merge_pass(
     end: int,
     width: int,
 ):
+    """One bottom-up merge pass: adjacent runs of `width` in src[begin, end) merged stably into dst."""
     lo = begin
     while lo < end:
         mid = wp.min(lo + width, end)
@@ -129,6 +135,7 @@ def insertion_sort_bounded(
     end: int,
     max_moves: int,
 ):
+    """Stable insertion sort of codes (with prim_ids) on [begin, end), within a budget of moves."""
     # Stable insertion sort of [begin, end), whose prefix [begin, start) is already in order.
     # Returns `end` when done, or, when it stopped after `max_moves` moves, the end of the
     # prefix it left in order: the range is then a permutation in which equal codes keep their
@@ -163,6 +170,7 @@ def sort_range(
     end: int,
     run_length: int,
 ):
+    """Stable sort of codes (with prim_ids) on [begin, end): insertion-sorted runs, then bottom-up merges."""
     # Stable insertion sort of runs of `run_length`, then bottom-up merges ping-ponging with
     # scratch (a range no longer than one run is just insertion-sorted).
     run_begin = begin
@@ -202,6 +210,9 @@ def block_sort_kernel(
     blocks_sorted: wp.array(dtype=wp.int32),
     first_block: int,
 ):
+    """The voxel sort of Pantaleoni & Luebke 2010 (section 3.1) for block b: its codes sorted, and with
+    them its primitive ids. The paper sorts a block with an odd-even sort in shared memory, one CTA per
+    block; here one thread sorts it (see the module docstring for why and how)."""
     # Blocks are independent: on a multi-core CPU, slices of them run as launches side by side,
     # each from its `first_block` (0 for one launch over all of them).
     b = wp.tid() + first_block

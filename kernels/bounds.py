@@ -1,6 +1,6 @@
 """Stage 7 of HLBVH: node bounding boxes, bottom-up on the device.
 
-Pantaleoni & Luebke 2010, section 2.4 ("bbox" in their Table 2). One thread per leaf computes
+Pantaleoni & Luebke 2010 ("bbox computation" in their Table 2). One thread per leaf computes
 the leaf box and climbs; at each parent the first arriving child stops and the second, which
 finds both children done (an atomic visit counter, as in Karras 2012), writes the union.
 The same kernel refits a tree whose primitives moved (topology unchanged).
@@ -25,6 +25,7 @@ def leaf_box(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
+    """Box of a leaf from its primitives' boxes, read through prim_order, into node_lowers/uppers."""
     p = prim_order[node_begin[node]]
     lower = prim_lowers[p]
     upper = prim_uppers[p]
@@ -47,8 +48,8 @@ def leaf_box_in_order(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
-    # `leaf_box` over boxes already in tree order (`gather_boxes_kernel`): position k's box is
-    # leaf_lowers[k], read without going through prim_order.
+    """`leaf_box` over primitive boxes already in tree order (`gather_boxes_kernel`)."""
+    # Position k's box is leaf_lowers[k], read without going through prim_order.
     lower = leaf_lowers[node_begin[node]]
     upper = leaf_uppers[node_begin[node]]
     for k in range(node_begin[node] + 1, node_end[node]):
@@ -67,6 +68,7 @@ def gather_boxes_kernel(
     leaf_lowers: wp.array(dtype=wp.vec3),
     leaf_uppers: wp.array(dtype=wp.vec3),
 ):
+    """leaf_lowers/uppers[k] = the box of primitive prim_order[k]: the primitive boxes in tree order."""
     # The primitive boxes in tree order, for the CPU's depth-first emission. Its walk reads each
     # box once, but behind a chain of dependent loads (node range, then prim_order, then the box)
     # that a serial loop cannot overlap: reading the boxes through prim_order made the walk take
@@ -80,6 +82,7 @@ def gather_boxes_kernel(
 
 @wp.kernel
 def reset_visits_kernel(node_visits: wp.array(dtype=wp.int32)):
+    """Zero the atomic visit counters of `node_bounds_kernel`."""
     node_visits[wp.tid()] = 0
 
 
@@ -98,6 +101,10 @@ def node_bounds_kernel(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
+    """Node boxes bottom-up, one thread per leaf, after Karras ("Maximizing Parallelism in the
+    Construction of BVHs, Octrees, and k-d Trees", HPG 2012): the thread boxes its leaf and climbs; at
+    each parent an atomic visit counter stops the first child to arrive, and the second writes the
+    union. The "bbox computation" of Pantaleoni & Luebke 2010, Table 2; also a refit (topology kept)."""
     node = wp.tid()
     if node >= node_count[0] or node_left[node] >= 0:
         return
@@ -135,6 +142,8 @@ def bounds_sweep_kernel(
     node_uppers: wp.array(dtype=wp.vec3),
     cost_sum: wp.array(dtype=wp.float64),
 ):
+    """Node boxes in one thread, one reverse sweep over the nodes; with `price`, also the sum of
+    every node's SAH term x area into cost_sum[0]."""
     # One thread: children are numbered after their parents, so a reverse sweep sees both
     # children finished, a leaf's box computed from its primitives as the sweep reaches it. Used
     # on the CPU device, which runs a launch's threads one after another anyway: the sweep does

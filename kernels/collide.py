@@ -87,6 +87,7 @@ def grow_triple_product(e: vec48d, n: int, x: wp.float64, y: wp.float64, z: wp.f
 
 @wp.func
 def expansion_sign(e: vec48d, n: int):
+    """Sign of a nonoverlapping expansion (Shewchuk 1997): -1, 0 or +1."""
     # The largest component decides: the others sum to less than its last bit.
     s = int(0)
     if n > 0:
@@ -99,6 +100,7 @@ def expansion_sign(e: vec48d, n: int):
 
 @wp.func
 def to_d(p: wp.vec3):
+    """The point in float64."""
     return wp.vec3d(p)
 
 
@@ -107,7 +109,10 @@ def orient3d_exact(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
     """Sign of det[b - a, c - a, d - a] from the 4x4 determinant over the raw coordinates.
 
     orient3d = det3(b, c, d) - det3(a, c, d) + det3(a, b, d) - det3(a, b, c) (expansion along the
-    column of ones), each 3x3 determinant six signed triple products.
+    column of ones), each 3x3 determinant six signed triple products. Every product is exact
+    (`grow_triple_product`) and they are summed without error into a nonoverlapping expansion by
+    Shewchuk's Grow-Expansion ("Adaptive Precision Floating-Point Arithmetic and Fast Robust
+    Geometric Predicates", DCG 1997), whose largest component gives the sign.
     """
     pts = vec12d(
         wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]),
@@ -144,7 +149,13 @@ def orient3d_exact(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
 @wp.func
 def orient3d(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
     """Exact sign of det[b - a, c - a, d - a]: +1 when d lies on the side of plane abc that
-    (b - a) x (c - a) points to, -1 on the other, 0 on the plane."""
+    (b - a) x (c - a) points to, -1 on the other, 0 on the plane.
+
+    Shewchuk's filtered predicate (DCG 1997): the float64 determinant of the coordinate differences
+    is trusted when it exceeds his error bound ``ORIENT3D_ERROR`` times the permanent; otherwise
+    `orient3d_exact` decides. Unlike his orient3d there are no intermediate adaptive stages: the
+    fallback goes straight to the exact expansion.
+    """
     u = to_d(b) - to_d(a)
     v = to_d(c) - to_d(a)
     w = to_d(d) - to_d(a)
@@ -174,7 +185,11 @@ def orient3d(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
 @wp.func
 def orient2d(a: wp.vec3, b: wp.vec3, c: wp.vec3, axis: int):
     """Exact sign of the component ``axis`` of (b - a) x (c - a): orientation of a, b, c in the
-    coordinate plane that drops ``axis`` (axes axis + 1 and axis + 2, cyclically)."""
+    coordinate plane that drops ``axis`` (axes axis + 1 and axis + 2, cyclically).
+
+    Filtered as `orient3d` (Shewchuk, DCG 1997, with his bound ``ORIENT2D_ERROR``); the fallback is
+    the exact expansion of the six products of the raw coordinates.
+    """
     i = (axis + 1) % 3
     j = (axis + 2) % 3
     ux = wp.float64(b[i]) - wp.float64(a[i])
@@ -367,7 +382,12 @@ def strictly_one_side(a: wp.vec3, b: wp.vec3, c: wp.vec3, p: wp.vec3, q: wp.vec3
 def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
     """Whether closed triangles a and b share a point, exactly for their float32 coordinates.
 
-    Zero-area triangles count as the segment or point they span.
+    Zero-area triangles count as the segment or point they span. Neither Moeller's interval test
+    ("A Fast Triangle-Triangle Intersection Test", JGT 1997) nor Guigue & Devillers' orientation
+    cascade (JGT 2003): after the usual early exit (either triangle strictly on one side of the
+    other's plane), every edge of each triangle is tested against the other (`segment_meets_triangle`,
+    signed volumes, see the module docstring). Every decision is a sign of `orient3d` or `orient2d`,
+    Shewchuk's exact predicates (DCG 1997), so the answer holds for touching and coplanar pairs too.
     """
     axis_a = projection_axis(a0, a1, a2)
     axis_b = projection_axis(b0, b1, b2)
@@ -421,6 +441,7 @@ def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.ve
 
 @wp.func
 def shared_with(p: wp.vec3, b0: wp.vec3, b1: wp.vec3, b2: wp.vec3):
+    """1 if p equals one of b0, b1, b2 exactly (a vertex position the triangles share), else 0."""
     shared = int(0)
     if p == b0 or p == b1 or p == b2:
         shared = int(1)

@@ -1,8 +1,9 @@
 """Stages 3-4 of HLBVH: compress-sort-decompress of the coarse-voxel runs.
 
-Pantaleoni & Luebke 2010, section 2.2, after Garanzha & Loop 2010: the codes are run-length
-encoded by their high 3m bits, the M run codes are radix sorted with their run ids, and the
-runs are expanded back in sorted order. Coherent input (e.g. the previous frame's order) has
+Pantaleoni & Luebke 2010, section 3.1 and Fig. 1, after the compress-sort-decompress scheme of
+Garanzha & Loop 2010 (summarized in the paper's section 2.3): the codes are run-length encoded by
+their high 3m bits, the M run codes are radix sorted with their run ids, and the runs are
+expanded back in sorted order. Coherent input (e.g. the previous frame's order) has
 M << N, so the global sort touches M keys instead of N.
 """
 
@@ -14,6 +15,7 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.kernel
 def iota_kernel(values: wp.array(dtype=wp.int32)):
+    """values[i] = i: the run ids of the top-level sort, or the identity order."""
     tid = wp.tid()
     values[tid] = tid
 
@@ -24,6 +26,7 @@ def flag_descents_kernel(
     run_codes: wp.array(dtype=wp.int32),
     descents: wp.array(dtype=wp.int32),
 ):
+    """Set descents[0] to 1 if some code is smaller than its predecessor (the codes are not in order)."""
     # descents[0] (zeroed by the caller) becomes 1 if any code descends. Only "any descent?" is
     # asked, so every thread that finds one stores the same 1: no atomic, where counting with an
     # atomic add on one address would serialize the thousands of descents of a moving frame.
@@ -40,9 +43,11 @@ def find_descent_kernel(
     run_codes: wp.array(dtype=wp.int32),
     descents: wp.array(dtype=wp.int32),
 ):
-    # The CPU device's form of flag_descents_kernel: one thread scans the runs and stops at the
-    # first descent. Only "any descent?" is asked, and a moving scene's runs are out of order
-    # within the first few (the check then costs nothing); in-order runs cost one read each.
+    """`flag_descents_kernel` in one thread, for the CPU device: descents[0] = 1 if some code
+    descends, else 0."""
+    # One thread scans the codes and stops at the first descent. Only "any descent?" is asked, and
+    # a moving scene's runs are out of order within the first few (the check then costs nothing);
+    # in-order runs cost one read each.
     m = run_count[0]
     for r in range(1, m):
         if run_codes[r - 1] > run_codes[r]:
@@ -53,6 +58,8 @@ def find_descent_kernel(
 
 @wp.kernel
 def pad_run_codes_kernel(run_count: wp.array(dtype=wp.int32), pad_code: int, run_codes: wp.array(dtype=wp.int32)):
+    """Give the slots past the device-side run count `pad_code`, the largest key, so that a stable
+    sort over all N slots leaves them after every real run."""
     r = wp.tid()
     if r >= run_count[0]:
         run_codes[r] = pad_code
@@ -65,6 +72,8 @@ def gather_run_lengths_kernel(
     run_lengths: wp.array(dtype=wp.int32),
     sorted_run_lengths: wp.array(dtype=wp.int32),
 ):
+    """The run lengths in sorted run order, to be scanned for the runs' new offsets (Pantaleoni &
+    Luebke 2010, section 3.1, Fig. 1: "compute offsets for the sorted run-lengths")."""
     r = wp.tid()
     if r >= run_count[0]:
         # Zero past the count, so a scan over the launch bound leaves the real offsets intact.
@@ -86,6 +95,10 @@ def decompress_runs_kernel(
     sorted_codes: wp.array(dtype=wp.int32),
     first_run: int,
 ):
+    """Run-length decoding (Pantaleoni & Luebke 2010, section 3.1, Fig. 1; the decompress step of
+    Garanzha & Loop's compress-sort-decompress): sorted run r expands into its primitive ids and codes at
+    its scanned offset, leaving the codes sorted by coarse voxel. The paper's two foreach loops (indices,
+    then codes) are one here."""
     # One thread per run: runs are contiguous in the input and are copied whole. On a multi-core
     # CPU, slices of the runs run as launches side by side, each from its `first_run`. The ids
     # written are the input positions, or with `input_ids` (not empty) the ids they stand for:
@@ -113,6 +126,7 @@ def voxel_head_flags_kernel(
     sorted_run_codes: wp.array(dtype=wp.int32),
     voxel_flags: wp.array(dtype=wp.int32),
 ):
+    """1 where a sorted run starts a new coarse voxel, else 0 (0 past the run count)."""
     # A voxel is a maximal stretch of sorted runs with the same coarse code.
     r = wp.tid()
     if r >= run_count[0]:

@@ -26,8 +26,9 @@ def resort_gather_kernel(
     input_order: wp.array(dtype=wp.int32),
     morton_codes: wp.array(dtype=wp.int32),
 ):
-    # The previous tree's order becomes the build's input order: input i is user face
-    # prim_order[i]. Only its 4-byte Morton code is gathered; the sort carries the face id along
+    """Resorting (Pantaleoni & Luebke 2010, section 2.2): the previous tree's order becomes the
+    build's input order; input i is user face prim_order[i], and its Morton code is gathered."""
+    # Only the 4-byte Morton code is gathered; the sort carries the face id along
     # (input_order, the pipeline's input ids), so the tree names user faces and reads the boxes
     # where they were computed, in the user's order. Gathering the 24-byte boxes as well, and
     # mapping the tree's ids back afterwards, cost two random reads per primitive instead of one
@@ -51,11 +52,13 @@ def sample_run_breaks_kernel(
     shift: int,
     breaks: wp.array(dtype=wp.int32),
 ):
-    # Sample t is one adjacent pair of the previous tree's order, the pairs evenly spaced: a pair
-    # in two coarse voxels starts a run, so breaks[0] / num_samples estimates the run-length
-    # encoding's M / N for that order; breaks[1] counts the pairs whose codes descend (none: the
-    # order may be sorted already, which the build then skips). The two codes are computed from
-    # the boxes here, so the decision comes before any pass over all the codes.
+    """How well resorting (Pantaleoni & Luebke 2010, section 2.2) would compress, sampled: over
+    `num_samples` evenly spaced adjacent pairs of the previous tree's order, breaks[0] counts the pairs in
+    two coarse voxels (an estimate of the run-length encoding's M / N) and breaks[1] the pairs whose
+    codes descend."""
+    # A pair in two coarse voxels starts a run. No descending pair: the order may be sorted
+    # already, which the build then skips. The two codes are computed from the boxes here, so the
+    # decision comes before any pass over all the codes.
     t = wp.tid()
     i = wp.int32(wp.int64(1) + wp.int64(t) * wp.int64(num_prims - 1) // wp.int64(num_samples))
     f = prim_order[i - 1]
@@ -73,6 +76,7 @@ def sample_run_breaks_kernel(
 # --------------------------------------------------------- motion and quality
 @wp.kernel
 def reset_stats_kernel(stats: wp.array(dtype=wp.float64)):
+    """Zero stats[0] (the largest move) and stats[1] (the root's diagonal)."""
     stats[0] = wp.float64(0.0)
     stats[1] = wp.float64(0.0)
 
@@ -86,11 +90,11 @@ def load_and_measure_kernel(
     dest: wp.array(dtype=wp.vec3),
     largest_move: wp.array(dtype=wp.float32),
 ):
-    # One pass that loads a frame's vertices and measures how far they moved: largest_move[0] =
-    # max |source - dest| (a NaN coordinate counts as an infinite move), then dest = source.
-    # Copying the last frame aside and comparing afterwards took three passes over the vertices
-    # (about 2.6 ms a frame for the 300k vertices of the exploding armadillo on the CPU). A thread
-    # takes a chunk and does one square root and one atomic, not one per vertex. Launches from
+    """Load a frame's vertices and measure how far they moved: largest_move[0] = max |source - dest|
+    (a NaN coordinate counts as an infinite move), then dest = source."""
+    # One pass: copying the last frame aside and comparing afterwards took three passes over the
+    # vertices (about 2.6 ms a frame for the 300k vertices of the exploding armadillo on the CPU).
+    # A thread takes a chunk and does one square root and one atomic, not one per vertex. Launches from
     # different `first_chunk`s, each with its own `largest_move`, run side by side on a
     # multi-core CPU.
     c = wp.tid() + first_chunk
@@ -115,7 +119,7 @@ def load_and_measure_kernel(
 
 @wp.kernel
 def finish_motion_kernel(largest_move: wp.array(dtype=wp.float32), count: int, stats: wp.array(dtype=wp.float64)):
-    # stats[0]: the largest displacement over the `count` partial maxima of the measure.
+    """stats[0]: the largest displacement over the `count` partial maxima of the measure."""
     largest = float(0.0)
     for j in range(count):
         largest = wp.max(largest, largest_move[j])
@@ -128,6 +132,7 @@ def root_diagonal_kernel(
     node_uppers: wp.array(dtype=wp.vec3),
     stats: wp.array(dtype=wp.float64),
 ):
+    """stats[1]: the length of the root box's diagonal, the scale a frame's motion is measured against."""
     stats[1] = wp.length(wp.vec3d(node_uppers[0]) - wp.vec3d(node_lowers[0]))
 
 
@@ -142,6 +147,8 @@ def explode_kernel(
     time: float,
     vertices: wp.array(dtype=wp.vec3),
 ):
+    """One frame of an exploding mesh (after the Exploding Turbine Blade of Pantaleoni & Luebke 2010,
+    section 4, Fig. 7): every triangle's centroid flies with its velocity and its corners spin."""
     # Triangle tid owns vertices 3 tid .. 3 tid + 2: its centroid flies, its corners spin.
     tid = wp.tid()
     q = wp.quat_from_axis_angle(axes[tid], spins[tid] * time)
@@ -159,8 +166,9 @@ def bend_kernel(
     curvature: float,
     vertices: wp.array(dtype=wp.vec3),
 ):
-    # Bend the straight length axis into an arc of the given curvature (1 / radius), towards
-    # bend_axis; the third axis is unchanged. Zero curvature is the identity.
+    """One frame of a bending mesh (after the Bending Armadillo of Pantaleoni & Luebke 2010, section 4,
+    Fig. 7): the straight length axis bent into an arc of the given curvature (1 / radius) towards
+    bend_axis; the third axis is unchanged and zero curvature is the identity."""
     tid = wp.tid()
     p = rest[tid] - origin
     along = wp.dot(p, length_axis)

@@ -42,7 +42,8 @@ def device_fence():
 
 @wp.func
 def box_area64(lower: wp.vec3, upper: wp.vec3) -> wp.float64:
-    # Surface area 2 (dx dy + dy dz + dz dx); differences taken in float64 so they cannot overflow.
+    """Surface area 2 (dx dy + dy dz + dz dx) of the box, in float64."""
+    # Differences taken in float64 so they cannot overflow.
     dx = wp.float64(upper[0]) - wp.float64(lower[0])
     dy = wp.float64(upper[1]) - wp.float64(lower[1])
     dz = wp.float64(upper[2]) - wp.float64(lower[2])
@@ -51,9 +52,10 @@ def box_area64(lower: wp.vec3, upper: wp.vec3) -> wp.float64:
 
 @wp.func
 def child_term(cost: wp.float64, child_area: wp.float64, parent_area: wp.float64) -> wp.float64:
-    # P_hit = area(child) / area(parent). A parent of zero area (a point or a segment: its
-    # children are then degenerate too) is hit by a ray exactly when its children are, so the
-    # ratio 0 / 0 is taken as 1 rather than dropping the subtree's cost.
+    """C(child) * P_hit(child), P_hit = area(child) / area(parent): one summand of eq. (1)."""
+    # A parent of zero area (a point or a segment: its children are then degenerate too) is hit
+    # by a ray exactly when its children are, so the ratio 0 / 0 is taken as 1 rather than
+    # dropping the subtree's cost.
     if parent_area > wp.float64(0.0):
         return cost * (child_area / parent_area)
     return cost
@@ -70,7 +72,8 @@ def interior_cost(
     upper: wp.vec3,
     t_traversal: wp.float64,
 ) -> wp.float64:
-    # Eq. (1) for an interior node of box [lower, upper] over its two finished children.
+    """C(node) of eq. (1) (Pantaleoni & Luebke 2010) for an interior node of box [lower, upper] over
+    its two finished children: 2 T1 plus each child's cost weighted by its area ratio."""
     parent_area = box_area64(lower, upper)
     c = wp.float64(2.0) * t_traversal
     c += child_term(node_cost[left], box_area64(node_lowers[left], node_uppers[left]), parent_area)
@@ -89,8 +92,8 @@ def weighted_term(
     t_traversal: wp.float64,
     t_intersect: wp.float64,
 ) -> wp.float64:
-    # term(node) x area(node), the node's share of C(root) x area(root) (sah_terms_kernel):
-    # 2 T1 for an interior node, T2 N for a leaf of N primitives.
+    """term(node) x area(node), the node's share of C(root) x area(root) (`sah_terms_kernel`):
+    2 T1 for an interior node, T2 N for a leaf of N primitives."""
     term = wp.float64(2.0) * t_traversal
     if node_left[node] < 0:
         term = t_intersect * wp.float64(node_end[node] - node_begin[node])
@@ -110,6 +113,9 @@ def sah_terms_kernel(
     chunk: int,
     partial: wp.array(dtype=wp.float64),
 ):
+    """The tree's SAH cost (Pantaleoni & Luebke 2010, section 4.2, eq. 1; the SAH of Goldsmith &
+    Salmon 1987 and MacDonald & Booth 1990) in one pass: thread c sums term(n) x area(n) over its chunk
+    of nodes into partial[c]."""
     # The root's cost without the climb: multiplying eq. (1) by area(node) gives
     # S(node) = term(node) area(node) + sum_i S(child_i), with term = 2 T1 for an interior node and
     # T2 N for a leaf, so C(root) = sum over all nodes of term(n) area(n) / area(root). A zero-area
@@ -129,6 +135,7 @@ def sah_terms_kernel(
 
 @wp.kernel
 def reset_visits_kernel(node_visits: wp.array(dtype=wp.int32)):
+    """Zero the atomic visit counters of the bottom-up climbs."""
     node_visits[wp.tid()] = 0
 
 
@@ -148,6 +155,9 @@ def sah_cost_kernel(
     node_visits: wp.array(dtype=wp.int32),
     node_cost: wp.array(dtype=wp.float64),
 ):
+    """SAH cost of every node's subtree (Pantaleoni & Luebke 2010, eq. 1; the SAH of Goldsmith & Salmon
+    1987 and MacDonald & Booth 1990), bottom-up: one thread per leaf climbs, and at each parent the
+    atomic visit counter of Karras 2012 lets the second child to arrive write the parent's cost."""
     # Launched over the arena; nodes below `first_node` are skipped so a caller can cost a forest
     # of subtrees (roots with parent -1) before the nodes above them exist.
     node = wp.tid()
@@ -188,8 +198,9 @@ def bounds_and_cost_kernel(
     node_uppers: wp.array(dtype=wp.vec3),
     node_cost: wp.array(dtype=wp.float64),
 ):
-    # Boxes and SAH costs in one climb, for subtrees whose boxes are not known yet (the cluster
-    # subtrees of the SAH-optimized HLBVH, costed before the top levels are built).
+    """Boxes and SAH costs (eq. 1) in one climb, for subtrees whose boxes are not known yet: the
+    cluster subtrees of the SAH-optimized HLBVH (Pantaleoni & Luebke 2010, section 3.3), costed before
+    the top levels are built."""
     node = wp.tid()
     if node < first_node or node >= node_count[0] or node_left[node] >= 0:
         return
@@ -226,7 +237,8 @@ def node_depth_kernel(
     node_depth: wp.array(dtype=wp.int32),
     max_depth: wp.array(dtype=wp.int32),
 ):
-    # Edges to the root, by climbing: O(depth) per node, no ordering between threads needed.
+    """Depth of every node (edges to the root), and the largest into max_depth[0]."""
+    # By climbing: O(depth) per node, no ordering between threads needed.
     node = wp.tid()
     d = int(0)
     parent = node_parent[node]
@@ -244,7 +256,7 @@ def leaf_sizes_kernel(
     node_end: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
 ):
-    # counts[0]: leaves, counts[1]: largest leaf.
+    """counts[0]: the number of leaves, counts[1]: the largest leaf's primitive count."""
     node = wp.tid()
     if node_left[node] >= 0:
         return
@@ -259,6 +271,7 @@ def leaf_histogram_kernel(
     node_end: wp.array(dtype=wp.int32),
     histogram: wp.array(dtype=wp.int32),
 ):
+    """histogram[k] counts the leaves of k primitives."""
     node = wp.tid()
     if node_left[node] >= 0:
         return
@@ -276,7 +289,8 @@ EPO_STACK = wp.constant(EPO_STACK_SIZE)
 
 @wp.func
 def clip_polygon(polygon: mat93d, count: int, axis: int, bound: wp.float64, sign: wp.float64):
-    """Sutherland-Hodgman: the part of the polygon where sign * (p[axis] - bound) >= 0."""
+    """Sutherland-Hodgman ("Reentrant Polygon Clipping", CACM 1974): the part of the polygon where
+    sign * (p[axis] - bound) >= 0."""
     out = mat93d()
     kept = int(0)
     for i in range(count):
@@ -348,6 +362,8 @@ class RefIndex:
 @wp.func
 def counted_here(refs: RefIndex, node_lowers: wp.array(dtype=wp.vec3), node_uppers: wp.array(dtype=wp.vec3),
                  begin: int, end: int, lower: wp.vec3, upper: wp.vec3, p: int, k: int) -> int:
+    """1 if foreign triangle p, met at position k, counts for the node (range [begin, end), box
+    [lower, upper]) in the EPO, else 0."""
     # A triangle with a reference under the node is not foreign to it; a foreign triangle met
     # through several references counts once: at the first of them whose leaf meets the box
     # (the walk reaches every such leaf, or a whole range holding it).
@@ -380,7 +396,9 @@ def foreign_area(
     first: int,
     last: int,
 ) -> wp.float64:
-    # Triangles at positions [first, last) of prim_order that lie outside the node's own range.
+    """Area inside the node's box of the triangles at positions [first, last) of prim_order that lie
+    outside the node's own range: the node's share of A((S minus Q(n)) inside box(n)) in the end-point
+    overlap of Aila, Karras & Laine 2013."""
     area = wp.float64(0.0)
     lower = node_lowers[node]
     upper = node_uppers[node]
@@ -416,7 +434,9 @@ def end_point_overlap_kernel(
     node_epo: wp.array(dtype=wp.float64),
 ):
     """Per node n: term(n) * area((S minus Q(n)) inside box(n)), S all triangles, Q(n) those
-    under n, term(n) the node's own term of the SAH (2 T1 for an interior node, T2 N for a leaf).
+    under n, term(n) the node's own term of the SAH (2 T1 for an interior node, T2 N for a leaf):
+    node n's summand of the end-point overlap (Aila, Karras & Laine, "On Quality Metrics of
+    Bounding Volume Hierarchies", HPG 2013), before the division by A(S).
 
     A walk from the root visits the nodes whose boxes meet n's, skipping n's own subtree (its range
     of prim_order lies inside n's), and clips each foreign triangle to n's box.
@@ -459,6 +479,7 @@ def end_point_overlap_kernel(
 @wp.kernel
 def triangle_areas_kernel(vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.int32, ndim=2),
                           areas: wp.array(dtype=wp.float64)):
+    """Area of every triangle in float64; their sum is the EPO's A(S)."""
     i = wp.tid()
     a = wp.vec3d(vertices[faces[i, 0]])
     areas[i] = wp.float64(0.5) * wp.length(wp.cross(wp.vec3d(vertices[faces[i, 1]]) - a,

@@ -69,7 +69,9 @@ class TrianglePoint:
 
 @wp.func
 def segment_parameter(ap: wp.vec3d, ab: wp.vec3d):
-    """Where the closest point of segment a + t * ab to a + ap lies, t in [0, 1] (0 for a point)."""
+    """Where the closest point of segment a + t * ab to a + ap lies, t in [0, 1] (0 for a point):
+    the projection parameter clamped to the segment (Ericson, "Real-Time Collision Detection", 2005,
+    Sec. 5.1.2)."""
     den = wp.dot(ab, ab)
     t = wp.float64(0.0)
     if den > wp.float64(0.0):
@@ -104,6 +106,7 @@ def exact_cross_component(ay: float, az: float, by: float, bz: float, cy: float,
 
 @wp.func
 def exact_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """(b - a) x (c - a) with every component accurate to an ulp (`exact_cross_component`)."""
     return wp.vec3d(exact_cross_component(a[1], a[2], b[1], b[2], c[1], c[2]),
                     exact_cross_component(a[2], a[0], b[2], b[0], c[2], c[0]),
                     exact_cross_component(a[0], a[1], b[0], b[1], c[0], c[1]))
@@ -209,15 +212,16 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
 
 @wp.func
 def box_distance_sq(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
-    """Squared distance from p to the box (0 inside), float32. Overflow to inf only prunes boxes
-    farther than 1.8e19 when a nearer triangle is known, and underflow only keeps boxes that could
-    have been pruned: both safe."""
+    """Squared distance from p to the box (0 inside), float32: the gap to p clamped to the box
+    (Ericson 2005, Sec. 5.1.3). Overflow to inf only prunes boxes farther than 1.8e19 when a nearer
+    triangle is known, and underflow only keeps boxes that could have been pruned: both safe."""
     gap = wp.max(wp.max(lower - p, p - upper), wp.vec3(0.0))
     return wp.dot(gap, gap)
 
 
 @wp.func
 def point_is_valid(p: wp.vec3, max_dist: float):
+    """1 when p is finite and max_dist >= 0 (not NaN), else 0: an invalid query finds nothing."""
     valid = int(1)
     for i in range(3):
         if not wp.isfinite(p[i]):
@@ -248,6 +252,7 @@ class PointSearch:
 
 @wp.func
 def start_search(max_dist: float):
+    """An empty `PointSearch` bounded by max_dist (squared, in float64 and in float32)."""
     s = PointSearch()
     s.d2 = wp.float64(max_dist) * wp.float64(max_dist)
     s.box_d2 = max_dist * max_dist
@@ -269,6 +274,8 @@ def offer(s: PointSearch, tp: TrianglePoint, prim: int):
 
 @wp.func
 def finish(p: wp.vec3, s: PointSearch, visited: int, tested: int):
+    """The `ClosestPoint` of a finished search: prim -1, distance inf and point NaN when nothing was found
+    within max_dist."""
     result = ClosestPoint()
     result.prim = s.prim
     result.distance = INF
@@ -297,7 +304,8 @@ def packed_point_query(
 ):
     """Nearest-first traversal of the packed layout (``traversal.py``): a node reference is a
     `PackedNode` position, or minus the primitive count for a leaf, and the traversal carries where
-    the current node's primitive range begins."""
+    the current node's primitive range begins. Each triangle reached is measured by
+    `closest_point_on_triangle` (Ericson 2005, Sec. 5.1.5)."""
     s = start_search(max_dist)
     visited = int(0)
     tested = int(0)
@@ -375,7 +383,8 @@ def packed_point_query(
 
 @wp.func
 def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
-    """`packed_point_query` on the canonical arrays, for a view that carries no traversal layout."""
+    """`packed_point_query` on the canonical arrays, for a view that carries no traversal layout
+    (triangles measured the same way: Ericson 2005, Sec. 5.1.5)."""
     s = start_search(max_dist)
     visited = int(0)
     tested = int(0)
@@ -434,6 +443,10 @@ def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
 
     Pass ``wp.inf`` (or a large number) for an unbounded query; a small ``max_dist`` is faster,
     since every box farther than it is skipped. Points with NaN or Inf coordinates find nothing.
+
+    A branch-and-bound search, nearest child first, pruning boxes by `box_distance_sq`; each
+    triangle reached is measured by `closest_point_on_triangle` (Ericson, "Real-Time Collision
+    Detection", 2005, Sec. 5.1.5).
     """
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]

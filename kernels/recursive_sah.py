@@ -34,6 +34,7 @@ binned_boxes = wp.types.matrix(shape=(3 * MAX_TEMP_BINS, 3), dtype=wp.float32)
 
 @wp.func
 def bin_of(c: float, lower: float, extent: float, num_bins: int) -> int:
+    """Bin of centroid c among `num_bins` equal bins over [lower, lower + extent], clamped."""
     # The host's binning of the main splits uses the same float32 expression.
     b = int(float(num_bins) * (c - lower) / extent)
     return wp.clamp(b, 0, num_bins - 1)
@@ -51,7 +52,13 @@ def temp_bvh_cost(
     t_traversal: wp.float64,
     t_intersect: wp.float64,
 ) -> wp.float64:
-    """sum of term(n) * area(n) over a greedy binned-SAH BVH of items[first:last] (permuted)."""
+    """Sum of term(n) * area(n) over a greedy binned-SAH BVH of items[first:last] (permuted).
+
+    The temporary BVH of Wodniok & Goesele's recursive SAH (GI 2016, Alg. 1: build_temporary_bvh,
+    then compute_sah), split at binned-SAH boundaries (Wald 2007) and never stored. Divided by the
+    split node's area, the sum is p c(t) of their eq. 4: the side's area ratio times its SAH cost
+    (Pantaleoni & Luebke 2010, eq. 1).
+    """
     total = wp.float64(0.0)
     stack_first = vec64i()
     stack_last = vec64i()
@@ -149,6 +156,8 @@ def side_costs_kernel(
     t_intersect: wp.float64,
     costs: wp.array(dtype=wp.float64),
 ):
+    """`temp_bvh_cost` of side s = first_side + tid into costs[s]: the temporary BVHs of a level's
+    split candidates, one thread each (Wodniok & Goesele, GI 2016, Alg. 1, lines 4-7)."""
     s = first_side + wp.tid()
     costs[s] = temp_bvh_cost(items, side_first[s], side_last[s], prim_lowers, prim_uppers, num_bins, max_leaf,
                              t_traversal, t_intersect)

@@ -39,13 +39,15 @@ NO_COST = wp.constant(wp.float64(1.0e300))
 
 @wp.func
 def item_centroid(lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3), item: int, axis: int) -> float:
+    """Centroid of item `item` along `axis`."""
     return 0.5 * (lowers[item][axis] + uppers[item][axis])
 
 
 @wp.func
 def ordered_bits(x: float) -> int:
-    # The bits of a float32 as an int32 that sorts like the float: non-negative floats already
-    # do; negative ones are flipped below them. Adding 0.0 turns -0.0 into +0.0, equal to it.
+    """The bits of a float32 as an int32 that sorts like the float."""
+    # Non-negative floats already sort so; negative ones are flipped below them. Adding 0.0 turns
+    # -0.0 into +0.0, equal to it.
     bits = wp.cast(x + 0.0, wp.int32)
     if bits < 0:
         bits = bits ^ 0x7FFFFFFF
@@ -60,6 +62,7 @@ def centroid_keys_kernel(
     keys: wp.array(dtype=wp.int32),
     ids: wp.array(dtype=wp.int32),
 ):
+    """Sort keys of the items' centroids along `axis` (order-preserving int32 bits), with the item ids."""
     # Sorted with ids as values by a stable radix sort: equal centroids stay in index order. The
     # keys are the centroids' bits as order-preserving integers: the same order as sorting the
     # floats, and Warp's radix sort takes int32 keys in about 0.6x the time of float32 ones on
@@ -81,7 +84,8 @@ def init_top_down_kernel(
     level_nodes: wp.array(dtype=wp.int32),
     level_count: wp.array(dtype=wp.int32),
 ):
-    # Launched over the arena: every node starts as a leaf; the first level is the root alone.
+    """Reset the arena (every node a parentless leaf) and make the root [0, num_items) the first level."""
+    # Launched over the arena.
     i = wp.tid()
     node_left[i] = -1
     node_right[i] = -1
@@ -96,6 +100,7 @@ def init_top_down_kernel(
 
 @wp.func
 def bin_of(c: float, cmin: float, scale: float, num_bins: int) -> int:
+    """Bin of centroid c: floor((c - cmin) * scale), clamped to [0, num_bins - 1]."""
     return wp.clamp(int((c - cmin) * scale), 0, num_bins - 1)
 
 
@@ -127,7 +132,11 @@ def sweep_bin_boundaries(
     bins from j on. An object split passes each bin's count as both; a spatial split's
     references enter at the bin of their lower corner and leave at their upper corner's. Both
     sides non-empty and smaller than n. Returns the best so far, updated: the first cheapest in
-    axis-then-boundary order."""
+    axis-then-boundary order.
+
+    The binned SAH sweep of Wald ("On Fast Construction of SAH-based Bounding Volume Hierarchies",
+    IEEE RT 2007): the greedy SAH split of MacDonald & Booth 1990 priced at bin boundaries only, one
+    right-to-left pass for the suffix boxes and one left-to-right pass for the prefixes."""
     right_area = sweep_areas()
     right_count = sweep_counts()
     r_lo = wp.vec3(BIG)
@@ -163,7 +172,8 @@ def sweep_bin_boundaries(
 @wp.func
 def best_bin_split(boxes_lo: Any, boxes_hi: Any, enter: Any, leave: Any, extent: wp.vec3, num_bins: int, n: int):
     """The first cheapest bin boundary over the axes of nonzero `extent` (`sweep_bin_boundaries`
-    per axis): ``(cost, axis, boundary, left count, right count)``, axis -1 where none splits."""
+    per axis, binned SAH after Wald 2007): ``(cost, axis, boundary, left count, right count)``,
+    axis -1 where none splits."""
     best_cost = wp.float64(0.0)
     best_axis = int(-1)
     best_bin = int(0)
@@ -445,6 +455,9 @@ def choose_splits_kernel(
     split_pos: wp.array(dtype=wp.int32),
     split_flag: wp.array(dtype=wp.int32),
 ):
+    """One level of the greedy top-down SAH build (MacDonald & Booth 1990; the sweep as organized by
+    Wald, Boulos & Shirley 2007, binned as Wald 2007): every open node of the level picks its split with
+    `choose_split` or stays a leaf."""
     s = wp.tid()
     split_flag[s] = 0
     if s >= level_count[0]:
@@ -477,6 +490,9 @@ def emit_children_kernel(
     next_level_nodes: wp.array(dtype=wp.int32),
     item_order: wp.array(dtype=wp.int32),
 ):
+    """The level's splits carried out: every splitting node's two children, numbered after all earlier
+    nodes by the scan of split flags, linked to it, and the three presorted orders stably partitioned at
+    the split; a finished leaf writes its items to item_order."""
     s = wp.tid()
     if s >= level_count[0]:
         return
@@ -527,6 +543,7 @@ def advance_level_kernel(
     node_count: wp.array(dtype=wp.int32),
     next_level_count: wp.array(dtype=wp.int32),
 ):
+    """Advance node_count past the level's new children and set the next level's node count."""
     last = level_count[0] - 1
     splits = split_offset[last] + split_flag[last]
     node_count[0] = node_count[0] + 2 * splits
@@ -535,6 +552,7 @@ def advance_level_kernel(
 
 @wp.kernel
 def fill_float64_kernel(values: wp.array(dtype=wp.float64), value: wp.float64):
+    """Fill an array with one float64 value (unit item weights)."""
     values[wp.tid()] = value
 
 
@@ -558,6 +576,9 @@ def build_depth_first_kernel(
 ):
     """The subtree of `root` in one thread, depth first (``BuildConfig.emission = "depth_first"``).
 
+    The greedy top-down SAH build (MacDonald & Booth 1990; the full sweep as organized by Wald,
+    Boulos & Shirley 2007, binned as Wald 2007; or object median) of `choose_splits_kernel`,
+    scheduled depth first.
     The same splits as the level schedule (`choose_split` on the same sorted orders), so the same
     tree up to node numbering; for Warp's CPU device, where a level's threads run one after
     another anyway and the per-level launches, scans and count reads are pure overhead. Children
@@ -645,6 +666,7 @@ def init_root_kernel(
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
 ):
+    """Make node 0 a root leaf over [0, num_items) for `build_depth_first_kernel`."""
     node_begin[0] = 0
     node_end[0] = num_items
     node_left[0] = -1

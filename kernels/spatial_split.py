@@ -75,13 +75,14 @@ def reference_polygon(a: wp.vec3, b: wp.vec3, c: wp.vec3, lower: wp.vec3, upper:
 
 @wp.func
 def clip_margin(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """The widening of a clipped part of triangle abc: CLIP_MARGIN times its largest coordinate magnitude."""
     m = wp.max(wp.max(wp.abs(a), wp.abs(b)), wp.abs(c))
     return wp.max(wp.max(m[0], m[1]), m[2]) * CLIP_MARGIN
 
 
 @wp.func
 def slab_plane(lower: float, extent: float, j: int, num_bins: int) -> float:
-    # Boundary j (1 .. num_bins - 1) of the node box's equal slabs along one axis; monotone in j.
+    """Boundary j (1 .. num_bins - 1) of the node box's equal slabs along one axis; monotone in j."""
     return lower + extent * (float(j) / float(num_bins))
 
 
@@ -109,7 +110,7 @@ def planes_at_or_below(x: float, lower: float, extent: float, num_bins: int, str
 
 @wp.func
 def slab_box(lower: wp.vec3, upper: wp.vec3, axis: int, lo: float, hi: float):
-    # [lower, upper] with its extent along `axis` narrowed to [lo, hi] (clamped to it).
+    """[lower, upper] with its extent along `axis` narrowed to [lo, hi] (clamped to it)."""
     out_lower = lower
     out_upper = upper
     out_lower[axis] = wp.max(lower[axis], lo)
@@ -119,12 +120,14 @@ def slab_box(lower: wp.vec3, upper: wp.vec3, axis: int, lo: float, hi: float):
 
 @wp.func
 def round_down(x: wp.float64, margin: float) -> float:
+    """x rounded down to float32 by at least one ulp, `margin` and a floor near zero: a lower bound."""
     f = float(x)
     return f - (wp.abs(f) * OUTWARD + margin + TINY)
 
 
 @wp.func
 def round_up(x: wp.float64, margin: float) -> float:
+    """x rounded up to float32 by at least one ulp, `margin` and a floor near zero: an upper bound."""
     f = float(x)
     return f + (wp.abs(f) * OUTWARD + margin + TINY)
 
@@ -132,7 +135,11 @@ def round_up(x: wp.float64, margin: float) -> float:
 @wp.func
 def slab_part_box(polygon: mat93d, count: int, axis: int, ref_lo: wp.vec3, ref_hi: wp.vec3, slab_lo: float,
                   slab_hi: float, margin: float):
-    """The box of the polygon's part with slab_lo <= x[axis] <= slab_hi, widened by the clip's
+    """The box of a reference's part in one slab, as the spatial-split binning of the SBVH (Stich,
+    Friedrich & Dietrich, HPG 2009) gives each slab a reference spans the box of the triangle's part
+    in it.
+
+    The box of the polygon's part with slab_lo <= x[axis] <= slab_hi, widened by the clip's
     `margin` (`clip_margin`), rounded outward to float32 and clamped to the reference's box
     [ref_lo, ref_hi], along `axis` to the slab widened by the margin. A point of the triangle
     that the clip's rounding put just across the plane lies in one side's part or the other's
@@ -182,6 +189,12 @@ def split_search_kernel(
     sp_right: wp.array(dtype=wp.int32),
     sp_cost: wp.array(dtype=wp.float64),
 ):
+    """The split search of one node (segment s) of the SBVH (Stich, Friedrich & Dietrich, "Spatial
+    Splits in Bounding Volume Hierarchies", HPG 2009): the best object split over binned centroids
+    (Wald 2007) and, only where that split's two boxes overlap by more than alpha x area(root), their
+    restriction of spatial split attempts, the best spatial split over equal slabs of the node's box.
+    Writes the node's box and centroid bounds and each split's axis, boundary, side counts and SAH
+    A(L) N(L) + A(R) N(R); the host chooses between them."""
     s = first_seg + wp.tid()
     obj_axis[s] = -1
     sp_axis[s] = -1
@@ -336,7 +349,13 @@ def distribute_kernel(
     out_hi: wp.array(dtype=wp.vec3),
 ):
     """Write segment s's references at seg_out[s]: a leaf's as they are, a split node's left side
-    (seg_left[s] references) and then its right side, in their current order."""
+    (seg_left[s] references) and then its right side, in their current order.
+
+    The SBVH's reference distribution (Stich, Friedrich & Dietrich, HPG 2009): under a spatial split a
+    reference straddling the plane goes to both children, each with the box of its side's part. Their
+    reference unsplitting (keeping such a reference whole on one side when that is cheaper) is not
+    done here: a straddling reference is always split.
+    """
     s = first_seg + wp.tid()
     b = seg_begin[s]
     e = seg_end[s]

@@ -1,6 +1,6 @@
 """Stage 6 of HLBVH: hierarchy emission by treelets, p Morton bit planes per pass.
 
-Pantaleoni & Luebke 2010, section 2.3 and Fig. 4. Every current leaf segment of the sorted
+Pantaleoni & Luebke 2010, section 3.2, Figs. 3 and 4. Every current leaf segment of the sorted
 primitive array owns a block descriptor of 2^p - 1 split slots laid out as a heap over the p
 bit planes of the pass (MSB first, like an MSD radix sort):
 
@@ -47,6 +47,8 @@ def init_nodes_kernel(
     node_end: wp.array(dtype=wp.int32),
     node_count: wp.array(dtype=wp.int32),
 ):
+    """Reset the arena for the treelet passes: every node a leaf, and the root owning the one segment
+    [0, N), as the hierarchy emission of Pantaleoni & Luebke 2010 (Fig. 4) starts."""
     # Launched over the node arena (2N - 1 entries): -1 children mark a leaf until a split.
     i = wp.tid()
     node_left[i] = -1
@@ -79,6 +81,8 @@ def compact_segments_kernel(
     segment_nodes: wp.array(dtype=wp.int32),
     segment_count: wp.array(dtype=wp.int32),
 ):
+    """Fig. 4's bookkeeping (Pantaleoni & Luebke 2010, section 3.2): the heads, ends and nodes of
+    the open segments, compacted in segment order, and the segment count."""
     # segment_id is the inclusive scan of the head flags: segment of primitive i, plus one.
     # Split slots are not cleared: a stale slot fails `split_is_valid`, which saves N * (2^p - 1)
     # writes per pass.
@@ -94,7 +98,7 @@ def compact_segments_kernel(
 
 @wp.func
 def highest_bit(x: int):
-    # Index of the most significant set bit of x > 0.
+    """Index of the most significant set bit of x > 0."""
     b = int(0)
     while (x >> (b + 1)) != 0:
         b += 1
@@ -103,9 +107,9 @@ def highest_bit(x: int):
 
 @wp.func
 def boundary_slot(codes: wp.array(dtype=wp.int32), i: int, shift: int, planes: int):
-    # The slot whose split lies between elements i - 1 and i of one segment, or -1 when their
-    # p-bit digits agree: the level is the highest differing bit, the slot within the level is
-    # the digit prefix above it.
+    """The block-descriptor slot (Pantaleoni & Luebke 2010, section 3.2) whose split lies between
+    elements i - 1 and i of one segment, or -1 when their p-bit digits agree."""
+    # The level is the highest differing bit, the slot within the level the digit prefix above it.
     mask = (1 << planes) - 1
     prev = (codes[i - 1] >> shift) & mask
     cur = (codes[i] >> shift) & mask
@@ -128,6 +132,7 @@ def split_is_valid(
     planes: int,
     median: int,
 ):
+    """Whether `sp`, read from split slot `slot` of segment [begin, end), is this pass's split of it."""
     # Slots are never cleared, so a value is trusted only if it is this pass's split of the slot.
     if sp <= begin or sp >= end or end - begin <= max_leaf_size:
         return False
@@ -148,6 +153,9 @@ def mark_splits_kernel(
     segment_ends: wp.array(dtype=wp.int32),
     split_pos: wp.array(dtype=wp.int32),
 ):
+    """The foreach over primitives that fills the block descriptors (Pantaleoni & Luebke 2010,
+    section 3.2, Fig. 4's emit_block_splits): primitive i writes its position into the slot of the split
+    between it and its predecessor, if their p-bit digits differ."""
     # Each boundary between neighbours of one segment whose p-bit digits differ is the split of
     # exactly one slot. Digits are sorted inside a segment, so no slot is written twice.
     i = wp.tid()
@@ -171,6 +179,7 @@ def mark_median_splits_kernel(
     segment_count: wp.array(dtype=wp.int32),
     split_pos: wp.array(dtype=wp.int32),
 ):
+    """Slot 0 of every open segment set to its index median (codes exhausted)."""
     # Segments whose codes are exhausted (duplicates, or all 3n bits used) are split at the index
     # median: ceil(log2(size / max_leaf_size)) such passes bring every segment down to a leaf.
     s = wp.tid()
@@ -192,7 +201,7 @@ def open_segment(
     head_to_end: wp.array(dtype=wp.int32),
     head_flags: wp.array(dtype=wp.int32),
 ):
-    # A new segment stays open only while it can still split; otherwise it is a finished leaf.
+    """Make [lo, hi) a segment owned by `node`: open while it can still split, else a finished leaf."""
     head_to_node[lo] = node
     head_to_end[lo] = hi
     if hi - lo > max_leaf_size:
@@ -216,7 +225,7 @@ def link_children(
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
 ):
-    # Make `left` and `right` the children of `node`, covering [begin, split) and [split, end).
+    """Make `left` and `right` the children of `node`, covering [begin, split) and [split, end)."""
     node_left[node] = left
     node_right[node] = right
     node_parent[left] = node
@@ -253,6 +262,10 @@ def walk_treelet(
     node_end: wp.array(dtype=wp.int32),
 ):
     """Walk segment s's slot heap top-down; count its real splits, and with `emit` write them.
+
+    The block descriptor and treelet of Pantaleoni & Luebke 2010 (section 3.2, Fig. 3): slot j's
+    split is the first element of its range whose bit of slot j's level is 1, and each real split
+    emits two nodes.
 
     A slot splits only when its split is valid and its own range still exceeds the leaf size, so
     a range that is small enough stops splitting inside the treelet too, exactly as a top-down
@@ -343,6 +356,9 @@ def count_splits_kernel(
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
 ):
+    """Real splits of every segment's block descriptor (`walk_treelet` without writing), for the
+    exclusive scan that gives each treelet its node offset (Pantaleoni & Luebke 2010, section 3.2,
+    Fig. 4: ``block_offsets = ex_scan(count_splits(s))``)."""
     # Launched over at least the segment count; past it the counts are zero for the scan.
     s = wp.tid()
     c = int(0)
@@ -378,6 +394,9 @@ def emit_treelets_kernel(
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
 ):
+    """The foreach over segments of Pantaleoni & Luebke 2010 (section 3.2, Fig. 4's emit_treelets):
+    segment s emits its treelet, 2 nodes per real split, from its scanned offset, and updates
+    head_to_node and the segment heads for the next pass."""
     s = wp.tid()
     if s >= segment_count[0]:
         return
@@ -397,6 +416,7 @@ def advance_node_count_kernel(
     split_offset: wp.array(dtype=wp.int32),
     node_count: wp.array(dtype=wp.int32),
 ):
+    """node_count += 2 x the pass's real splits (Fig. 4: ``node_count += N_splits * 2``)."""
     last = segment_count[0] - 1
     if last < 0:
         return
@@ -410,6 +430,7 @@ def max_segment_size_kernel(
     segment_count: wp.array(dtype=wp.int32),
     max_size: wp.array(dtype=wp.int32),
 ):
+    """The largest open segment's size into max_size[0] (how many index-median passes remain)."""
     s = wp.tid()
     if s >= segment_count[0]:
         return
@@ -430,6 +451,7 @@ vec64i = wp.types.vector(length=DEPTH_FIRST_STACK, dtype=wp.int32)
 
 @wp.func
 def highest_bit_mask(x: int):
+    """x with only its most significant set bit kept (x > 0)."""
     # Smear the top set bit of x > 0 downwards, then keep only it:
     #   x = 0b0010_1100  ->  0b0011_1111  ->  0b0010_0000
     s = x | (x >> 1)
@@ -442,6 +464,9 @@ def highest_bit_mask(x: int):
 
 @wp.func
 def radix_split(codes: wp.array(dtype=wp.int32), begin: int, end: int):
+    """Split position of the sorted range [begin, end): the first code with the highest differing bit
+    set, the split the treelet passes make (Pantaleoni & Luebke 2010, section 3.2, the LBVH topology of
+    Lauterbach et al. 2009), found by binary search as in Karras 2012."""
     # Split of the sorted range [begin, end) at the highest bit where its codes differ: its codes
     # share every bit above it, so the first code with the bit set is found by binary search.
     # Equal codes (duplicates, or bits exhausted) split at the index median, as the passes do.
@@ -584,7 +609,8 @@ def emit_depth_first_kernel(
 @wp.func
 def find_seed(seed_starts: wp.array(dtype=wp.int32), seed_ends: wp.array(dtype=wp.int32), count: int, begin: int,
               end: int):
-    # The seed whose range is exactly [begin, end), or -1 (at most MAX_TOP_SEEDS to look at).
+    """The seed whose range is exactly [begin, end), or -1."""
+    # At most MAX_TOP_SEEDS to look at.
     for s in range(count):
         if seed_starts[s] == begin and seed_ends[s] == end:
             return s
@@ -702,8 +728,8 @@ def finish_top_kernel(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
-    # Link and box the interior nodes above the seeds (`split_top_kernel`; the walk left every
-    # seed root parentless), children first: a child's id is always above its parent's, so
+    """Link and box the interior nodes above the seeds of `split_top_kernel`, children first."""
+    # The walk left every seed root parentless. A child's id is always above its parent's, so
     # counting down from S - 2 finishes both children first.
     node = seed_count[0] - 2
     while node >= 0:

@@ -22,6 +22,7 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.func
 def cluster_end(voxel_starts: wp.array(dtype=wp.int32), num_clusters: int, num_prims: int, c: int) -> int:
+    """End of cluster c's primitive range: the next cluster's start, or N."""
     if c + 1 < num_clusters:
         return voxel_starts[c + 1]
     return num_prims
@@ -34,8 +35,11 @@ def coarser_cluster_flags_kernel(
     shift: int,
     flags: wp.array(dtype=wp.int32),
 ):
-    # 1 where a voxel starts a new voxel of the grid one bit coarser per axis: its code above
-    # `shift` differs from the previous voxel's (the sorted order already groups them).
+    """1 where a voxel starts a voxel of the grid one bit coarser per axis, else 0: merging small
+    clusters into coarser ones (``BuildConfig.cluster_min_prims``). An addition of this library's:
+    the clusters of Pantaleoni & Luebke 2010 (section 3.3) are the m-bit voxels themselves."""
+    # Its code above `shift` differs from the previous voxel's (the sorted order already groups
+    # the voxels of a coarser one).
     v = wp.tid()
     flags[v] = 1
     if v > 0:
@@ -56,8 +60,10 @@ def seed_clusters_kernel(
     node_end: wp.array(dtype=wp.int32),
     node_count: wp.array(dtype=wp.int32),
 ):
-    # One open treelet segment per cluster, owned by its parked root C - 1 + c (the treelet
-    # bookkeeping of kernels/treelets.py: a head flag only while the segment can still split).
+    """One open treelet segment per cluster (a non-empty coarse voxel, the clusters of Pantaleoni &
+    Luebke 2010, section 3.3), owned by its parked root C - 1 + c."""
+    # The treelet bookkeeping of kernels/treelets.py: a head flag only while the segment can still
+    # split.
     c = wp.tid()
     begin = voxel_starts[c]
     end = cluster_end(voxel_starts, num_clusters, num_prims, c)
@@ -92,6 +98,8 @@ def cluster_items_kernel(
     cluster_right: wp.array(dtype=wp.int32),
     cluster_size: wp.array(dtype=wp.int32),
 ):
+    """The items of the top-level SAH sweep: each cluster's box, size, root children and SAH cost,
+    the weight that replaces a unit primitive cost (Pantaleoni & Luebke 2010, section 3.3)."""
     # Copy each parked cluster root out before the top tree overwrites its slot.
     c = wp.tid()
     root = num_clusters - 1 + c
@@ -109,6 +117,8 @@ def gather_cluster_sizes_kernel(
     cluster_size: wp.array(dtype=wp.int32),
     ordered_sizes: wp.array(dtype=wp.int32),
 ):
+    """Cluster sizes in the top tree's cluster order, to be scanned for their new starts (the join
+    of Pantaleoni & Luebke 2010, section 3.3)."""
     j = wp.tid()
     ordered_sizes[j] = cluster_size[cluster_order[j]]
 
@@ -120,7 +130,8 @@ def cluster_shift_kernel(
     voxel_starts: wp.array(dtype=wp.int32),
     cluster_shift: wp.array(dtype=wp.int32),
 ):
-    # How far every primitive of a cluster moves: from its voxel position to its top-tree slot.
+    """How far every primitive of a cluster moves: from its voxel position to its top-tree slot (the
+    join of Pantaleoni & Luebke 2010, section 3.3)."""
     j = wp.tid()
     c = cluster_order[j]
     cluster_shift[c] = ordered_starts[j] - voxel_starts[c]
@@ -145,7 +156,8 @@ def join_top_kernel(
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
 ):
-    # Top node j becomes final node j; its cluster range [tb, te) becomes a primitive range.
+    """The join of the SAH-built top levels with the Morton treelets (Pantaleoni & Luebke 2010,
+    section 3.3): top node j becomes final node j, its cluster range turned into a primitive range."""
     j = wp.tid()
     tb = top_begin[j]
     te = top_end[j]
@@ -179,6 +191,8 @@ def shift_treelets_kernel(
     node_begin: wp.array(dtype=wp.int32),
     node_end: wp.array(dtype=wp.int32),
 ):
+    """Move every treelet node's range by its cluster's shift, to where the top tree placed the
+    cluster (the join of Pantaleoni & Luebke 2010, section 3.3)."""
     node = wp.tid()
     if node < first_node or node >= node_count[0]:
         return
@@ -197,9 +211,10 @@ def scatter_clusters_kernel(
     prim_order: wp.array(dtype=wp.int32),
     position_cluster: wp.array(dtype=wp.int32),
 ):
-    # One thread per cluster (a few primitives each): move its primitives to their top-tree
-    # place, and record which cluster every old position belongs to for the node shift, so that
-    # neither pass searches voxel_starts per element.
+    """Move cluster c's primitives to their top-tree place in prim_order, and record the cluster of
+    each of its old positions (the join of Pantaleoni & Luebke 2010, section 3.3)."""
+    # One thread per cluster (a few primitives each). The old positions' clusters serve the node
+    # shift, so that neither pass searches voxel_starts per element.
     c = wp.tid()
     shift = cluster_shift[c]
     for pos in range(voxel_starts[c], cluster_end(voxel_starts, num_clusters, num_prims, c)):
@@ -221,6 +236,8 @@ def top_bounds_sweep_kernel(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
+    """Boxes of the top tree's nodes (the SAH-built levels of Pantaleoni & Luebke 2010, section 3.3)
+    from the cluster boxes, one reverse sweep, into both arenas."""
     # One thread, the top tree's nodes in reverse (children come after their parents), in the
     # top tree's own compact arena: a top leaf is one cluster, whose box was copied out with its
     # cost. Reading those boxes through the joined tree instead went to the cluster roots'

@@ -3,9 +3,9 @@
 Collapse (the usual construction of k-ary BVHs from binary ones; Garczorz 2026 compares it with
 direct k-way splitting): each wide node starts from its binary node's two children and, while it
 has fewer than k, replaces the interior child of largest surface area by that child's two
-children. The interior children left at the end become the next level's wide nodes, so the
-collapse runs level by level, one thread per wide node of a level, with a scan placing each
-level's new nodes.
+children (a greedy rule of this library's, not the thesis's: see `expand_kernel`). The interior
+children left at the end become the next level's wide nodes, so the collapse runs level by level,
+one thread per wide node of a level, with a scan placing each level's new nodes.
 
 Layout: wide node w owns slots ``w * k .. w * k + k - 1``. A slot holds a child's box, its range
 of ``prim_order`` and ``slot_child``: the child's wide node index, ``LEAF`` for a leaf (its
@@ -38,6 +38,7 @@ WIDE_STACK = wp.constant(WIDE_STACK_SIZE)
 
 @wp.func
 def box_area(lower: wp.vec3, upper: wp.vec3) -> float:
+    """Surface area of the box in float32: the collapse's ranking of interior children."""
     d = upper - lower
     return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
 
@@ -54,7 +55,15 @@ def expand_kernel(
     interior_count: wp.array(dtype=wp.int32),
 ):
     """The children of one wide node (the binary node ``frontier[w]``): binary node ids into
-    ``chosen[w * width ...]`` (-1 past the last), and how many of them are interior."""
+    ``chosen[w * width ...]`` (-1 past the last), and how many of them are interior.
+
+    The greedy collapse: start from the binary node's two children and, while there are fewer than
+    `width`, replace the interior child of largest surface area by its two children. This rule is
+    not taken from a paper. Garczorz (2026, Bachelor thesis, HHU Duesseldorf), whose comparison of
+    collapsed and directly k-way split wide BVHs the project follows, describes collapsing only as
+    merging nodes with their children to double the branching factor (its section 1.4; its section
+    3.2.3 on the collapse function is empty in the copy we have).
+    """
     w = wp.tid()
     b = frontier[w]
     picked = vec16i()
@@ -114,7 +123,8 @@ def emit_kernel(
     next_frontier: wp.array(dtype=wp.int32),
 ):
     """Write wide node ``first_wide + w``: its slots, its own range, and its interior children
-    as the next level's wide nodes, numbered from ``next_first + offsets[w]``."""
+    as the next level's wide nodes, numbered from ``next_first + offsets[w]``: the second half of
+    the greedy collapse of `expand_kernel` (see there for where the rule comes from)."""
     w = wp.tid()
     node = first_wide + w
     b = frontier[w]
@@ -157,7 +167,7 @@ def wide_sah_terms_kernel(
     t_intersect: wp.float64,
     terms: wp.array(dtype=wp.float64),
 ):
-    """Pantaleoni & Luebke's eq. (1) unrolled over a wide node's slots: every child costs
+    """Pantaleoni & Luebke's (HPG 2010) eq. (1) unrolled over a wide node's slots: every child costs
     T1 at its parent, and each child's own term (T1 times its children, or T2 times its
     triangles) weighs by area(child) / area(root)."""
     w = wp.tid()
@@ -202,6 +212,7 @@ def pack_slots_kernel(
     slot_end: wp.array(dtype=wp.int32),
     slots: wp.array(dtype=WideSlot),
 ):
+    """Pack the five slot arrays into one `WideSlot` record per slot (the traversal layout)."""
     s = wp.tid()
     record = WideSlot()
     record.lower = slot_lowers[s]
@@ -223,11 +234,15 @@ _PREFETCH_SLOTS = """
 
 
 @wp.func_native(_PREFETCH_SLOTS)
-def prefetch_slots(slots: wp.array(dtype=WideSlot), index: int): ...
+def prefetch_slots(slots: wp.array(dtype=WideSlot), index: int):
+    """Prefetch the first two cache lines of slot records from `index` on the CPU (nothing on CUDA)."""
+    ...
 
 
 @wp.struct
 class WideHit:
+    """What `wide_closest_hit` returns: hit distance, primitive (-1 on a miss) and traversal counters."""
+
     t: float
     prim: int
     nodes_visited: int
