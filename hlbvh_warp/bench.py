@@ -32,7 +32,8 @@ import numpy as np
 import warp as wp
 
 from . import api, inputs, reference, scenes
-from .cli import argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int
+from .cli import (argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int,
+                  quiet_warp)
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -463,7 +464,7 @@ def parse_args(argv):
 
 def main(argv=None) -> int:
     args = parse_args(list(sys.argv[1:] if argv is None else argv))
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
     meshes = [(pathlib.Path(p).stem + (f"_sub{args.subdivide}" if args.subdivide else ""),

@@ -40,13 +40,24 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def quiet_warp():
+    """Turn off Warp's informational output (its banner, and a line per kernel module loaded,
+    which fell between the rows of every command's table); warnings and errors still show.
+    Warp 1.19 filters by `config.log_level`; earlier versions read `config.quiet`."""
+    import warp as wp
+
+    wp.config.quiet = True
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+
+
 def device_name(text: str) -> str:
     """argparse type: a Warp device this machine has ("cpu", "cuda", "cuda:1"). Warp names an
     unknown one with a ValueError but a CUDA device on a machine without CUDA with a
     RuntimeError, which left ``--device cuda`` a traceback on CPU-only machines."""
     import warp as wp
 
-    wp.config.quiet = True
+    quiet_warp()
     try:
         wp.get_device(text)
     except (RuntimeError, ValueError) as error:

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import check_out_folder, device_name, mesh_file, non_negative_int, positive_int
+from .cli import check_out_folder, device_name, mesh_file, non_negative_int, positive_int, quiet_warp
 from .reference import brute_force_closest_hit
 
 
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
     args = parser.parse_args(argv)
 
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     from . import api, inputs
     from .builder import Builder
@@ -92,6 +92,8 @@ def main(argv=None) -> int:
             raise ValueError(f"{args.mesh}: {error}" if args.mesh else str(error)) from None
         print(f"scene: {'generated torus knot' if not args.mesh else args.mesh}, {len(faces)} triangles, "
               f"device {device}")
+        # Warp's own line per compiled module is off (quiet_warp): say why a first run waits.
+        print("(a first run compiles the Warp kernels before the first build: about 20 s on the CPU)", flush=True)
 
         # 1. Every build method on the static scene, checked against a float64 brute force.
         origins, directions = rays_at(vertices, args.rays)

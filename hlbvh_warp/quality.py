@@ -24,7 +24,7 @@ import warp as wp
 
 from .api import OFFLINE_BUILDERS
 from .cli import (argument_errors, check_out_file, device_name, finite_float, mesh_file, non_negative_int,
-                  positive_int)
+                  positive_int, quiet_warp)
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -209,7 +209,7 @@ def main(argv=None) -> int:
     from . import scenes
 
     args = parse_args(list(sys.argv[1:] if argv is None else argv))
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
     meshes = scenes.named_meshes(args.mesh, args.scene_tris, args.scene)

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, positive_int
+from .cli import device_name, positive_int, quiet_warp
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -161,7 +161,7 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
 def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str) -> int:
     """Print one row per mesh, method and query kind; exit 1 when any row disagrees with wp.Mesh
     (as bench-wide and quality do, so a script can rely on the status)."""
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]
     missing = [str(p) for p in paths if not p.exists()]

@@ -26,7 +26,7 @@ import argparse
 
 import numpy as np
 
-from .cli import device_name
+from .cli import device_name, quiet_warp
 from .reference import brute_force_closest_hit
 
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
@@ -301,7 +301,7 @@ def main(argv=None) -> int:
     parser.add_argument("--method", action="append", help="default: every builder in api.BUILDERS")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     api._load_optional_builders()
     devices = args.device or ["cpu"] + [str(d) for d in wp.get_cuda_devices()]

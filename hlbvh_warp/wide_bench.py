@@ -24,7 +24,8 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int
+from .cli import (argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int,
+                  quiet_warp)
 
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
@@ -170,7 +171,7 @@ def main(argv=None) -> int:
     from . import scenes
 
     args = parse_args(list(sys.argv[1:] if argv is None else argv))
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
     meshes = scenes.named_meshes(args.mesh, args.scene_tris)
