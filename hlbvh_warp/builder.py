@@ -552,7 +552,8 @@ class Builder:
         priced = (*costs, self.sah_scratch) if price and self.device.is_cpu else None
         compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
                        bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
-                       pipe.node_visits, bvh.node_lowers, bvh.node_uppers, "sweep" if priced else None, priced)
+                       pipe.node_visits, bvh.node_lowers, bvh.node_uppers, "sweep" if priced else None, priced,
+                       launch=pipe._launch)
         if priced is not None:
             total = float(self.sah_scratch[0:1].numpy()[0])
             return metrics.cost_from_sum(bvh, total, bvh.num_nodes, *costs)

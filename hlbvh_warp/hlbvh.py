@@ -639,6 +639,7 @@ class HlbvhPipeline:
             self.node_visits,
             self.node_lowers,
             self.node_uppers,
+            launch=self._launch,
         )
 
     # ------------------------------------------------------------ orchestrator
@@ -767,37 +768,38 @@ class HlbvhPipeline:
 
 def compute_bounds(device, node_count, node_left, node_right, node_parent, node_begin, node_end, prim_order,
                    prim_lowers, prim_uppers, node_visits, node_lowers, node_uppers, strategy: str | None = None,
-                   priced: tuple | None = None):
+                   priced: tuple | None = None, launch=None):
     """Node boxes bottom-up. `strategy`: ``"climb"`` (one thread per leaf climbing with atomic visit
     counters, Karras 2012: parallel, for CUDA) or ``"sweep"`` (one reverse sweep over the nodes, leaves
     boxed as it reaches them: the CPU device runs threads in sequence, and there the sweep does
     the same work without atomics or random parent hops, about 2x faster on a 100k-triangle
     mesh). ``None`` picks by device. ``priced=(t_traversal, t_intersect, cost_sum)``
     (the sweep only) also writes to ``cost_sum[0]`` the sum of every node's SAH term x area, which
-    `metrics.cost_from_sum` turns into the tree's SAH cost."""
+    `metrics.cost_from_sum` turns into the tree's SAH cost. ``launch(kernel, dim, inputs)``: how
+    to launch (a per-frame caller's recorded launches: packing the fourteen arguments anew was
+    most of a small mesh's refit); `wp.launch` on ``device`` by default."""
     device = wp.get_device(device)
+    if launch is None:
+        def launch(kernel, dim, inputs):
+            wp.launch(kernel, dim=dim, inputs=inputs, device=device)
     if strategy is None:
         strategy = "sweep" if device.is_cpu else "climb"
     dim = node_left.shape[0]
     if strategy == "sweep":
         t_traversal, t_intersect, cost_sum = priced if priced is not None else (0.0, 0.0, None)
-        wp.launch(bounds.bounds_sweep_kernel, dim=1, device=device,
-                  inputs=[node_count, node_left, node_right, node_begin, node_end, prim_order, prim_lowers,
-                          prim_uppers, int(priced is not None), wp.float64(t_traversal), wp.float64(t_intersect),
-                          node_lowers, node_uppers, cost_sum])
+        launch(bounds.bounds_sweep_kernel, 1,
+               [node_count, node_left, node_right, node_begin, node_end, prim_order, prim_lowers, prim_uppers,
+                int(priced is not None), wp.float64(t_traversal), wp.float64(t_intersect), node_lowers, node_uppers,
+                cost_sum])
         return
     if strategy != "climb":
         raise ValueError(f"unknown bounds strategy {strategy!r}")
     if priced is not None:
         raise ValueError("priced bounds need the sweep strategy")
-    wp.launch(bounds.reset_visits_kernel, dim=node_visits.shape[0], inputs=[node_visits], device=device)
-    wp.launch(
-        bounds.node_bounds_kernel,
-        dim=dim,
-        inputs=[node_count, node_left, node_right, node_parent, node_begin, node_end, prim_order,
-                prim_lowers, prim_uppers, node_visits, node_lowers, node_uppers],
-        device=device,
-    )
+    launch(bounds.reset_visits_kernel, node_visits.shape[0], [node_visits])
+    launch(bounds.node_bounds_kernel, dim,
+           [node_count, node_left, node_right, node_parent, node_begin, node_end, prim_order, prim_lowers,
+            prim_uppers, node_visits, node_lowers, node_uppers])
 
 
 def refit_bounds(bvh: Bvh, node_visits: wp.array | None = None, strategy: str | None = None):
