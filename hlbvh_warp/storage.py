@@ -183,7 +183,7 @@ def check_tree(tree: dict, num_prims: int, duplicates: bool, triangles: np.ndarr
         if (p_lo < lo[leaf_of]).any() or (p_hi > hi[leaf_of]).any():
             raise ValueError("a primitive's box is not inside its leaf's")
     elif triangles is not None:
-        _check_parts_covered(lo, hi, leaf, begin, end, order, triangles)
+        _check_parts_covered(lo, hi, leaf, begin, end, order, triangles, tree["prim_lowers"], tree["prim_uppers"])
 
 
 # Barycentric weights of the points checked on each triangle of a spatial-split tree: the corners,
@@ -192,7 +192,7 @@ _SAMPLE_WEIGHTS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0.5, 0], [0, 
                             [1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
 
 
-def _check_parts_covered(lo, hi, leaf, begin, end, order, triangles) -> None:
+def _check_parts_covered(lo, hi, leaf, begin, end, order, triangles, prim_lo, prim_hi) -> None:
     """A spatial-split tree's leaves bound parts of triangles (Stich et al. 2009), so no single leaf
     need hold a split triangle's box; what a ray needs is every point of the triangle inside some
     leaf that lists it. A triangle listed once was never cut: its leaf holds its whole box. A
@@ -203,20 +203,24 @@ def _check_parts_covered(lo, hi, leaf, begin, end, order, triangles) -> None:
     leaves = leaves[np.argsort(begin[leaves], kind="stable")]
     leaf_of = np.repeat(leaves, (end - begin)[leaves])
     split = np.bincount(order, minlength=triangles.shape[0])[order] > 1
-    tri = triangles[order].astype(np.float64)
-    slack = 4.0 * np.finfo(np.float32).eps * np.abs(tri).max(axis=(1, 2))[:, None]
-    box_lo, box_hi = lo[leaf_of].astype(np.float64) - slack, hi[leaf_of].astype(np.float64) + slack
-    whole = ~split
-    outside = (tri[whole].min(axis=1) < box_lo[whole]) | (tri[whole].max(axis=1) > box_hi[whole])
+    eps = np.float32(4.0 * np.finfo(np.float32).eps)
+    # The triangles listed once, by their boxes (float32, as the boxes are).
+    whole, at = order[~split], leaf_of[~split]
+    p_lo, p_hi = prim_lo[whole], prim_hi[whole]
+    slack = eps * np.maximum(np.abs(p_lo), np.abs(p_hi)).max(axis=1, keepdims=True)
+    outside = ((p_lo < lo[at] - slack) | (p_hi > hi[at] + slack)).any(axis=1)
     if outside.any():
-        prim = int(order[whole][np.argmax(outside.any(axis=1))])
-        raise ValueError(f"triangle {prim}, in one leaf only, is not inside that leaf's box")
-    tri, box_lo, box_hi, parts = tri[split], box_lo[split], box_hi[split], order[split]
+        raise ValueError(f"triangle {int(whole[np.argmax(outside)])}, in one leaf only, is not inside that leaf's box")
+    # The split ones, point by point in float64.
+    parts, at = order[split], leaf_of[split]
+    tri = triangles[parts].astype(np.float64)
+    slack = float(eps) * np.abs(tri).max(axis=(1, 2))[:, None]
+    box_lo, box_hi = lo[at] - slack, hi[at] + slack
+    listed = np.bincount(parts, minlength=triangles.shape[0]) > 0
     for w in _SAMPLE_WEIGHTS:
-        point = np.einsum("k,rkj->rj", w, tri)
+        point = w[0] * tri[:, 0] + w[1] * tri[:, 1] + w[2] * tri[:, 2]
         inside = ((point >= box_lo) & (point <= box_hi)).all(axis=1)
-        covered = np.bincount(parts, weights=inside, minlength=triangles.shape[0]) > 0
-        missed = ~covered & (np.bincount(parts, minlength=triangles.shape[0]) > 0)
+        missed = listed & ~(np.bincount(parts, weights=inside, minlength=triangles.shape[0]) > 0)
         if missed.any():
             raise ValueError(f"a point of triangle {int(np.argmax(missed))} is in none of the leaves that list it")
 
