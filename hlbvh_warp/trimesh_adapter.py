@@ -75,8 +75,14 @@ class RayMeshIntersector:
         """
         from trimesh import grouping
 
+        # A single (3,) ray is one row, as `intersects_first` answers it: indexed as it came, it
+        # broke the hit locations with a NumPy broadcast error.
         ray_origins = np.asanyarray(ray_origins, dtype=np.float64)
         ray_directions = np.asanyarray(ray_directions, dtype=np.float64)
+        if ray_origins.ndim == 1:
+            ray_origins = ray_origins.reshape(1, -1)
+        if ray_directions.ndim == 1:
+            ray_directions = ray_directions.reshape(1, -1)
         if multiple_hits:
             index_ray, index_tri, t = query.intersect_all(self.bvh, ray_origins, ray_directions)
         else:
@@ -205,3 +211,14 @@ class ProximityQuery:
         magnitude = np.abs(distance[far])
         distance[far] = np.where(outside, -magnitude, magnitude)
         return distance
+
+    def vertex(self, points):
+        """The nearest vertex to each point: ``distance (m,) float64, vertex_id (m,) int64``.
+
+        trimesh's own (a KD-tree over the vertices, SciPy's; no triangle is involved, so a BVH
+        over the faces has nothing to add), here so that this class stands in for every method
+        of ``mesh.nearest``.
+        """
+        from trimesh.proximity import ProximityQuery as TrimeshProximity
+
+        return TrimeshProximity(self.mesh).vertex(points)

@@ -267,3 +267,34 @@ def test_signed_distance_near_zero_area_triangles_keeps_its_magnitude(device, re
     np.testing.assert_array_equal(np.signbit(sd[at_degenerate]), ~inside)
     expected = trimesh.proximity.signed_distance(mesh, points[~at_degenerate])
     np.testing.assert_allclose(sd[~at_degenerate], expected, rtol=1e-6)
+
+
+def test_a_single_ray_is_one_row_in_every_ray_call(device, rng, reference):
+    # intersects_first / intersects_any answered a (3,) ray as one row, intersects_id and
+    # intersects_location failed with a NumPy broadcast error from the hit locations. Oracle:
+    # trimesh's answer for the same ray given as one row (trimesh itself takes only (n, 3)).
+    mesh, o, d = _scene(rng)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    hit = int(np.nonzero(ref.intersects_first(o, d) >= 0)[0][0])
+    miss = int(np.nonzero(ref.intersects_first(o, d) < 0)[0][0])
+    for k in (hit, miss):
+        tri, ray = ours.intersects_id(o[k], d[k])
+        tri_ref, ray_ref = ref.intersects_id(o[k:k + 1], d[k:k + 1])
+        assert sorted(zip(ray.tolist(), tri.tolist())) == sorted(zip(ray_ref.tolist(), tri_ref.tolist())), k
+        locations, ray, tri = ours.intersects_location(o[k], d[k], multiple_hits=False)
+        locations_ref, _, tri_ref = ref.intersects_location(o[k:k + 1], d[k:k + 1], multiple_hits=False)
+        assert tri.tolist() == tri_ref.tolist(), k
+        np.testing.assert_allclose(locations.reshape(-1, 3), locations_ref.reshape(-1, 3), atol=1e-6)
+        assert ours.intersects_first(o[k], d[k]).tolist() == ref.intersects_first(o[k:k + 1], d[k:k + 1]).tolist()
+
+
+def test_nearest_vertex_is_trimeshs(device, rng):
+    pytest.importorskip("scipy")  # trimesh's KD-tree
+    from hlbvh_warp import ProximityQuery
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    points = rng.normal(size=(50, 3)) * 2
+    distance, vertex = ProximityQuery(mesh, device=device).vertex(points)
+    all_distances = np.linalg.norm(points[:, None] - mesh.vertices[None], axis=2)
+    np.testing.assert_allclose(distance, all_distances.min(axis=1), rtol=1e-12)
+    np.testing.assert_array_equal(vertex, all_distances.argmin(axis=1))
