@@ -383,6 +383,8 @@ class Builder:
         if self.vertices is None or self.vertices.shape[0] != verts_np.shape[0]:
             self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
             self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+            if self.pipeline.launches is not None:
+                self.pipeline.launches.clear()
         self.vertices.assign(verts_np)
         self.faces.assign(faces_np)
         self.kind, self.snapshots = "triangles", [self.previous_vertices]

@@ -60,6 +60,13 @@ class RecordedLaunches:
         # Records made per kernel since the record last started over.
         self.made: dict = {}
 
+    def clear(self):
+        """Start over: drop every record and the arrays it keeps alive (a `Builder` set up anew
+        over other buffers; the old records would hold those buffers and fill the per-kernel
+        quota, after which the new ones' launches went unrecorded)."""
+        self.records.clear()
+        self.made.clear()
+
     def launch(self, kernel, dim, inputs: list, vary: tuple = ()):
         """`vary`: positions of arguments that may be another array every call (a caller's input):
         left out of the key and set on the record before each replay. A record keeps its
@@ -76,8 +83,7 @@ class RecordedLaunches:
                 wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
                 return
             if len(self.records) >= MAX_RECORDED:
-                self.records.clear()
-                self.made.clear()
+                self.clear()
             self.made[kernel] = self.made.get(kernel, 0) + 1
             cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
             entry = self.records[key] = [cmd, dim]

@@ -148,6 +148,33 @@ def test_a_recording_builders_frames_launch_nothing_plainly(device, monkeypatch,
     assert plain == []
 
 
+def test_a_builder_set_up_anew_over_new_buffers_records_afresh(device, monkeypatch):
+    # A second build() with another vertex count allocates new vertex buffers; the records over
+    # the old ones stayed, holding them, and after eight such set-ups each kernel's quota was
+    # full: the new buffers' launches went unrecorded for the builder's life.
+    v, f = default_scene(1000)
+    builder = Builder(len(f), device=device, policy="refit")
+    counts = []
+    for extra in range(10):
+        grown = np.concatenate([v, np.zeros((extra + 1, 3), np.float32)])
+        builder.build(grown, f)
+        builder.update(grown * np.float32(1.001))
+        counts.append(len(builder.pipeline.launches.records))
+    assert counts == counts[:1] * len(counts)  # one set-up's records, not all of them
+    plain = []
+    real_launch = wp.launch
+
+    def counting_launch(kernel, *args, **kwargs):
+        if not kwargs.get("record_cmd", False):
+            plain.append(getattr(kernel, "key", kernel))
+        return real_launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", counting_launch)
+    for k in range(2, 5):
+        assert builder.update(grown * np.float32(1.0 + 0.001 * k))["decision"] == "refit"
+    assert plain == []
+
+
 def test_recording_builders_survive_side_by_side_launches(tmp_path):
     # On a multi-core CPU parts of a build run as launches side by side (`hlbvh_warp.threads`);
     # recorded launches made or replayed there crashed the process with a segmentation fault
