@@ -586,10 +586,9 @@ def packed_ray_query(
 @wp.func
 def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
     """Front-to-back traversal shared by the closest-hit and the any-hit query."""
+    # A miss's t is inf, and inf times the scale is inf: no test needed before scaling back.
     scale = ray_direction_scale(direction)
-    d = direction * scale
     limit = ray_scaled_t_max(t_max, scale)
-    h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
         # The root's record is at position 0; a root that is a leaf has none.
@@ -603,14 +602,14 @@ def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: floa
             root_begin,
             root,
             origin,
-            d,
+            direction * scale,
             limit,
             any_hit,
         )
-    else:
-        h = canonical_ray_query(bvh, origin, d, limit, any_hit)
-    if h.prim >= 0:
         h.t = h.t * scale
+        return h
+    h = canonical_ray_query(bvh, origin, direction * scale, limit, any_hit)
+    h.t = h.t * scale
     return h
 
 
