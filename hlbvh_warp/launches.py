@@ -27,7 +27,10 @@ MAX_RECORDED = 256
 #: Distinct argument sets recorded per kernel. Some launches change an argument every frame (the
 #: SAH-optimized build's cluster counts, the seeds of the CPU emission's parallel runs): a
 #: record of those is never replayed, so past this many a kernel's new ones launch plainly.
-MAX_RECORDS_PER_KERNEL = 8
+#: Others take one fixed set per pass of a frame: the treelet emission (CUDA's schedule) launches
+#: its three kernels once per p bit planes, ceil(30 / 3) passes and the median pass, 11 sets each
+#: frame, so at 8 it launched 28 kernels plainly every frame.
+MAX_RECORDS_PER_KERNEL = 24
 
 
 def _arg_key(value):

@@ -75,12 +75,16 @@ class TraversalLayout:
         self.triangles = wp.zeros(num_prims, dtype=traversal.PackedTriangle, device=device)
         self.refresh(bvh)
 
-    def refresh(self, bvh: Bvh):
-        """Rewrite the layout from the BVH's current arrays: launches only, no host reads."""
+    def refresh(self, bvh: Bvh, per_node: bool | None = None):
+        """Rewrite the layout from the BVH's current arrays: launches only, no host reads.
+        ``per_node``: a thread per node (CUDA's way), or one sequential sweep (the CPU's);
+        ``None`` picks by device. Both write the same layout (tested on the CPU)."""
         device = bvh.device
         nodes = [bvh.node_count, bvh.node_lowers, bvh.node_uppers, bvh.node_left, bvh.node_right, bvh.node_begin,
                  bvh.node_end, self.first_steps, self.nodes]
-        if device.is_cpu:
+        if per_node is None:
+            per_node = not device.is_cpu
+        if not per_node:
             # One sequential pass: on the CPU a thread per node costs more than the work it does.
             wp.launch(traversal.pack_nodes_sweep_kernel, dim=1, inputs=nodes, device=device)
         else:

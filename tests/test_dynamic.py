@@ -206,26 +206,33 @@ def test_bending_mesh_folds_no_triangle(device, amount):
     np.testing.assert_allclose(mesh.update(0.0).numpy(), v, rtol=0, atol=0)
 
 
-def test_hlbvh_sah_frames_reuse_the_cluster_tree(device, small_scene):
+@pytest.mark.parametrize("emission", ["auto", "treelets"])
+def test_hlbvh_sah_frames_reuse_the_cluster_tree(device, small_scene, emission):
     """The cluster count changes from frame to frame; the cluster tree's scratch, reserved for the
-    most clusters any frame can have, is never reallocated, and every frame's tree is correct."""
+    most clusters any frame can have, is never reallocated, and every frame's tree is correct.
+    The level schedule (CUDA's) swaps its two order buffers every level: the pair is compared."""
     v, f = small_scene
     mesh = ExplodingMesh(v, f, device=device, seed=5)
-    builder = Builder(len(f), device=device, method="hlbvh_sah")
+    builder = Builder(len(f), BuildConfig(emission=emission), device=device, method="hlbvh_sah")
     builder.build(mesh.vertices, mesh.faces)
     pipe = builder.pipeline
     top = pipe.top
-    pointers = [a.ptr for a in (top.cluster_lowers, top.cluster_cost, top.arena.node_left, top.builder.order)]
+
+    def held():
+        return ([a.ptr for a in (top.cluster_lowers, top.cluster_cost, top.arena.node_left)],
+                {top.builder.order.ptr, top.builder.order_next.ptr})
+
+    pointers = held()
     counts = set()
     for frame in range(1, 7):
         vertices = mesh.update(frame / 4.0)
         tree = builder.rebuild(vertices).to_numpy()
         counts.add(top.num_clusters)
         assert pipe.top is top and top.num_clusters <= top.capacity == pipe.max_clusters()
-        assert pointers == [a.ptr for a in (top.cluster_lowers, top.cluster_cost, top.arena.node_left,
-                                           top.builder.order)]
+        assert pointers == held()
         check_tree_invariants(tree, len(f))
-        one_shot = hw.build(vertices.numpy(), mesh.faces, method="hlbvh_sah", device=device)
+        one_shot = hw.build(vertices.numpy(), mesh.faces, method="hlbvh_sah", device=device,
+                            config=BuildConfig(emission=emission))
         assert builder.sah_cost() == pytest.approx(metrics.sah_cost(one_shot), rel=1e-6)
     assert len(counts) > 1, "the scene should change its cluster count"
     check_rays(builder.bvh, mesh.vertices.numpy(), mesh.faces, np.random.default_rng(0))

@@ -377,10 +377,12 @@ def numpy_bottom_up_boxes(tree, lo, hi):
     return nlo, nhi
 
 
+@pytest.mark.parametrize("method, leaf", [("hlbvh", 1), ("sweep_sah", 4), ("hlbvh_sah", 2), ("median", 1)])
 @pytest.mark.parametrize("strategy", ["climb", "sweep"])
-def test_node_bounds_match_numpy_bottom_up(device, rng, strategy):
+def test_node_bounds_match_numpy_bottom_up(device, rng, strategy, method, leaf):
+    # Every builder's tree, so that the climb (CUDA's bounds) runs on each shape of tree here too.
     lo, hi = soup_bounds(rng, 2000)
-    bvh = hb.build_from_bounds(lo, hi, device=device)
+    bvh = hb.build_from_bounds(lo, hi, method=method, device=device, config=hb.BuildConfig(max_leaf_size=leaf))
     bvh.node_lowers.zero_()
     bvh.node_uppers.zero_()
     hb.hlbvh.refit_bounds(bvh, strategy=strategy)

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 import warp as wp
 from conftest import REPO_ROOT
-from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, random_rays
+from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, random_rays, random_soup
 
 import hlbvh_warp
 from hlbvh_warp import query
@@ -296,6 +296,31 @@ def test_view_stays_valid_after_refit_and_rebuild(device, rng, scene):
         t_ref, prim_ref = brute_force_closest_hit(frame, faces, o, d)
         assert_hits_match(t, prim, t_ref, prim_ref)
         assert (prim_ref >= 0).sum() > 50
+
+
+@pytest.mark.parametrize("method, leaf", [("hlbvh", 1), ("sweep_sah", 4), ("sbvh", 1), ("hlbvh_sah", 3)])
+def test_traversal_layout_per_node_equals_the_sweep(device, rng, method, leaf):
+    """CUDA packs the layout with a thread per node (a climb for each node's depth-first position,
+    then one record per interior node), the CPU in one sweep: the same records either way. Run
+    both on this device, so that the CUDA way runs where no GPU is."""
+    verts, faces = random_soup(rng, 400)
+    bvh = hlbvh_warp.build(verts, faces, method=method, device=device, config=BuildConfig(max_leaf_size=leaf))
+    layouts = []
+    for per_node in (False, True):
+        layout = query.TraversalLayout.__new__(query.TraversalLayout)
+        layout.first_steps = wp.zeros(bvh.node_left.shape[0], dtype=wp.int32, device=device)
+        layout.nodes = wp.zeros(max(bvh.num_refs - 1, 1), dtype=traversal.PackedNode, device=device)
+        layout.triangles = wp.zeros(bvh.num_refs, dtype=traversal.PackedTriangle, device=device)
+        layout.refresh(bvh, per_node=per_node)
+        layouts.append(layout)
+    sweep, per_node = (layout.nodes.numpy() for layout in layouts)
+    assert sweep.dtype == per_node.dtype
+    for field in sweep.dtype.names:
+        np.testing.assert_array_equal(sweep[field], per_node[field], err_msg=field)
+    interior = int((bvh.to_numpy()["node_left"] >= 0).sum())
+    # Records were written at all: one per interior node (their positions are distinct, not dense).
+    written = (sweep["upper_a"] - sweep["lower_a"]).sum(axis=1) > 0
+    assert interior > 0 and written.sum() == interior
 
 
 def test_tree_and_view_follow_a_second_build_of_the_builder(device, rng, scene):
