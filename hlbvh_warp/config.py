@@ -125,6 +125,10 @@ class BuildConfig:
             if field.type.startswith("int"):
                 if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                     raise ValueError(f"BuildConfig: {field.name} must be an integer (got {value!r})")
+                # Kernels take these as int32, which wraps silently: a block_capacity of 2^32
+                # reached the voxel sort as 0 and divided by it (SIGFPE, the process gone).
+                if not -(1 << 31) <= int(value) < 1 << 31:
+                    raise ValueError(f"BuildConfig: {field.name} must fit in int32 (got {value!r})")
                 object.__setattr__(self, field.name, int(value))
             elif field.type == "float":
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):

@@ -156,6 +156,15 @@ def test_config_types_are_checked(field, value):
         hw.BuildConfig(**{field: value})
 
 
+@pytest.mark.parametrize("field", ["block_capacity", "cpu_threads", "planes_per_pass"])
+@pytest.mark.parametrize("value", [2**31, 2**32, 2**40, -(2**31) - 1])
+def test_config_integers_must_fit_the_kernels_int32(field, value):
+    # block_capacity = 2^32 wrapped to 0 in the voxel sort's int32 parameter, and the division
+    # by it killed the process (SIGFPE).
+    with pytest.raises(ValueError, match=f"{field} must fit in int32"):
+        hw.BuildConfig(**{field: value})
+
+
 def test_config_takes_numpy_scalars_as_plain_numbers(device, rng):
     config = hw.BuildConfig(sah_bins=np.int64(8), max_leaf_size=np.int32(2), sbvh_alpha=0)
     assert type(config.sah_bins) is int and type(config.sbvh_alpha) is float
