@@ -212,7 +212,7 @@ def test_mesh_contact(device, tmp_path):
             # within a fraction of a percent of their radius (0.997 at worst in this scene).
             assert (prim >= 0).all() and distance.min() >= 0.99 * example.radius, distance.min() / example.radius
         path = example.render(tmp_path / "contact.png")
-    assert sum(r["contacts"] for r in example.rows) > 0
+    assert sum(r["touching"] for r in example.rows) > 0
     assert {r["decision"] for r in example.rows} <= {"refit", "rebuild", "none"}
     assert len(example.table().splitlines()) == 7
     assert path.stat().st_size > 0
