@@ -420,6 +420,7 @@ class Builder:
                            node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
                            node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
                            node_count=pipe.node_count, vertices=vertices, faces=faces)
+            self.bvh._lock = self._lock
         else:
             # One Bvh for the builder's life: its node arrays are the pipeline's, overwritten by
             # this build, so a second object would leave the first one's traversal layout stale

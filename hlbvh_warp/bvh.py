@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
+
 import numpy as np
 import warp as wp
 
@@ -77,6 +80,9 @@ class Bvh:
         #: Milliseconds per stage, filled when the build was asked to time itself.
         self.timings = timings if timings is not None else {}
         self._cache = {}
+        #: The lock of the `Builder` that rebuilds this tree in place (None: nothing does). Host
+        #: queries hold it, so that one never reads a tree another thread is rewriting.
+        self._lock = None
 
     @property
     def num_prims(self) -> int:
@@ -113,14 +119,22 @@ class Bvh:
     def to_numpy(self) -> dict:
         """The used part of every array as NumPy, keyed by the attribute names above."""
         key = "numpy"
-        if key not in self._cache:
-            n = self.num_nodes
-            out = {name: getattr(self, name).numpy()[:n].copy() for name in NODE_FIELDS}
-            out["prim_order"] = self.prim_order.numpy().copy()
-            out["prim_lowers"] = self.prim_lowers.numpy().copy()
-            out["prim_uppers"] = self.prim_uppers.numpy().copy()
-            self._cache[key] = out
-        return self._cache[key]
+        with held(self):
+            if key not in self._cache:
+                n = self.num_nodes
+                out = {name: getattr(self, name).numpy()[:n].copy() for name in NODE_FIELDS}
+                out["prim_order"] = self.prim_order.numpy().copy()
+                out["prim_lowers"] = self.prim_lowers.numpy().copy()
+                out["prim_uppers"] = self.prim_uppers.numpy().copy()
+                self._cache[key] = out
+            return self._cache[key]
+
+    def hold(self):
+        """A context in which the `Builder` that rebuilds this tree in place waits: ``with
+        bvh.hold(): wp.launch(my_kernel, inputs=[bvh.view(), ...])`` reads one frame's whole tree
+        while another thread updates it. The library's own queries hold it already; a tree no
+        builder owns has nothing to hold."""
+        return held(self)
 
     def view(self):
         """A `BvhView` struct of this tree for user kernels (``bvh_closest_hit`` and friends)."""
@@ -135,14 +149,45 @@ class Bvh:
         vertices: it is rewritten in place (launches only), so views handed out earlier stay valid.
         """
         layout = self._cache.get("traversal_layout")
-        self._cache.clear()
+        # A new dict, the layout already in it: emptied first, a `view` made in between (from
+        # another thread) made a layout of its own that no later refit refreshed.
+        self._cache = {} if layout is None else {"traversal_layout": layout}
         if layout is not None:
             layout.refresh(self)
-            self._cache["traversal_layout"] = layout
 
     def __repr__(self) -> str:
         return (f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, "
                 f"device={self.device})")
+
+
+@contextlib.contextmanager
+def held(*trees):
+    """Hold the locks of the given trees that a `Builder` rebuilds in place (one at most per
+    builder, taken in a fixed order so that two queries never wait on each other): a query then
+    reads one frame's whole tree, never one another thread is halfway through rewriting. Without
+    it, the two-pass queries (count, then write) met a tree that had changed between their passes
+    and wrote fewer pairs than they had counted: garbage ids, and in `intersecting_pairs` a crash."""
+    locks = []
+    for tree in trees:
+        lock = getattr(tree, "_lock", None)
+        if lock is not None and all(lock is not other for other in locks):
+            locks.append(lock)
+    with contextlib.ExitStack() as stack:
+        for lock in sorted(locks, key=id):
+            stack.enter_context(lock)
+        yield
+
+
+def holding_tree(fn):
+    """`held` around a query whose first argument is the tree."""
+
+    @functools.wraps(fn)
+    def locked(*args, **kwargs):
+        tree = args[0] if args else kwargs.get("bvh")
+        with held(tree):
+            return fn(*args, **kwargs)
+
+    return locked
 
 
 NODE_FIELDS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_parent", "node_begin", "node_end")

@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from . import inputs
-from .bvh import Bvh
+from .bvh import Bvh, held
 from .kernels import collide, traversal
 from .query import _offsets, _require_mesh, _require_whole_boxes, view
 
@@ -93,10 +93,11 @@ def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
         ``(K, 2)`` int64 pairs ``(prim of a, prim of b)``, sorted; within ``a``, ``i < j`` only.
     """
     queries, tree, swapped = _sides(a, b, "overlapping_pairs", mesh=False)
-    pairs = _candidates(queries, tree, b is None)
-    if pairs.shape[0] == 0:
-        return np.zeros((0, 2), np.int64)
-    return _sorted_pairs(pairs.numpy(), swapped, b is None)
+    with held(a, b):
+        pairs = _candidates(queries, tree, b is None)
+        if pairs.shape[0] == 0:
+            return np.zeros((0, 2), np.int64)
+        return _sorted_pairs(pairs.numpy(), swapped, b is None)
 
 
 def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
@@ -119,14 +120,16 @@ def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
         ``(K, 2)`` int64 pairs ``(face of a, face of b)``, sorted; within ``a``, ``i < j`` only.
     """
     queries, tree, swapped = _sides(a, b, "intersecting_pairs", mesh=True)
-    pairs = _candidates(queries, tree, b is None)
-    if pairs.shape[0] == 0:
-        return np.zeros((0, 2), np.int64)
-    device = tree.device
-    meets = wp.empty(pairs.shape[0], dtype=wp.int32, device=device)
-    wp.launch(collide.triangle_pairs_kernel, dim=pairs.shape[0], device=device,
-              inputs=[queries.vertices, queries.faces, tree.vertices, tree.faces, pairs, 1 if b is None else 0, meets])
-    found = pairs.numpy()[meets.numpy() == 1]
+    with held(a, b):
+        pairs = _candidates(queries, tree, b is None)
+        if pairs.shape[0] == 0:
+            return np.zeros((0, 2), np.int64)
+        device = tree.device
+        meets = wp.empty(pairs.shape[0], dtype=wp.int32, device=device)
+        wp.launch(collide.triangle_pairs_kernel, dim=pairs.shape[0], device=device,
+                  inputs=[queries.vertices, queries.faces, tree.vertices, tree.faces, pairs, 1 if b is None else 0,
+                          meets])
+        found = pairs.numpy()[meets.numpy() == 1]
     return _sorted_pairs(found, swapped, b is None)
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .bvh import Bvh
+from .bvh import Bvh, holding_tree
 from .kernels import metrics as kernels
 
 
@@ -40,6 +40,7 @@ def require_bvh(bvh, name: str):
         raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
 
 
+@holding_tree
 def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scratch=None) -> wp.array:
     """SAH cost of every node's subtree (float64, arena-sized; the used part is ``num_nodes``):
     eq. (1) of Pantaleoni & Luebke 2010, the SAH of Goldsmith & Salmon 1987 and MacDonald & Booth
@@ -74,6 +75,7 @@ CPU_SAH_CHUNK = 4096
 CUDA_SAH_CHUNK = 64
 
 
+@holding_tree
 def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scratch=None) -> float:
     """The tree's SAH cost: the root's C(node) (Pantaleoni & Luebke 2010, section 4.2).
 
@@ -124,6 +126,7 @@ def sah_scratch_size(capacity: int, device) -> int:
     return max((capacity + chunk - 1) // chunk, 1)
 
 
+@holding_tree
 def tree_stats(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> dict:
     """Node and leaf counts, depth, leaf-size histogram and SAH cost, computed on the device.
 
@@ -184,6 +187,7 @@ def _ref_index(bvh: Bvh):
     return refs
 
 
+@holding_tree
 def end_point_overlap(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, per_node: bool = False):
     """End-point overlap, EPO (Aila, Karras & Laine, *On Quality Metrics of Bounding Volume
     Hierarchies*, HPG 2013), the metric Wodniok & Goesele 2016 report beside the SAH:

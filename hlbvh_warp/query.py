@@ -17,7 +17,7 @@ import warp as wp
 
 from . import inputs
 from .host_morton import morton_order
-from .bvh import Bvh
+from .bvh import Bvh, holding_tree
 from .kernels import proximity, traversal
 from .kernels.proximity import ClosestPoint, bvh_closest_point  # noqa: F401  (re-exported for user kernels)
 from .kernels.traversal import (  # noqa: F401  (re-exported for user kernels)
@@ -96,6 +96,7 @@ class TraversalLayout:
                   inputs=[bvh.prim_order, bvh.vertices, bvh.faces, self.triangles])
 
 
+@holding_tree
 def view(bvh: Bvh) -> BvhView:
     """The `BvhView` struct of ``bvh`` for user kernels (``wp.launch(k, inputs=[view(bvh), ...])``).
 
@@ -172,6 +173,7 @@ def _optional_outputs(dtype, count: int, wanted: bool, device):
     return _empty(dtype, device, size), _empty(dtype, device, size)
 
 
+@holding_tree
 def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return_barycentrics: bool = False,
               stats: bool = False):
     """Closest hit of every ray, watertight (Woop et al. 2013) over a padded traversal (Ize 2013).
@@ -218,6 +220,7 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     return out
 
 
+@holding_tree
 def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = False):
     """Whether each ray hits any triangle with t in (0, t_max) (shadow rays; stops at the first hit).
 
@@ -280,6 +283,7 @@ def _offsets(counts: wp.array, what: str) -> tuple[wp.array, int]:
     return offsets, total
 
 
+@holding_tree
 def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
     """Every triangle each ray hits with t in (0, t_max) (trimesh's ``multiple_hits``).
 
@@ -330,6 +334,7 @@ def _box_arrays(lowers, uppers):
     return lo, hi
 
 
+@holding_tree
 def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
     """How many primitives' boxes overlap each query box (closed boxes: touching counts), and
     with ``return_pairs`` which ones.
@@ -372,6 +377,7 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
     return counts.numpy(), pairs
 
 
+@holding_tree
 def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_barycentrics: bool = False,
                   stats: bool = False):
     """The closest point on the mesh to every query point (``kernels/proximity.py``).

@@ -15,16 +15,17 @@ and names the first problem in a ValueError.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
-import zipfile
+import threading
 
 import numpy as np
 import warp as wp
 
 from . import inputs
-from .bvh import NODE_FIELDS, Bvh
+from .bvh import NODE_FIELDS, Bvh, holding_tree
 from .config import BuildConfig
 
 #: What a file says it is, and the layout version this module writes and reads.
@@ -34,6 +35,7 @@ _INT_FIELDS = ("node_left", "node_right", "node_parent", "node_begin", "node_end
 _BOX_FIELDS = ("node_lowers", "node_uppers")
 
 
+@holding_tree
 def save(bvh: Bvh, path, compressed: bool = False) -> None:
     """Write ``bvh`` to ``path`` (an ``.npz`` file; NumPy adds the suffix if it is missing).
 
@@ -54,7 +56,21 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
             "config": dataclasses.asdict(bvh.config)}
     # A 0-d unicode array: read back without allow_pickle.
     arrays["meta"] = np.array(json.dumps(meta))
-    (np.savez_compressed if compressed else np.savez)(os.fspath(path), **arrays)
+    path = os.fspath(path)
+    if not path.endswith(".npz"):
+        path += ".npz"  # as NumPy names a file it is given by name
+    # Written beside the target and renamed over it: a reader (another thread, another process)
+    # sees the old file or the new one, never one half written.
+    # (Named by process and thread, and opened as any file is, so it takes the usual permissions.)
+    temporary = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+    try:
+        with open(temporary, "wb") as file:
+            (np.savez_compressed if compressed else np.savez)(file, **arrays)
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(temporary)
+        raise
 
 
 def load(path, device=None) -> Bvh:
@@ -76,9 +92,11 @@ def load(path, device=None) -> Bvh:
         if str(error).startswith("not a saved BVH"):
             raise ValueError(f"{path}: {error}") from None
         raise ValueError(f"{path}: not a saved BVH ({error})") from None
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as error:
-        # A truncated zip, a pickled member (never unpickled: allow_pickle=False), a folder.
-        raise ValueError(f"{path}: not a saved BVH ({error})") from None
+    except Exception as error:
+        # A truncated zip, a pickled member (never unpickled: allow_pickle=False), a folder, a
+        # corrupt compressed member (zlib.error) or .npy header (tokenize.TokenError): whatever
+        # NumPy's reader raises, the file is no saved BVH.
+        raise ValueError(f"{path}: not a saved BVH ({type(error).__name__}: {error})") from None
     try:
         return _from_arrays(arrays, device)
     except ValueError as error:

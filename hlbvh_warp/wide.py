@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from . import inputs, metrics
-from .bvh import Bvh
+from .bvh import Bvh, holding_tree
 from .kernels import wide as kernels
 from .kernels.traversal import PackedTriangle
 
@@ -78,6 +78,7 @@ class WideBvh:
         return out
 
 
+@holding_tree
 def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
     """Collapse a binary BVH to one of up to `width` children per node (greedy: a wide node's
     interior child of largest surface area is replaced by its two children while there is room).

@@ -234,3 +234,46 @@ def test_a_loaded_tree_is_refused_or_answers_right(tmp_path, field, position, va
     t, prim = hb.intersect(tree, o, d)
     assert_hits_match(t, prim, *brute_force_closest_hit(verts, faces, o, d))
 
+
+
+def test_a_damaged_compressed_file_is_a_value_error(device, tmp_path):
+    # A flipped byte inside a compressed member raised zlib.error (and a damaged .npy header
+    # tokenize.TokenError) through load_bvh, past the ValueError it promises.
+    verts, faces = _mesh()
+    path = tmp_path / "tree.npz"
+    hb.save_bvh(hb.build(verts, faces, device=device), path, compressed=True)
+    data = path.read_bytes()
+    kinds = set()
+    for position in np.linspace(40, len(data) - 40, 60).astype(int):
+        damaged = bytearray(data)
+        damaged[position] ^= 0xFF
+        bad = tmp_path / "damaged.npz"
+        bad.write_bytes(bytes(damaged))
+        try:
+            hb.load_bvh(bad, device=device)
+        except ValueError as error:
+            kinds.add(str(error).split("(")[1].split(":")[0] if "not a saved BVH (" in str(error) else "checked")
+        # Anything else escapes and fails the test; a file that still loads passed every check.
+    assert kinds, "no damage was noticed at all"
+
+
+def test_save_replaces_the_file_whole_or_not_at_all(device, tmp_path, monkeypatch):
+    # Written in place, a file being saved could be read half written (by another thread or
+    # process); it is written beside and renamed over the old one now.
+    verts, faces = _mesh()
+    path = tmp_path / "tree.npz"
+    first = hb.build(verts, faces, device=device)
+    hb.save_bvh(first, path)
+    before = path.read_bytes()
+
+    def failing_savez(file, **arrays):
+        file.write(b"PK\x03\x04 half a file")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", failing_savez)
+    with pytest.raises(OSError, match="disk full"):
+        hb.save_bvh(hb.build(verts * np.float32(2.0), faces, device=device), path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["tree.npz"]
+    hb.save_bvh(first, tmp_path / "named")  # NumPy's suffix, as before
+    assert hb.load_bvh(tmp_path / "named.npz", device=device).num_prims == len(faces)
