@@ -124,6 +124,20 @@ def test_builder_frames_equal_plain_launches(device, method):
     assert len(recorded.pipeline.launches.records) > 0
 
 
+def _count_plain_launches(monkeypatch) -> list:
+    """From now on, the kernels launched through plain `wp.launch` (not made into a record)."""
+    plain = []
+    real_launch = wp.launch
+
+    def counting_launch(kernel, *args, **kwargs):
+        if not kwargs.get("record_cmd", False):
+            plain.append(getattr(kernel, "key", kernel))
+        return real_launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", counting_launch)
+    return plain
+
+
 @pytest.mark.parametrize("policy, emission", [("refit", "auto"), ("rebuild", "auto"), ("rebuild", "treelets")])
 def test_a_recording_builders_frames_launch_nothing_plainly(device, monkeypatch, policy, emission):
     # Packing a launch's arguments costs more than a small mesh's whole refit: the node-box
@@ -137,15 +151,7 @@ def test_a_recording_builders_frames_launch_nothing_plainly(device, monkeypatch,
     frames = [v * np.float32(1.0 + 0.001 * k) for k in range(1, 6)]
     for frame in frames[:2]:
         builder.update(frame)
-    plain = []
-    real_launch = wp.launch
-
-    def counting_launch(kernel, *args, **kwargs):
-        if not kwargs.get("record_cmd", False):
-            plain.append(getattr(kernel, "key", kernel))
-        return real_launch(kernel, *args, **kwargs)
-
-    monkeypatch.setattr(wp, "launch", counting_launch)
+    plain = _count_plain_launches(monkeypatch)
     for frame in frames[2:]:
         assert builder.update(frame)["decision"] == policy
     assert plain == []
@@ -164,15 +170,7 @@ def test_a_builder_set_up_anew_over_new_buffers_records_afresh(device, monkeypat
         builder.update(grown * np.float32(1.001))
         counts.append(len(builder.pipeline.launches.records))
     assert counts == counts[:1] * len(counts)  # one set-up's records, not all of them
-    plain = []
-    real_launch = wp.launch
-
-    def counting_launch(kernel, *args, **kwargs):
-        if not kwargs.get("record_cmd", False):
-            plain.append(getattr(kernel, "key", kernel))
-        return real_launch(kernel, *args, **kwargs)
-
-    monkeypatch.setattr(wp, "launch", counting_launch)
+    plain = _count_plain_launches(monkeypatch)
     for k in range(2, 5):
         assert builder.update(grown * np.float32(1.0 + 0.001 * k))["decision"] == "refit"
     assert plain == []
