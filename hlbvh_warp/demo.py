@@ -138,7 +138,8 @@ def plot_frames(rows, path):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot([r["frame"] for r in rows], [r["ms"] for r in rows], marker=".", label="hlbvh rebuild (resorted where it pays)")
+    ax.plot([r["frame"] for r in rows], [r["ms"] for r in rows], marker=".",
+            label="hlbvh rebuild (resorted where it pays)")
     ax.set_xlabel("frame")
     ax.set_ylabel("ms per frame")
     ax.set_ylim(bottom=0)

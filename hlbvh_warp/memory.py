@@ -16,8 +16,9 @@ allocator. CUDA arrays never come here: Warp allocates them from the device's me
 which already recycles.
 
 The pool's idle blocks and the scratch sets below share one cap of `limit` bytes
-(`set_host_cache_limit`; 0 turns both off); `clear_host_cache` drops them. Contents of a recycled block are whatever was there: `empty` is
-for buffers the build writes before it reads, like `wp.empty`.
+(`set_host_cache_limit`; 0 turns both off); `clear_host_cache` drops them. Contents of a
+recycled block are whatever was there: `empty` is for buffers the build writes before it
+reads, like `wp.empty`.
 """
 
 from __future__ import annotations
