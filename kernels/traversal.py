@@ -275,7 +275,8 @@ def ray_direction_scale(direction: wp.vec3):
 @wp.func
 def ray_scaled_t_max(t_max: float, scale: float):
     """`t_max` in units of the scaled direction (see `ray_direction_scale`)."""
-    if scale == 1.0:
+    # NaN (or no positive range) passes through unchanged, for `ray_is_valid` to refuse.
+    if scale == 1.0 or not (t_max > 0.0):
         return t_max
     return wp.min(t_max, FLOAT32_MAX) / scale
 

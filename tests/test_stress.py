@@ -199,6 +199,10 @@ def test_tiny_directions_find_what_the_same_ray_scaled_up_finds(device, rng, met
         np.testing.assert_array_equal(ray, ray_up)
         np.testing.assert_array_equal(all_prim, all_prim_up)
         np.testing.assert_array_equal(all_t.astype(np.float64), all_t_up.astype(np.float64) * 2.0**100)
+    # A NaN or non-positive t_max is still no range at all for a scaled ray.
+    d = ((aim - o) * 1e-12).astype(np.float32)
+    for bad in (float("nan"), 0.0, -1.0):
+        assert (query.intersect(bvh, o, d, t_max=bad)[1] == -1).all(), bad
     # A hit whose distance is past float32's range is still a miss, scaled or not.
     d = ((aim - o) * 1e-12).astype(np.float32)
     t, prim = query.intersect(bvh, o * np.float32(1e30), d)
