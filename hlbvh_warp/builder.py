@@ -381,6 +381,10 @@ class Builder:
         if faces_np.shape[0] != self.num_prims:
             raise ValueError(f"faces has {faces_np.shape[0]} rows, the builder was set up for {self.num_prims}")
         if self.vertices is None or self.vertices.shape[0] != verts_np.shape[0]:
+            if self.vertices is not None:
+                # New faces too: a view taken earlier keeps the old vertex array, and the new
+                # faces' indices would read past its end; with the old faces it stays in bounds.
+                self.faces = wp.empty((self.num_prims, 3), dtype=wp.int32, device=self.device)
             self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
             self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
             if self.pipeline.launches is not None:
@@ -425,13 +429,14 @@ class Builder:
             # One Bvh for the builder's life: its node arrays are the pipeline's, overwritten by
             # this build, so a second object would leave the first one's traversal layout stale
             # (rays through it reported the old mesh's distances with the new tree's face ids).
-            # The layout is kept and refreshed by the build, so earlier views see this mesh.
+            # Over the same vertex and face arrays the layout is kept and refreshed by the build,
+            # so earlier views see this mesh; over new ones (another vertex count, or boxes) the
+            # views must be taken again, and the old ones read the old arrays, in bounds.
             bvh = self.bvh
             layout = bvh._cache.get("traversal_layout")
-            bvh._cache.clear()
+            same_arrays = vertices is not None and bvh.vertices is vertices and bvh.faces is faces
+            bvh._cache = {"traversal_layout": layout} if layout is not None and same_arrays else {}
             bvh.vertices, bvh.faces = vertices, faces
-            if layout is not None and vertices is not None:
-                bvh._cache["traversal_layout"] = layout
         self.frame = 0
         self.reports.clear()
         self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait

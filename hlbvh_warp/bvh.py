@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import random
+import time
 
 import numpy as np
 import warp as wp
@@ -132,8 +134,8 @@ class Bvh:
     def hold(self):
         """A context in which the `Builder` that rebuilds this tree in place waits: ``with
         bvh.hold(): wp.launch(my_kernel, inputs=[bvh.view(), ...])`` reads one frame's whole tree
-        while another thread updates it. The library's own queries hold it already; a tree no
-        builder owns has nothing to hold."""
+        while another thread updates it (and after a graph replay, ``invalidate`` inside it). The
+        library's own queries hold it already; a tree no builder owns has nothing to hold."""
         return held(self)
 
     def view(self):
@@ -148,12 +150,13 @@ class Bvh:
         The ray traversal layout, once `view` has made one, is derived from the node boxes and the
         vertices: it is rewritten in place (launches only), so views handed out earlier stay valid.
         """
-        layout = self._cache.get("traversal_layout")
-        # A new dict, the layout already in it: emptied first, a `view` made in between (from
-        # another thread) made a layout of its own that no later refit refreshed.
-        self._cache = {} if layout is None else {"traversal_layout": layout}
-        if layout is not None:
-            layout.refresh(self)
+        with held(self):  # a query on another thread reads the layout: not while it is rewritten
+            layout = self._cache.get("traversal_layout")
+            # A new dict, the layout already in it: emptied first, a `view` made in between (from
+            # another thread) made a layout of its own that no later refit refreshed.
+            self._cache = {} if layout is None else {"traversal_layout": layout}
+            if layout is not None:
+                layout.refresh(self)
 
     def __repr__(self) -> str:
         return (f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, "
@@ -162,20 +165,40 @@ class Bvh:
 
 @contextlib.contextmanager
 def held(*trees):
-    """Hold the locks of the given trees that a `Builder` rebuilds in place (one at most per
-    builder, taken in a fixed order so that two queries never wait on each other): a query then
-    reads one frame's whole tree, never one another thread is halfway through rewriting. Without
-    it, the two-pass queries (count, then write) met a tree that had changed between their passes
-    and wrote fewer pairs than they had counted: garbage ids, and in `intersecting_pairs` a crash."""
+    """Hold the locks of the given trees that a `Builder` rebuilds in place (one per builder): a
+    query then reads one frame's whole tree, never one another thread is halfway through
+    rewriting. Without it, the two-pass queries (count, then write) met a tree that had changed
+    between their passes and wrote fewer pairs than they had counted: garbage ids, and in
+    `intersecting_pairs` a crash.
+
+    Two locks are taken together or not at all (each tried, all let go and tried again after a
+    short random wait when one is busy): a fixed order alone deadlocked a thread already inside
+    one tree's `hold()` against another taking both in that order."""
     locks = []
     for tree in trees:
         lock = getattr(tree, "_lock", None)
         if lock is not None and all(lock is not other for other in locks):
             locks.append(lock)
-    with contextlib.ExitStack() as stack:
-        for lock in sorted(locks, key=id):
-            stack.enter_context(lock)
+    if len(locks) <= 1:
+        with locks[0] if locks else contextlib.nullcontext():
+            yield
+        return
+    while True:
+        taken = []
+        for lock in locks:
+            if not lock.acquire(blocking=False):
+                break
+            taken.append(lock)
+        if len(taken) == len(locks):
+            break
+        for lock in reversed(taken):
+            lock.release()
+        time.sleep(random.uniform(0.0, 0.002))
+    try:
         yield
+    finally:
+        for lock in reversed(taken):
+            lock.release()
 
 
 def holding_tree(fn):

@@ -92,8 +92,8 @@ def overlapping_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
     Returns:
         ``(K, 2)`` int64 pairs ``(prim of a, prim of b)``, sorted; within ``a``, ``i < j`` only.
     """
-    queries, tree, swapped = _sides(a, b, "overlapping_pairs", mesh=False)
     with held(a, b):
+        queries, tree, swapped = _sides(a, b, "overlapping_pairs", mesh=False)
         pairs = _candidates(queries, tree, b is None)
         if pairs.shape[0] == 0:
             return np.zeros((0, 2), np.int64)
@@ -119,8 +119,8 @@ def intersecting_pairs(a: Bvh, b: Bvh | None = None) -> np.ndarray:
     Returns:
         ``(K, 2)`` int64 pairs ``(face of a, face of b)``, sorted; within ``a``, ``i < j`` only.
     """
-    queries, tree, swapped = _sides(a, b, "intersecting_pairs", mesh=True)
     with held(a, b):
+        queries, tree, swapped = _sides(a, b, "intersecting_pairs", mesh=True)
         pairs = _candidates(queries, tree, b is None)
         if pairs.shape[0] == 0:
             return np.zeros((0, 2), np.int64)

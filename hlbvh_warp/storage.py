@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import stat
 import threading
 
 import numpy as np
@@ -61,11 +62,15 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
         path += ".npz"  # as NumPy names a file it is given by name
     # Written beside the target and renamed over it: a reader (another thread, another process)
     # sees the old file or the new one, never one half written.
-    # (Named by process and thread, and opened as any file is, so it takes the usual permissions.)
-    temporary = f"{path}.{os.getpid()}.{threading.get_ident()}.partial"
+    # A link's target is what gets replaced (the link stays), an existing file keeps its
+    # permissions, and the short name (process and thread) fits wherever the target's does.
+    path = os.path.realpath(path)
+    temporary = os.path.join(os.path.dirname(path), f".{os.getpid()}-{threading.get_ident()}.partial")
     try:
         with open(temporary, "wb") as file:
             (np.savez_compressed if compressed else np.savez)(file, **arrays)
+        if os.path.exists(path):
+            os.chmod(temporary, stat.S_IMODE(os.stat(path).st_mode))
         os.replace(temporary, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -92,6 +97,8 @@ def load(path, device=None) -> Bvh:
         if str(error).startswith("not a saved BVH"):
             raise ValueError(f"{path}: {error}") from None
         raise ValueError(f"{path}: not a saved BVH ({error})") from None
+    except MemoryError:
+        raise
     except Exception as error:
         # A truncated zip, a pickled member (never unpickled: allow_pickle=False), a folder, a
         # corrupt compressed member (zlib.error) or .npy header (tokenize.TokenError): whatever

@@ -818,6 +818,10 @@ def scan_aabb_query(
     capacity: int,
 ):
     """`bvh_aabb_query` on a spatial-split tree: every primitive with an id above ``after``, each once.
+    ``after`` is a primitive id here, not a position: such a tree lists a primitive at several
+    positions, so the self-pair recipe of `bvh_aabb_query` (a thread per position) does not
+    apply; a self query passes its primitive's id instead (the host's pair queries refuse
+    these trees).
 
     Its node boxes bound the parts of triangles in their leaves (Stich et al. 2009), so a walk
     that prunes by them misses a triangle whose box meets the query outside those parts, and
@@ -850,7 +854,8 @@ def bvh_aabb_query(
     ``offset`` on (pass capacity 0 to count only). Works for BVHs built from bare boxes too.
     ``after`` -1 keeps every primitive. A self query from the primitive at position k passes k:
     each pair of the tree's primitives is then found once, and a subtree whose range ends at or
-    before k is skipped whole, about half the tree's nodes (Karras, HPG 2012, Sec. 4).
+    before k is skipped whole, about half the tree's nodes (Karras, HPG 2012, Sec. 4). On a
+    spatial-split tree (``split_prims``) ``after`` is a primitive id: see `scan_aabb_query`.
     """
     count = int(0)
     if bvh.split_prims != 0:

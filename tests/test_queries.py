@@ -326,7 +326,9 @@ def test_traversal_layout_per_node_equals_the_sweep(device, rng, method, leaf):
 def test_tree_and_view_follow_a_second_build_of_the_builder(device, rng, scene):
     """A second `build` sets the builder up for another mesh of the same face count: the tree
     and views taken before it describe the new mesh (they reported the old mesh's distances
-    with the new tree's face ids), and so do they after a set-up with another vertex count."""
+    with the new tree's face ids). After a set-up with another vertex count the tree does, and
+    a view taken anew; the old view reads its old arrays, in bounds (its faces were the new
+    ones, whose indices ran past the old vertex array)."""
     verts, faces = scene
     builder = Builder(len(faces), device=device)
     bvh = builder.build(verts, faces)
@@ -337,7 +339,11 @@ def test_tree_and_view_follow_a_second_build_of_the_builder(device, rng, scene):
     shuffled = faces[rng.permutation(len(faces))]
     extra = np.concatenate([moved, moved[:7] + np.float32(9.0)])  # more vertices, same faces
     for frame_verts, frame_faces in ((moved, shuffled), (extra, faces)):
+        old_view = view
         assert builder.build(frame_verts, frame_faces) is bvh
+        if len(frame_verts) != len(verts):
+            assert old_view.vertices.shape[0] == len(verts) and int(old_view.faces.numpy().max()) < len(verts)
+            view = query.view(bvh)
         t_ref, prim_ref = brute_force_closest_hit(frame_verts, frame_faces, o, d)
         assert (prim_ref >= 0).sum() > 50
         assert_hits_match(*query.intersect(bvh, o, d), t_ref, prim_ref)

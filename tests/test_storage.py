@@ -277,3 +277,22 @@ def test_save_replaces_the_file_whole_or_not_at_all(device, tmp_path, monkeypatc
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["tree.npz"]
     hb.save_bvh(first, tmp_path / "named")  # NumPy's suffix, as before
     assert hb.load_bvh(tmp_path / "named.npz", device=device).num_prims == len(faces)
+
+
+def test_save_through_a_link_keeps_the_link_and_the_files_permissions(device, tmp_path):
+    # Renaming a new file over the path replaced a symbolic link with a plain file (its target
+    # unchanged) and gave a private file the default permissions.
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    target = tmp_path / "target.npz"
+    hb.save_bvh(bvh, target)
+    target.chmod(0o600)
+    link = tmp_path / "link.npz"
+    link.symlink_to(target)
+    hb.save_bvh(hb.build(verts * np.float32(2.0), faces, device=device), link)
+    assert link.is_symlink() and (target.stat().st_mode & 0o777) == 0o600
+    np.testing.assert_array_equal(hb.load_bvh(target, device=device).vertices.numpy(), verts * np.float32(2.0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.npz", "target.npz"]
+    long_name = tmp_path / ("t" * 240 + ".npz")  # the temporary name is short, whatever the target's
+    hb.save_bvh(bvh, long_name)
+    assert hb.load_bvh(long_name, device=device).num_prims == len(faces)

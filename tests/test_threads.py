@@ -335,3 +335,42 @@ def test_queries_while_another_thread_updates_see_whole_frames():
     result = subprocess.run([sys.executable, "-c", QUERIES_DURING_UPDATES_SCRIPT], capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+
+
+def test_a_pair_query_inside_another_trees_hold_does_not_deadlock(device):
+    # Locks taken in one fixed order deadlocked here: the first thread holds the second lock
+    # (its own kernel under `hold()`) and then asks for both, the second thread holds the first
+    # and waits for the second. Both are taken together or not at all now.
+    import threading
+    import time
+
+    rng = np.random.default_rng(0)
+
+    def soup(n):
+        v = (rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(0, 0.05, (n, 3, 3))).astype(np.float32).reshape(-1, 3)
+        return v, np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+
+    builders = [hw.Builder(100, device=device), hw.Builder(120, device=device)]
+    a, b = (builder.build(*soup(n)) for builder, n in zip(builders, (100, 120)))
+    expected = hw.overlapping_pairs(a, b)
+    later = a if id(a._lock) > id(b._lock) else b
+    ready, results = threading.Event(), []
+
+    def inside_hold():
+        with later.hold():
+            ready.set()
+            time.sleep(0.3)
+            results.append(hw.overlapping_pairs(a, b))
+
+    def plain():
+        ready.wait()
+        results.append(hw.overlapping_pairs(a, b))
+
+    workers = [threading.Thread(target=inside_hold, daemon=True), threading.Thread(target=plain, daemon=True)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join(30)
+    assert len(results) == 2, "deadlocked"
+    for pairs in results:
+        np.testing.assert_array_equal(pairs, expected)
