@@ -132,9 +132,6 @@ def view(bvh: Bvh) -> BvhView:
     else:
         v.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=device)
         v.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=device)
-    # Box queries in user kernels cannot raise as `query_aabb` does on such a tree: they test
-    # every primitive instead (slow, but right; see `traversal.scan_aabb_query`).
-    v.split_prims = 1 if bvh.has_duplicates else 0
     bvh._cache["view"] = v
     return v
 

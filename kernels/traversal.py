@@ -90,8 +90,9 @@ class BvhView:
     its view find nothing). ``packed_nodes`` and
     ``packed_triangles`` are the ray traversal layout of the module docstring; ray queries on a view
     without them (empty arrays) walk the canonical arrays instead, with the same results.
-    ``split_prims`` is 1 for a spatial-split tree (Stich et al. 2009), whose leaf boxes bound parts
-    of triangles: its box queries test every primitive's box instead of walking the nodes.
+    A spatial-split tree (Stich et al. 2009) lists some primitives more than once (``prim_order``
+    longer than ``prim_lowers``, `splits_prims`) and its leaf boxes bound parts of triangles: its
+    box queries test every primitive's box instead of walking the nodes.
     """
 
     node_lowers: wp.array(dtype=wp.vec3)
@@ -107,7 +108,6 @@ class BvhView:
     faces: wp.array(dtype=wp.int32, ndim=2)
     packed_nodes: wp.array(dtype=PackedNode)
     packed_triangles: wp.array(dtype=PackedTriangle)
-    split_prims: wp.int32
 
 
 @wp.struct
@@ -807,6 +807,13 @@ def packed_aabb_query(
 
 
 @wp.func
+def splits_prims(bvh: BvhView):
+    """A spatial-split tree: more entries in ``prim_order`` than primitives (read from the arrays,
+    so no flag of the view can disagree with the tree it describes)."""
+    return bvh.prim_order.shape[0] != bvh.prim_lowers.shape[0]
+
+
+@wp.func
 def scan_aabb_query(
     bvh: BvhView,
     lower: wp.vec3,
@@ -855,10 +862,10 @@ def bvh_aabb_query(
     ``after`` -1 keeps every primitive. A self query from the primitive at position k passes k:
     each pair of the tree's primitives is then found once, and a subtree whose range ends at or
     before k is skipped whole, about half the tree's nodes (Karras, HPG 2012, Sec. 4). On a
-    spatial-split tree (``split_prims``) ``after`` is a primitive id: see `scan_aabb_query`.
+    spatial-split tree (`splits_prims`) ``after`` is a primitive id: see `scan_aabb_query`.
     """
     count = int(0)
-    if bvh.split_prims != 0:
+    if splits_prims(bvh):
         count = scan_aabb_query(bvh, lower, upper, query, after, out_pairs, offset, capacity)
     elif bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
@@ -876,13 +883,13 @@ def bvh_aabb_query(
 def bvh_aabb_count(bvh: BvhView, lower: wp.vec3, upper: wp.vec3):
     """How many primitives have a box overlapping [lower, upper] (closed).
 
-    On a spatial-split tree (``split_prims``) every primitive is tested: see `scan_aabb_query`.
+    On a spatial-split tree (`splits_prims`) every primitive is tested: see `scan_aabb_query`.
     """
     count = int(0)
     stack = vec64i()
     top = int(0)
     node = int(-1)
-    if bvh.split_prims != 0:
+    if splits_prims(bvh):
         for p in range(bvh.prim_lowers.shape[0]):
             count += box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p])
     elif box_overlap(lower, upper, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
@@ -923,14 +930,14 @@ def bvh_aabb_pairs(
     ``pair_count[0]`` ends as the number of pairs found by all threads; pairs beyond
     ``pairs.shape[0]`` are counted but not written, so a caller can detect overflow and rerun
     with a larger array. Returns this query's count. Pair order depends on thread scheduling.
-    On a spatial-split tree (``split_prims``) every primitive is tested: see `scan_aabb_query`.
+    On a spatial-split tree (`splits_prims`) every primitive is tested: see `scan_aabb_query`.
     """
     count = int(0)
     stack = vec64i()
     top = int(0)
     node = int(-1)
     capacity = pairs.shape[0]
-    if bvh.split_prims != 0:
+    if splits_prims(bvh):
         for p in range(bvh.prim_lowers.shape[0]):
             if box_overlap(lower, upper, bvh.prim_lowers[p], bvh.prim_uppers[p]) == 1:
                 slot = wp.atomic_add(pair_count, 0, 1)
