@@ -9,10 +9,12 @@ import hlbvh_warp as hw
 from hlbvh_warp.bvh import bvh_from_numpy
 
 
-def caterpillar(vertices, faces, device, deep: str = "left"):
+def caterpillar(vertices, faces, device, deep: str = "left", boxes_only: bool = False):
     """A valid but maximally deep BVH of depth N - 1: interior node 2k has one triangle as a leaf
     child (node 2k + 1) and the rest of the chain (node 2k + 2) as its other child, on the
-    `deep` side. With the chain on the left, a walk that goes left first stacks every leaf."""
+    `deep` side. With the chain on the left, a walk that goes left first stacks every leaf.
+    ``boxes_only``: a tree over the triangles' boxes alone, as `build_from_bounds` makes (walked
+    over the canonical arrays, with no packed layout)."""
     tris = vertices[faces].astype(np.float64)
     n = len(faces)
     num_nodes = 2 * n - 1
@@ -38,5 +40,5 @@ def caterpillar(vertices, faces, device, deep: str = "left"):
                           prim_lowers=tris.min(axis=1).astype(np.float32),
                           prim_uppers=tris.max(axis=1).astype(np.float32),
                           prim_order=np.arange(n), node_left=left, node_right=right, node_begin=begin, node_end=end,
-                          vertices=wp.array(vertices, dtype=wp.vec3, device=device),
-                          faces=wp.array(faces, dtype=wp.int32, device=device))
+                          vertices=None if boxes_only else wp.array(vertices, dtype=wp.vec3, device=device),
+                          faces=None if boxes_only else wp.array(faces, dtype=wp.int32, device=device))

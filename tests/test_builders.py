@@ -272,7 +272,8 @@ def test_sweep_sah_equals_exhaustive_greedy(device, seed, emission):
 
 def binned_root_split_reference(lo, hi, num_bins):
     """Root split of binned SAH (Wald 2007) in float64: bins of equal width over the centroid
-    extent per axis, every non-trivial bin boundary priced as area(L) * |L| + area(R) * |R|."""
+    extent per axis, every non-trivial bin boundary priced as area(L) * |L| + area(R) * |R|;
+    equal costs go to the most balanced boundary, then to the lower axis."""
     c = (np.float32(0.5) * (lo + hi)).astype(np.float32)
     best = None
     for axis in range(3):
@@ -292,7 +293,11 @@ def binned_root_split_reference(lo, hi, num_bins):
                 return 2 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
 
             cost = area(left) * k + area(~left) * (len(lo) - k)
-            if best is None or cost < best[0] * (1 - 1e-12):
+            unbalance = abs(2 * k - len(lo))
+            # Costs within rounding tie; a tie goes to the more balanced position, then to the
+            # earlier axis and position (the order priced here).
+            if (best is None or cost < best[0] * (1 - 1e-12)
+                    or (cost <= best[0] * (1 + 1e-12) and unbalance < abs(2 * best[2] - len(lo)))):
                 best = (cost, axis, k)
     return best
 
@@ -311,6 +316,24 @@ def test_binned_root_split_matches_numpy(device, num_bins, seed):
     left_prims = tree["prim_order"][tree["node_begin"][left]:tree["node_end"][left]]
     assert len(left_prims) == k
     # The left child is exactly the items below the chosen boundary on the chosen axis.
+    c = np.float32(0.5) * (lo[:, axis] + hi[:, axis])
+    assert set(left_prims.tolist()) == set(np.argsort(c, kind="stable")[:k].tolist())
+
+
+@pytest.mark.parametrize("num_bins", [4, 32])
+@pytest.mark.parametrize("shape", [(4, 4, 4), (3, 5, 5), (6, 6, 2)])
+def test_binned_root_split_ties_on_a_lattice(device, num_bins, shape):
+    # Equal boxes on a lattice: boundaries on different axes cost exactly the same, and mirror
+    # positions tie in balance too; the documented rule picks the most balanced, then the lower
+    # axis. (A mutation audit found the lattice tie covered for the sweep only.)
+    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    lo = cells.astype(np.float32) * np.float32(2.0)
+    hi = lo + np.float32(1.0)
+    tree = hw.build_from_bounds(lo, hi, method="binned_sah", device=device,
+                                config=hw.BuildConfig(sah_bins=num_bins)).to_numpy()
+    _, axis, k = binned_root_split_reference(lo, hi, num_bins)
+    left = tree["node_left"][0]
+    left_prims = tree["prim_order"][tree["node_begin"][left]:tree["node_end"][left]]
     c = np.float32(0.5) * (lo[:, axis] + hi[:, axis])
     assert set(left_prims.tolist()) == set(np.argsort(c, kind="stable")[:k].tolist())
 
@@ -416,6 +439,15 @@ def test_median_equals_the_numpy_median_split(device, rng, emission, leaf):
     assert _node_sets(tree) == median_reference(lo, hi, leaf)
 
 
+@pytest.mark.parametrize("shape", [(4, 4, 4), (2, 5, 5), (3, 1, 3)])
+def test_median_ties_on_a_lattice_go_to_the_lower_axis(device, shape):
+    # Equal centroid extents on several axes at once, down the whole tree.
+    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    lo = cells.astype(np.float32) * np.float32(2.0)
+    tree = hw.build_from_bounds(lo, lo + np.float32(1.0), method="median", device=device).to_numpy()
+    assert _node_sets(tree) == median_reference(lo, lo + np.float32(1.0), 1)
+
+
 @pytest.mark.parametrize("emission", ["treelets", "depth_first"])
 @pytest.mark.parametrize("shape", [(7, 1, 1), (3, 3, 1), (5, 2, 1)])
 def test_sweep_sah_ties_on_a_lattice_equal_the_exhaustive_greedy(device, shape, emission):
@@ -459,6 +491,38 @@ def test_presort_keys_order_neighbouring_floats(device):
     order = builder.order.numpy().reshape(3, -1)
     for axis in range(3):
         np.testing.assert_array_equal(order[axis], np.argsort(values[perm], kind="stable"))
+
+
+def test_sah_termination_keeps_the_leaf_on_an_exact_tie(device):
+    # Two touching unit squares, T1 = 0.5, T2 = 1: splitting costs 2 * 0.5 + (2 * 1 + 2 * 1) / 4
+    # = 2, exactly the leaf's 1 * 2; the rule (split cost >= leaf cost) keeps the leaf.
+    lo = np.array([[0, 0, 0], [1, 0, 0]], np.float32)
+    hi = np.array([[1, 1, 0], [2, 1, 0]], np.float32)
+    cfg = hw.BuildConfig(sah_traversal_cost=0.5, sah_intersection_cost=1.0)
+    wl, wh = wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device)
+    bvh = build_top_down(wl, wh, cfg, device, StageTimer(device, False), method="sweep_sah", terminate_leaf_size=2)
+    assert _node_sets(bvh.to_numpy()) == greedy_sweep_reference(lo, hi, 0.5, 1.0) == [frozenset({0, 1})]
+    # A hair cheaper to split (T1 just below 0.5) and it splits.
+    cfg = hw.BuildConfig(sah_traversal_cost=0.499, sah_intersection_cost=1.0)
+    bvh = build_top_down(wl, wh, cfg, device, StageTimer(device, False), method="sweep_sah", terminate_leaf_size=2)
+    assert bvh.num_nodes == 3
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_sah_termination_on_many_items_and_threads(device, threads):
+    # Above the size where CPU subtrees run side by side (builders.PARALLEL_MIN_ITEMS): leaves of
+    # several items make node ids unknowable in advance, so the build must stay in one thread.
+    from hlbvh_warp.builders import PARALLEL_MIN_ITEMS
+
+    v, f = random_soup(np.random.default_rng(9), PARALLEL_MIN_ITEMS + 904)
+    lo, hi = v[f].min(1), v[f].max(1)
+    cfg = hw.BuildConfig(max_leaf_size=1, cpu_threads=threads)
+    wl, wh = wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device)
+    bvh = build_top_down(wl, wh, cfg, device, StageTimer(device, False), method="sweep_sah", terminate_leaf_size=8)
+    tree = bvh.to_numpy()
+    check_tree_invariants(tree, len(f), 8)
+    sizes = tree["node_end"] - tree["node_begin"]
+    assert (sizes[tree["node_left"] < 0] > 1).any()  # the rule kept some leaves of several
 
 
 @pytest.mark.parametrize("t1", [0.3, 1.0])

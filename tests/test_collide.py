@@ -753,6 +753,41 @@ def test_fuzzed_near_degenerate_pairs(device, seed, kind, scale, offset, neighbo
     check_batch(device, ta, tb, neighbours=neighbours)
 
 
+def far_vertex_pairs(rng, n):
+    """Coplanar pairs where one triangle has a vertex 2^30-2^45 away and the others sit near 1:
+    the float64 differences of such coordinates round, which the 2D filter's error bound must
+    cover (Shewchuk's ccwerrboundA counts those roundings). ``b = (p, q, d)`` holds the far vertex
+    p; ``a`` has one vertex c within a few float32 ulps of the line pq, the others farther from
+    d, so a and b meet exactly when c lies on d's side of that line (or on it)."""
+    ta, tb = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+    for i in range(n):
+        angle = rng.uniform(0, 2 * np.pi)
+        p = 2.0 ** rng.uniform(30, 45) * np.array([np.cos(angle), np.sin(angle), 0.0])
+        q = np.append(rng.normal(size=2), 0.0)
+        u = (p - q) / np.linalg.norm(p - q)
+        toward_d = np.array([-u[1], u[0], 0.0]) * rng.choice([-1.0, 1.0])
+        c = q + u * rng.uniform(1, 50) + toward_d * rng.uniform(-1, 1) * 10.0 ** rng.uniform(-7, -4)
+        d = q + toward_d * 1e6 - u * 1e3
+        ta[i] = [c, c - toward_d * 5 - u * 2, c - toward_d * 5 + u * 2]
+        tb[i] = [p, q, d]
+        axes = rng.permutation(3)  # the plane z = 0, or x = 0, or y = 0
+        ta[i], tb[i] = ta[i][:, axes], tb[i][:, axes]
+    return ta.astype(np.float32), tb.astype(np.float32)
+
+
+def test_coplanar_pairs_with_a_far_vertex(device):
+    """Found by a mutation audit: with the 2D filter's bound cut a hundredfold every other test
+    still passed; these pairs, decided by the rational oracle, did not."""
+    ta, tb = far_vertex_pairs(np.random.default_rng(11), 120)
+    expected = check_batch(device, ta, tb)
+    assert 0.2 < expected.mean() < 0.8  # both answers occur
+    # The pairs are hard: the float64 orientation of c against pq, differences first, has the
+    # wrong sign (or none) for some of them, where the exact one does not.
+    p, q, c = tb[:, 0], tb[:, 1], ta[:, 0]
+    assert (_cross_float64(p, q, c) != _cross_exact(p, q, c)).any(axis=1).sum() >= 3
+    check_batch(device, *variants(ta[:40], tb[:40])[:2])
+
+
 # ----------------------------------------------------------------------------- overlapping_pairs
 def _grid_boxes(rng, n):
     """Boxes with corners on a coarse integer grid: many touch exactly, some are flat or points."""
@@ -796,6 +831,20 @@ def test_overlapping_pairs_self(device, method):
     lo, hi = _grid_boxes(np.random.default_rng(6), 200)
     bvh = hlbvh_warp.build_from_bounds(lo, hi, method=method, device=device)
     assert_pairs(hlbvh_warp.overlapping_pairs(bvh), box_pairs(lo, hi), "grid boxes")
+
+
+@pytest.mark.parametrize("leaf", [2, 4])
+@pytest.mark.parametrize("method", ["hlbvh", "sweep_sah"])
+def test_overlapping_pairs_self_with_leaves_of_several(device, method, leaf):
+    # A leaf of several primitives holds the query's own: the walk must start past it, not at
+    # it (with one per leaf the subtree skip hides such a slip; a mutation audit found it).
+    lo, hi = _grid_boxes(np.random.default_rng(6), 200)
+    cfg = BuildConfig(max_leaf_size=leaf)
+    boxes = hlbvh_warp.build_from_bounds(lo, hi, method=method, device=device, config=cfg)
+    assert_pairs(hlbvh_warp.overlapping_pairs(boxes), box_pairs(lo, hi), f"grid boxes, leaf {leaf}")
+    verts, faces = _overlap_scenes()["soup"]
+    mesh = hlbvh_warp.build(verts, faces, method=method, device=device, config=cfg)
+    assert_pairs(hlbvh_warp.overlapping_pairs(mesh), box_pairs(*triangle_boxes(verts, faces)), f"soup, leaf {leaf}")
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -445,6 +445,60 @@ def test_closest_hit_skips_a_deferred_node_behind_its_hit(device):
         assert stats.nodes_visited.tolist() == [2] and stats.prims_tested.tolist() == [1]
 
 
+def _slab_entry(o, d, lo, hi):
+    """Float64 entry distance of the ray into a box (inf for a miss)."""
+    o, d = np.float64(o), np.float64(d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (np.float64(lo) - o) / d, (np.float64(hi) - o) / d
+    near = np.nanmax(np.minimum(t1, t2))
+    far = np.nanmin(np.maximum(t1, t2))
+    return max(near, 0.0) if near <= far else np.inf
+
+
+def test_closest_hit_skips_a_deferred_node_hit_inside_the_near_box(device):
+    """Tilted triangles: the hit lies strictly inside the near leaf's box, after its entry, so a
+    walk that deferred the far child with the near child's entry distance would open the far leaf
+    too. (A mutation audit found the flat case above blind to that: its hit is at the entry.)"""
+    base = np.array([[0, 0, 0], [1, 0, 0.5], [0, 1, 0.5]], np.float32)
+    verts = np.concatenate([base + np.float32([0, 0, z]) for z in (1.0, 3.0)])
+    faces = np.arange(6, dtype=np.int32).reshape(-1, 3)
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    tri = verts[faces]
+    for z0, direction in ((6.0, -1.0), (-2.0, 1.0)):
+        o, d = np.float32([[0.2, 0.2, z0]]), np.float32([[0, 0, direction]])
+        t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+        near, far = prim_ref[0], 1 - prim_ref[0]
+        # The premise, in float64: entered the near box before its hit, the far box after it.
+        assert _slab_entry(o[0], d[0], tri[near].min(0), tri[near].max(0)) < t_ref[0]
+        assert _slab_entry(o[0], d[0], tri[far].min(0), tri[far].max(0)) > t_ref[0]
+        t, prim, stats = query.intersect(bvh, o, d, stats=True)
+        assert prim.tolist() == [near] and t[0] == pytest.approx(t_ref[0], rel=1e-6)
+        assert stats.nodes_visited.tolist() == [2] and stats.prims_tested.tolist() == [1]
+
+
+def test_rays_grazing_an_edge_of_a_box_mesh_hit_it(device):
+    """Rays through the edge x = 0, y = 1 of a unit cube, tilted so the slab test's float32
+    distances to the two faces meeting there round apart: the far-distance pad of Ize's robust
+    slab test (traversal.FAR_PAD) keeps the box entered. Without it every one missed."""
+    mesh = trimesh.creation.box(extents=(1, 1, 1))
+    verts = (np.asarray(mesh.vertices) + 0.5).astype(np.float32)
+    faces = np.asarray(mesh.faces, np.int32)
+    o, d = [], []
+    for dy in (41, 47, 55, 61, 82, 83, 94, 97, 107, 109):
+        for z0 in (0.25, 0.5, 0.625):
+            o.append([-3, 1 - dy, z0])
+            d.append([3, dy, 0])  # reaches (0, 1, z0) at t = 1 exactly
+    o, d = np.float32(o), np.float32(d)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    assert (prim_ref >= 0).all()
+    for method in ("hlbvh", "sweep_sah"):
+        bvh = hlbvh_warp.build(verts, faces, method=method, device=device)
+        t, prim = query.intersect(bvh, o, d)
+        assert (prim >= 0).all(), f"{method}: {(prim < 0).sum()} of {len(o)} grazing rays missed"
+        np.testing.assert_allclose(t, t_ref, rtol=1e-5)
+        assert query.occluded(bvh, o, d).all()
+
+
 def test_any_hit_stops_at_the_first_hit_in_a_leaf(device):
     """Four triangles on one ray in one leaf: the any-hit query stops at the first one it finds,
     the closest-hit query tests all four."""

@@ -129,6 +129,94 @@ def test_traversal_exact_on_a_chain_deeper_than_the_stack(device, rng):
     assert (counts >= 1).all()
 
 
+DEEP_CHAIN_DEBUG_SCRIPT = r"""
+import sys
+import numpy as np
+import warp as wp
+
+wp.config.mode = "debug"  # bounds-checked vector indexing: a write past a local stack aborts
+wp.config.log_level = wp.LOG_WARNING
+sys.path.insert(0, sys.argv[2])
+from handmade_trees import caterpillar
+from oracles import brute_force_closest_hit, brute_overlaps
+import hlbvh_warp as hw
+from hlbvh_warp import query
+
+device, n = sys.argv[1], 150
+base = np.array([[-1, -1, 0], [2, -1, 0], [-1, 2, 0]], np.float32)
+verts = np.concatenate([base + np.float32([0, 0, z]) for z in range(n)])
+faces = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+tri = verts[faces]
+lo, hi = tri.min(1), tri.max(1)
+
+
+@wp.kernel
+def user_boxes(bvh: query.BvhView, lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
+               counts: wp.array(dtype=int), pairs: wp.array(dtype=wp.vec2i), pair_count: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    counts[i] = query.bvh_aabb_count(bvh, lowers[i], uppers[i])
+    query.bvh_aabb_pairs(bvh, lowers[i], uppers[i], i, pairs, pair_count)
+
+
+for deep in ("left", "right"):
+    bvh = caterpillar(verts, faces, device, deep=deep)
+    assert bvh.depth == n - 1
+    # One ray through every triangle, and random ones.
+    o = np.float32([[0.1, 0.1, -1], [0.1, 0.1, n + 1]])
+    d = np.float32([[0, 0, 1], [0, 0, -1]])
+    rid, prim, t = query.intersect_all(bvh, o, d)
+    for r in range(2):
+        assert sorted(prim[rid == r].tolist()) == list(range(n)), (deep, r)
+    t, prim = query.intersect(bvh, o, d)
+    assert prim.tolist() == [0, n - 1], prim
+    # Boxes that each meet every triangle, and each triangle's own box.
+    q_lo = np.concatenate([np.float32([[0, 0, -1]]), lo])
+    q_hi = np.concatenate([np.float32([[0.5, 0.5, n]]), hi])
+    ref = brute_overlaps(lo, hi, q_lo, q_hi)
+    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(counts, ref.sum(1)) and np.array_equal(pairs, np.argwhere(ref))
+    out = wp.zeros(len(q_lo), dtype=int, device=device)
+    found = wp.zeros(int(ref.sum()), dtype=wp.vec2i, device=device)
+    found_count = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(user_boxes, dim=len(q_lo), device=device,
+              inputs=[query.view(bvh), wp.array(q_lo, dtype=wp.vec3, device=device),
+                      wp.array(q_hi, dtype=wp.vec3, device=device), out, found, found_count])
+    assert np.array_equal(out.numpy(), ref.sum(1))
+    got = found.numpy()
+    assert found_count.numpy()[0] == len(got)
+    assert np.array_equal(got[np.lexsort((got[:, 1], got[:, 0]))], np.argwhere(ref))
+    self_pairs = hw.overlapping_pairs(bvh)
+    assert np.array_equal(self_pairs, np.argwhere(np.triu(brute_overlaps(lo, hi, lo, hi), 1)))
+    points = np.float32([[0.2, 0.2, 0.4], [0.2, 0.2, n + 3]])
+    _, dist, prim = hw.closest_point(bvh, points)
+    assert prim.tolist() == [0, n - 1] and np.allclose(dist, [0.4, 4.0]), (prim, dist)
+    # The same chain over bare boxes: the canonical walks.
+    boxes = caterpillar(verts, faces, device, deep=deep, boxes_only=True)
+    counts, pairs = query.query_aabb(boxes, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(counts, ref.sum(1)) and np.array_equal(pairs, np.argwhere(ref))
+    assert np.array_equal(hw.overlapping_pairs(boxes), np.argwhere(np.triu(brute_overlaps(lo, hi, lo, hi), 1)))
+print("ok")
+"""
+
+
+def test_walks_past_the_stack_write_in_bounds(device, tmp_path):
+    """Every walk on a chain deeper than its fixed stack, compiled in Warp's debug mode, where
+    indexing a local stack out of range aborts the process: the answers must be right and no
+    push may go past the last slot. (A mutation audit moved the all-hits guard one slot: the
+    answers stayed right in release builds, silently writing past the stack.) In a child
+    process, since debug mode is a global setting and an abort would end the test run."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "deep_chain_debug.py"
+    script.write_text(DEEP_CHAIN_DEBUG_SCRIPT)
+    tests_dir = str(Path(__file__).resolve().parent)
+    result = subprocess.run([sys.executable, str(script), device, tests_dir], capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0 and result.stdout.strip().endswith("ok"), result.stdout[-2000:] + result.stderr[-4000:]
+
+
 def test_tiny_triangles_at_every_scale(device, rng):
     # Between about 1e-19 and 1e-22 the float32 edge functions and their sum fall among the
     # subnormals: 1 / det overflowed and every ray missed, while 1e-18 (the tiny scene family)
