@@ -229,12 +229,12 @@ class Builder:
         """Shape and dtype checks only; NaN/Inf and float32-range checks for NumPy input (already on
         the host; device arrays are not read back, see `build_from_bounds`)."""
         if isinstance(values, wp.array):
-            if values.dtype == wp.vec3 and values.ndim == 1:
+            if values.dtype in (wp.vec3, wp.vec3d) and values.ndim == 1:
                 return values.shape[0]
-            if values.dtype == wp.float32 and values.ndim == 2 and values.shape[1] == 3:
+            if values.dtype in (wp.float32, wp.float64) and values.ndim == 2 and values.shape[1] == 3:
                 return values.shape[0]
-            raise ValueError(f"{name} must be a wp.array of vec3 or float32 (N, 3), got {values.dtype} "
-                             f"with shape {values.shape}")
+            raise ValueError(f"{name} must be a wp.array of vec3 / vec3d or float32 / float64 (N, 3), got "
+                             f"{values.dtype} with shape {values.shape}")
         arr = np.asarray(values)
         # Integers as `build` takes them (a voxel grid's corners); booleans and objects are not points.
         if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 3:
@@ -248,11 +248,18 @@ class Builder:
         if count != rows:
             raise ValueError(f"{name} has {count} rows, the builder was set up with {rows}")
         if isinstance(values, wp.array):
-            if values.dtype == wp.vec3:
+            double = values.dtype in (wp.vec3d, wp.float64)
+            if values.ndim == 2:
+                if not values.is_contiguous:
+                    raise ValueError(f"{'float64' if double else 'float32'} (N, 3) {name} must be contiguous")
+                values = wp.array(ptr=values.ptr, dtype=wp.vec3d if double else wp.vec3, shape=count,
+                                  device=values.device)
+            if not double or values.device == self.device:
+                # A float64 frame on this device is rounded to float32 as it is loaded (`_copy_frame`).
                 return values
-            if not values.is_contiguous:
-                raise ValueError(f"float32 (N, 3) {name} must be contiguous")
-            return wp.array(ptr=values.ptr, dtype=wp.vec3, shape=count, device=values.device)
+            # Float64 on another device: rounded on the host, and checked there like NumPy input.
+            values = values.numpy()
+            inputs.check_float32_range(values, name)
         host = np.ascontiguousarray(values, dtype=np.float32)
         return wp.array(host, dtype=wp.vec3, device="cpu", copy=False)
 
@@ -295,6 +302,16 @@ class Builder:
             return None
         return sources
 
+    def _copy_frame(self, dest: wp.array, source: wp.array):
+        """``dest = source``; a float64 source (on this device, see `_source`) is rounded to float32."""
+        if source.dtype == wp.vec3:
+            wp.copy(dest, source)
+        elif self.pipeline.launches is not None:
+            # The caller's array, often a new one every frame: swapped into one record.
+            self.pipeline.launches.launch(dynamic.round_to_float32_kernel, dest.shape[0], [source, dest], vary=(0,))
+        else:
+            wp.launch(dynamic.round_to_float32_kernel, dim=dest.shape[0], inputs=[source, dest], device=self.device)
+
     def _load(self, sources: list | None):
         """Copy into the preallocated buffers: no device allocation on the per-frame path."""
         # Whatever the call, the buffers no longer hold the auto policy's snapshot.
@@ -303,7 +320,7 @@ class Builder:
             return
         for src, buf in zip(sources, self._buffers()):
             if src.ptr != buf.ptr:
-                wp.copy(buf, src)
+                self._copy_frame(buf, src)
 
     def _load_and_measure(self, sources: list | None) -> bool:
         """Load the frame and put the largest displacement since the previous frame (of a vertex,
@@ -317,7 +334,7 @@ class Builder:
             # itself would hide its motion. Load the rest, then measure the frame as written in place.
             for src, buf in zip(sources, buffers):
                 if src.ptr != buf.ptr:
-                    wp.copy(buf, src)
+                    self._copy_frame(buf, src)
             sources = None
         if sources is None:
             # Written into the builder's buffers by the caller: compare with the snapshot of the
@@ -332,9 +349,9 @@ class Builder:
             return measured
         pairs = []
         for src, buf, snap in zip(sources, buffers, snapshots):
-            if src.device != self.device:
-                # NumPy input or another device: stage it on this device first.
-                wp.copy(snap, src)
+            if src.device != self.device or src.dtype != wp.vec3:
+                # NumPy input, another device or float64: staged on this device, as float32, first.
+                self._copy_frame(snap, src)
                 src = snap
             pairs.append((src, buf))
         self._measure(pairs)
@@ -371,8 +388,9 @@ class Builder:
 
     # ---------------------------------------------------------------- build
     @_one_call_at_a_time
-    def build(self, vertices, faces) -> Bvh:
-        """Set the mesh (faces are fixed from now on) and build its BVH from scratch.
+    def build(self, vertices, faces=None) -> Bvh:
+        """Set the mesh (faces are fixed from now on) and build its BVH from scratch: a
+        `trimesh.Trimesh`, or vertices and faces, as `hlbvh_warp.build` takes them.
 
         This is the setup call: it validates everything on the host and allocates the vertex
         buffers. Later frames call `update`, `rebuild` or `refit` with new vertices.
@@ -431,7 +449,8 @@ class Builder:
             # (rays through it reported the old mesh's distances with the new tree's face ids).
             # Over the same vertex and face arrays the layout is kept and refreshed by the build,
             # so earlier views see this mesh; over new ones (another vertex count, or boxes) the
-            # views must be taken again, and the old ones read the old arrays, in bounds.
+            # views must be taken again: an old one keeps the old vertex and face arrays (its reads
+            # stay in bounds) beside the node arrays this build overwrites, a mix of the two meshes.
             bvh = self.bvh
             layout = bvh._cache.get("traversal_layout")
             same_arrays = vertices is not None and bvh.vertices is vertices and bvh.faces is faces

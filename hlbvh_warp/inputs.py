@@ -114,6 +114,8 @@ def query_array(values, name: str) -> np.ndarray:
     real numbers, as contiguous float32. NaN or Inf is not an error here: such a query finds
     nothing; only shapes and dtypes are."""
     arr = _to_numpy(values, name)
+    if arr.shape == (0,):
+        arr = arr.reshape(0, 3).astype(np.float32)  # an empty list: no queries
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
     if arr.shape == (3,):
@@ -124,8 +126,14 @@ def query_array(values, name: str) -> np.ndarray:
 
 
 def ray_arrays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
-    """Rays may hold NaN or Inf (they miss); only shapes and dtypes are errors."""
+    """Rays may hold NaN or Inf (they miss); only shapes and dtypes are errors. One origin (a
+    camera's) or one direction (a light's) serves every ray of the other."""
     o, d = query_array(origins, "origins"), query_array(directions, "directions")
     if o.shape != d.shape:
-        raise ValueError(f"origins and directions differ in shape: {o.shape} vs {d.shape}")
+        if len(o) == 1:
+            o = np.ascontiguousarray(np.broadcast_to(o, d.shape))
+        elif len(d) == 1:
+            d = np.ascontiguousarray(np.broadcast_to(d, o.shape))
+        else:
+            raise ValueError(f"origins and directions differ in shape: {o.shape} vs {d.shape}")
     return o, d

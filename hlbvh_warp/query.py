@@ -151,12 +151,17 @@ def _require_whole_boxes(bvh: Bvh, name: str):
                          "splits triangles across leaves (spatial splits): build one with an object-split method")
 
 
-def _t_max_value(t_max) -> float:
-    try:
-        value = float(t_max)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"t_max must be a number, got {t_max!r}") from exc
-    return value
+def _t_max_values(t_max, num_rays: int) -> np.ndarray:
+    """``t_max`` as float32: ``(1,)`` for one number, ``(num_rays,)`` for one per ray."""
+    values = np.asarray(t_max.numpy() if isinstance(t_max, wp.array) else t_max)
+    if values.dtype.kind not in "fiu":
+        raise ValueError(f"t_max must hold real numbers, got dtype {values.dtype}")
+    if values.ndim == 0:
+        values = values.reshape(1)
+    elif values.shape != (num_rays,):
+        raise ValueError(f"t_max must be a number or have shape ({num_rays},), got {values.shape}")
+    with np.errstate(over="ignore"):
+        return values.astype(np.float32)
 
 
 def _empty(dtype, device, shape=0):
@@ -178,8 +183,9 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     Args:
         bvh: a BVH built over a mesh with `hlbvh_warp.build`.
         origins, directions: ``(R, 3)`` rays (NumPy or Warp, any real dtype; a single ``(3,)`` ray
-            is accepted). Directions need not be normalized: t is in units of the direction.
-        t_max: only hits with t in (0, t_max) count.
+            is accepted, and one origin or one direction serves every ray). Directions need not be
+            normalized: t is in units of the direction.
+        t_max: only hits with t in (0, t_max) count: one number, or one per ray (``(R,)``).
         return_barycentrics: also return ``u, v``, the weights of each hit triangle's second and
             third vertex (0 on a miss).
         stats: also return a `TraversalStats` (nodes visited, triangles tested per ray).
@@ -194,21 +200,23 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     """
     _require_mesh(bvh, "intersect")
     o, d = inputs.ray_arrays(origins, directions)
-    t_max = _t_max_value(t_max)
     num_rays = o.shape[0]
+    limits = _t_max_values(t_max, num_rays)
     device = bvh.device
     hit_t = wp.empty(num_rays, dtype=float, device=device)
     hit_prim = wp.empty(num_rays, dtype=wp.int32, device=device)
     hit_u, hit_v = _optional_outputs(float, num_rays, return_barycentrics, device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
     if num_rays:
-        args = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device),
-                t_max, hit_t, hit_prim]
-        if return_barycentrics or stats:
-            wp.launch(traversal.closest_hit_details_kernel, dim=num_rays, inputs=args + [hit_u, hit_v, visits, tests],
-                      device=device)
+        rays = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
+        if return_barycentrics or stats or len(limits) > 1:
+            wp.launch(traversal.closest_hit_details_kernel, dim=num_rays, device=device,
+                      inputs=rays + [wp.array(limits, dtype=float, device=device), hit_t, hit_prim, hit_u, hit_v,
+                                     visits, tests])
         else:
-            wp.launch(traversal.closest_hit_kernel, dim=num_rays, inputs=args, device=device)
+            # The lean kernel (one limit, no optional outputs): the common camera-ray call.
+            wp.launch(traversal.closest_hit_kernel, dim=num_rays, inputs=rays + [float(limits[0]), hit_t, hit_prim],
+                      device=device)
     out = (hit_t.numpy(), hit_prim.numpy())
     if return_barycentrics:
         out += (hit_u.numpy(), hit_v.numpy())
@@ -230,13 +238,9 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     _require_mesh(bvh, "occluded")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    t_arr = np.asarray(t_max.numpy() if isinstance(t_max, wp.array) else t_max)
-    if t_arr.dtype.kind not in "fiu":
-        raise ValueError(f"t_max must hold real numbers, got dtype {t_arr.dtype}")
-    if t_arr.ndim == 0:
-        t_arr = np.full(num_rays, float(t_arr), dtype=np.float32)
-    elif t_arr.shape != (num_rays,):
-        raise ValueError(f"t_max must be a number or have shape ({num_rays},), got {t_arr.shape}")
+    t_arr = _t_max_values(t_max, num_rays)
+    if t_arr.shape[0] != num_rays:
+        t_arr = np.full(num_rays, t_arr[0], dtype=np.float32)
     device = bvh.device
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
@@ -282,7 +286,8 @@ def _offsets(counts: wp.array, what: str) -> tuple[wp.array, int]:
 
 @holding_tree
 def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
-    """Every triangle each ray hits with t in (0, t_max) (trimesh's ``multiple_hits``).
+    """Every triangle each ray hits with t in (0, t_max) (trimesh's ``multiple_hits``); ``t_max``
+    is one number or one per ray, as for `intersect`.
 
     Returns:
         ``(ray_id, prim_id, t)`` NumPy arrays, sorted by ray, then t, then primitive. A ray
@@ -290,13 +295,14 @@ def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
     """
     _require_mesh(bvh, "intersect_all")
     o, d = inputs.ray_arrays(origins, directions)
-    t_max = _t_max_value(t_max)
     num_rays = o.shape[0]
+    t_max = _t_max_values(t_max, num_rays)
     if num_rays == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
     device = bvh.device
     ow = wp.array(o, dtype=wp.vec3, device=device)
     dw = wp.array(d, dtype=wp.vec3, device=device)
+    t_max = wp.array(t_max, dtype=float, device=device)
     counts = wp.zeros(num_rays, dtype=wp.int32, device=device)
     none_i, none_f = _empty(wp.int32, device), _empty(float, device)
     # Count pass, prefix sum, write pass: each ray owns a slice, no atomics, deterministic.

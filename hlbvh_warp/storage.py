@@ -79,11 +79,15 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
 
 
 def load(path, device=None) -> Bvh:
-    """The BVH saved in ``path``, on ``device`` (default: Warp's default device).
+    """The BVH saved in ``path``, on ``device`` (default: Warp's default device). A name without
+    the ``.npz`` suffix that `save` added finds the file it wrote.
 
     Raises:
         ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
     """
+    name = os.fspath(path)
+    if not name.endswith(".npz") and not os.path.exists(name) and os.path.exists(name + ".npz"):
+        path = name + ".npz"  # save(bvh, "tree") wrote tree.npz
     try:
         # np.load takes any other file for a pickle and says so: name what the file is not instead.
         with open(os.fspath(path), "rb") as file:

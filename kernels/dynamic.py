@@ -75,6 +75,13 @@ def sample_run_breaks_kernel(
 
 # --------------------------------------------------------- motion and quality
 @wp.kernel
+def round_to_float32_kernel(source: wp.array(dtype=wp.vec3d), dest: wp.array(dtype=wp.vec3)):
+    """A float64 frame given on the builder's device, rounded into its float32 buffer."""
+    i = wp.tid()
+    dest[i] = wp.vec3(source[i])
+
+
+@wp.kernel
 def reset_stats_kernel(stats: wp.array(dtype=wp.float64)):
     """Zero stats[0] (the largest move) and stats[1] (the root's diagonal)."""
     stats[0] = wp.float64(0.0)

@@ -1122,12 +1122,18 @@ def closest_hit_kernel(
     hit_prim[tid] = h.prim
 
 
+@wp.func
+def ray_limit(t_max: wp.array(dtype=float), ray: int):
+    """``t_max`` holds one limit for every ray (shape 1) or one per ray."""
+    return t_max[wp.where(t_max.shape[0] == 1, 0, ray)]
+
+
 @wp.kernel
 def closest_hit_details_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
-    t_max: float,
+    t_max: wp.array(dtype=float),
     hit_t: wp.array(dtype=float),
     hit_prim: wp.array(dtype=wp.int32),
     hit_u: wp.array(dtype=float),
@@ -1135,9 +1141,10 @@ def closest_hit_details_kernel(
     nodes_visited: wp.array(dtype=wp.int32),
     prims_tested: wp.array(dtype=wp.int32),
 ):
-    """One ray per thread; ``hit_u``/``hit_v`` and the statistics are written when non-empty."""
+    """One ray per thread, its limit from `ray_limit`; ``hit_u``/``hit_v`` and the statistics are
+    written when non-empty."""
     tid = wp.tid()
-    h = bvh_closest_hit(bvh, origins[tid], directions[tid], t_max)
+    h = bvh_closest_hit(bvh, origins[tid], directions[tid], ray_limit(t_max, tid))
     hit_t[tid] = h.t
     hit_prim[tid] = h.prim
     if hit_u.shape[0] > 0:
@@ -1171,18 +1178,20 @@ def all_hits_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
-    t_max: float,
+    t_max: wp.array(dtype=float),
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     out_prim: wp.array(dtype=wp.int32),
     out_t: wp.array(dtype=float),
 ):
-    """Count pass when ``out_prim`` is empty (writes ``counts``), else write pass at ``offsets``."""
+    """Count pass when ``out_prim`` is empty (writes ``counts``), else write pass at ``offsets``;
+    the ray's limit from `ray_limit`."""
     tid = wp.tid()
+    limit = ray_limit(t_max, tid)
     if out_prim.shape[0] == 0:
-        counts[tid] = bvh_ray_all_hits(bvh, origins[tid], directions[tid], t_max, out_prim, out_t, 0, 0)
+        counts[tid] = bvh_ray_all_hits(bvh, origins[tid], directions[tid], limit, out_prim, out_t, 0, 0)
     else:
-        bvh_ray_all_hits(bvh, origins[tid], directions[tid], t_max, out_prim, out_t, offsets[tid], counts[tid])
+        bvh_ray_all_hits(bvh, origins[tid], directions[tid], limit, out_prim, out_t, offsets[tid], counts[tid])
 
 
 @wp.kernel

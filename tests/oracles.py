@@ -9,7 +9,7 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
     """Closest hit of every ray against every triangle, Moller-Trumbore in float64.
 
     Returns (t, prim) with (inf, -1) for a miss. Triangles are tested in chunks of rays so memory
-    stays at chunk * F.
+    stays at chunk * F. ``t_max``: one number or one per ray.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -17,6 +17,7 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
     e1, e2 = b - a, c - a
     o_all = np.asarray(origins, dtype=np.float64)
     d_all = np.asarray(directions, dtype=np.float64)
+    limits = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (len(o_all),))
     t_out = np.full(len(o_all), np.inf)
     p_out = np.full(len(o_all), -1, dtype=np.int64)
     with np.errstate(all="ignore"):
@@ -32,7 +33,7 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
             w = np.einsum("rk,rfk->rf", d[:, 0], q) * inv
             t = np.einsum("rfk,fk->rf", q, e2) * inv
             eps = 1e-12
-            ok = (det != 0) & (u >= -eps) & (w >= -eps) & (u + w <= 1 + eps) & (t > 0) & (t < t_max)
+            ok = (det != 0) & (u >= -eps) & (w >= -eps) & (u + w <= 1 + eps) & (t > 0) & (t < limits[s : s + chunk, None])
             ok &= np.isfinite(t)
             t = np.where(ok, t, np.inf)
             idx = np.argmin(t, axis=1)

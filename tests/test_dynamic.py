@@ -13,7 +13,8 @@ from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import default_scene
 
-from oracles import assert_hits_match, brute_force_closest_hit, check_tree_invariants, random_rays, random_soup
+from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants, random_rays,
+                     random_soup)
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
 
@@ -294,6 +295,55 @@ def test_rebuild_takes_device_vec3_and_float_arrays(device, small_scene, rng):
     check_rays(builder.bvh, moved, f, rng)
     builder.rebuild(wp.array(v, dtype=wp.float32, device=device))
     check_rays(builder.bvh, v, f, rng)
+
+
+def test_builder_takes_a_trimesh_alone(device, rng):
+    # As hlbvh_warp.build does: Builder.build(mesh) without faces= raised a TypeError.
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    builder = Builder(len(f), device=device)
+    tree = builder.build(mesh).to_numpy()
+    np.testing.assert_array_equal(tree["node_lowers"], hw.build(v, f, device=device).to_numpy()["node_lowers"])
+    check_rays(builder.bvh, v, f, rng)
+    with pytest.raises(ValueError, match="trimesh.Trimesh, or vertices with faces="):
+        builder.build(v)
+
+
+@pytest.mark.parametrize("policy", ["rebuild", "refit", "auto"])
+def test_updates_take_float64_device_arrays(device, small_scene, rng, policy):
+    """Every entry point takes float64 Warp arrays (vec3d, or float64 (N, 3)); a frame's update
+    did not. On the builder's device the frame is rounded to float32 as it is loaded; from
+    another device, on the host. The tree equals one built from the NumPy frame rounded to float32."""
+    v, f = small_scene
+    builder = Builder(len(f), device=device, policy=policy)
+    builder.build(v, f)
+    boxes = Builder(len(f), device=device, policy=policy)
+    tri = v[f]
+    boxes.build_from_bounds(tri.min(1), tri.max(1))
+    for step, (dtype, where) in enumerate([(wp.vec3d, device), (wp.float64, device), (wp.vec3d, "cpu")]):
+        moved = v.astype(np.float64) * (1.0 + 0.05 * (step + 1)) + 1e-9  # not a float32 value
+        expected = moved.astype(np.float32)
+        report = builder.update(wp.array(moved, dtype=dtype, device=where))
+        np.testing.assert_array_equal(builder.vertices.numpy(), expected)
+        check_rays(builder.bvh, expected, f, rng)
+        if policy == "rebuild":
+            fresh = hw.build(expected, f, device=device).to_numpy()
+            np.testing.assert_array_equal(builder.bvh.to_numpy()["node_lowers"], fresh["node_lowers"])
+        else:  # each frame moved: measured and acted on
+            assert report["decision"] in ("refit", "rebuild"), report
+        lo, hi = moved[f].min(1), moved[f].max(1)
+        boxes.update(bounds=(wp.array(lo, dtype=dtype, device=where), wp.array(hi, dtype=dtype, device=where)))
+        np.testing.assert_array_equal(boxes.prim_lowers.numpy(), lo.astype(np.float32))
+        np.testing.assert_array_equal(boxes.prim_uppers.numpy(), hi.astype(np.float32))
+        ref = (lo.astype(np.float32), hi.astype(np.float32))
+        q = ref[0][:40], ref[1][:40]
+        assert np.array_equal(hw.query_aabb(boxes.bvh, *q), brute_overlaps(*ref, *q).sum(1))
+    with pytest.raises(ValueError, match="float64 .N, 3. vertices must be contiguous"):
+        builder.update(wp.array(np.zeros((len(v), 6)), dtype=wp.float64, device=device)[:, :3])
+    with pytest.raises(ValueError, match="vec3 / vec3d"):
+        builder.update(wp.array(v, dtype=wp.vec3h, device=device))
 
 
 @pytest.mark.skipif(not wp.get_cuda_devices(), reason="CUDA graph capture needs a CUDA device")

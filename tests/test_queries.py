@@ -554,6 +554,43 @@ def test_occluded_takes_one_t_max_for_every_ray(device):
     assert query.occluded(bvh, o, d, t_max=np.array(2.5)).tolist() == [True, True, True]
 
 
+def test_per_ray_t_max_and_one_origin_for_every_ray(device, rng, scene):
+    """``t_max`` one per ray in `intersect` and `intersect_all` (as `occluded` took it), and one
+    origin or one direction for a batch, against the float64 brute force."""
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 300)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    hit = prim_ref >= 0
+    # Half the rays stop just short of their hit, half just past it; misses get any limit.
+    limits = np.where(rng.random(300) < 0.5, 0.99, 1.01) * np.where(hit, t_ref, 1.0)
+    t, prim = query.intersect(bvh, o, d, t_max=limits)
+    short = hit & (limits < t_ref)
+    assert short.sum() > 50 and (hit & ~short).sum() > 50
+    # Cut short: the nearest hit before the limit, if any (another triangle of the scene).
+    t_cut, prim_cut = brute_force_closest_hit(verts, faces, o[short], d[short], t_max=limits[short])
+    assert_hits_match(t[short], prim[short], t_cut, prim_cut)
+    assert_hits_match(t[~short], prim[~short], t_ref[~short], prim_ref[~short])
+    # The same limits through the details kernel (barycentrics) and the all-hits walk.
+    t2, prim2, _, _ = query.intersect(bvh, o, d, t_max=wp.array(limits, dtype=float, device=device),
+                                      return_barycentrics=True)
+    assert np.array_equal(prim2, prim) and np.array_equal(t2, t)
+    ray_id, all_prim, all_t = query.intersect_all(bvh, o, d, t_max=limits)
+    assert (all_t < limits[ray_id]).all()
+    closest = np.full(300, np.inf, np.float32)
+    np.minimum.at(closest, ray_id, all_t)
+    np.testing.assert_array_equal(closest, t)
+    # One origin for many directions (a camera), one direction for many origins (a light).
+    eye = np.float32([0.1, 0.2, -4.0])
+    t_eye, p_eye = query.intersect(bvh, eye, d)
+    assert_hits_match(t_eye, p_eye, *brute_force_closest_hit(verts, faces, np.tile(eye, (300, 1)), d))
+    assert np.array_equal(query.occluded(bvh, o, d[:1]), query.occluded(bvh, o, np.tile(d[:1], (300, 1))))
+    with pytest.raises(ValueError, match=r"t_max must be a number or have shape \(300,\)"):
+        query.intersect(bvh, o, d, t_max=limits[:5])
+    with pytest.raises(ValueError, match="t_max must hold real numbers"):
+        query.intersect_all(bvh, o, d, t_max="far")
+
+
 def test_empty_batches(device, scene):
     verts, faces = scene
     bvh = hlbvh_warp.build(verts, faces, device=device)
@@ -566,6 +603,11 @@ def test_empty_batches(device, scene):
     counts, pairs = query.query_aabb(bvh, none, none, return_pairs=True)
     assert counts.shape == (0,) and pairs.shape == (0, 2)
     assert query.query_aabb(bvh, none, none).shape == (0,)
+    # An empty list is an empty batch too, as an empty array is.
+    point, dist, prim = hlbvh_warp.closest_point(bvh, [])
+    assert point.shape == (0, 3) and dist.shape == prim.shape == (0,)
+    t, prim = query.intersect(bvh, [], [])
+    assert t.shape == prim.shape == (0,)
 
 
 def test_query_boxes_are_validated(device, scene):

@@ -58,6 +58,9 @@ def test_a_box_tree_comes_back_the_same(device, rng, tmp_path):
     bvh = hb.build_from_bounds(lo, hi, method="binned_sah", device=device)
     hb.save_bvh(bvh, tmp_path / "boxes")  # NumPy adds .npz
     loaded = hb.load_bvh(tmp_path / "boxes.npz", device=device)
+    # The name it was saved under finds the file too.
+    np.testing.assert_array_equal(hb.load_bvh(str(tmp_path / "boxes"), device=device).to_numpy()["node_left"],
+                                  loaded.to_numpy()["node_left"])
     assert loaded.vertices is None and loaded.faces is None
     np.testing.assert_array_equal(loaded.to_numpy()["prim_lowers"], lo)
     q_lo, q_hi = lo[:50] - 0.01, hi[:50] + 0.01
