@@ -270,6 +270,22 @@ def test_sweep_sah_equals_exhaustive_greedy(device, seed, emission):
     assert got == greedy_sweep_reference(lo, hi)
 
 
+def _lattice_boxes(shape):
+    """Equal unit boxes on a lattice of spacing 2: split costs and balances tie exactly."""
+    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    lo = cells.astype(np.float32) * np.float32(2.0)
+    return lo, lo + np.float32(1.0)
+
+
+def assert_root_split(tree, lo, hi, axis, k):
+    """The root's left child is exactly the k items first in centroid order on ``axis``."""
+    left = tree["node_left"][0]
+    left_prims = tree["prim_order"][tree["node_begin"][left]:tree["node_end"][left]]
+    assert len(left_prims) == k
+    c = np.float32(0.5) * (lo[:, axis] + hi[:, axis])
+    assert set(left_prims.tolist()) == set(np.argsort(c, kind="stable")[:k].tolist())
+
+
 def binned_root_split_reference(lo, hi, num_bins):
     """Root split of binned SAH (Wald 2007) in float64: bins of equal width over the centroid
     extent per axis, every non-trivial bin boundary priced as area(L) * |L| + area(R) * |R|;
@@ -311,13 +327,7 @@ def test_binned_root_split_matches_numpy(device, num_bins, seed):
     hi = lo + (rng.random((n, 3)) * 0.5).astype(np.float32)
     tree = hw.build_from_bounds(lo, hi, method="binned_sah", device=device,
                                 config=hw.BuildConfig(sah_bins=num_bins)).to_numpy()
-    cost, axis, k = binned_root_split_reference(lo, hi, num_bins)
-    left = tree["node_left"][0]
-    left_prims = tree["prim_order"][tree["node_begin"][left]:tree["node_end"][left]]
-    assert len(left_prims) == k
-    # The left child is exactly the items below the chosen boundary on the chosen axis.
-    c = np.float32(0.5) * (lo[:, axis] + hi[:, axis])
-    assert set(left_prims.tolist()) == set(np.argsort(c, kind="stable")[:k].tolist())
+    assert_root_split(tree, lo, hi, *binned_root_split_reference(lo, hi, num_bins)[1:])
 
 
 @pytest.mark.parametrize("num_bins", [4, 32])
@@ -326,16 +336,10 @@ def test_binned_root_split_ties_on_a_lattice(device, num_bins, shape):
     # Equal boxes on a lattice: boundaries on different axes cost exactly the same, and mirror
     # positions tie in balance too; the documented rule picks the most balanced, then the lower
     # axis. (A mutation audit found the lattice tie covered for the sweep only.)
-    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
-    lo = cells.astype(np.float32) * np.float32(2.0)
-    hi = lo + np.float32(1.0)
+    lo, hi = _lattice_boxes(shape)
     tree = hw.build_from_bounds(lo, hi, method="binned_sah", device=device,
                                 config=hw.BuildConfig(sah_bins=num_bins)).to_numpy()
-    _, axis, k = binned_root_split_reference(lo, hi, num_bins)
-    left = tree["node_left"][0]
-    left_prims = tree["prim_order"][tree["node_begin"][left]:tree["node_end"][left]]
-    c = np.float32(0.5) * (lo[:, axis] + hi[:, axis])
-    assert set(left_prims.tolist()) == set(np.argsort(c, kind="stable")[:k].tolist())
+    assert_root_split(tree, lo, hi, *binned_root_split_reference(lo, hi, num_bins)[1:])
 
 
 def test_presort_keys_order_like_the_floats(device, rng):
@@ -442,10 +446,9 @@ def test_median_equals_the_numpy_median_split(device, rng, emission, leaf):
 @pytest.mark.parametrize("shape", [(4, 4, 4), (2, 5, 5), (3, 1, 3)])
 def test_median_ties_on_a_lattice_go_to_the_lower_axis(device, shape):
     # Equal centroid extents on several axes at once, down the whole tree.
-    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
-    lo = cells.astype(np.float32) * np.float32(2.0)
-    tree = hw.build_from_bounds(lo, lo + np.float32(1.0), method="median", device=device).to_numpy()
-    assert _node_sets(tree) == median_reference(lo, lo + np.float32(1.0), 1)
+    lo, hi = _lattice_boxes(shape)
+    tree = hw.build_from_bounds(lo, hi, method="median", device=device).to_numpy()
+    assert _node_sets(tree) == median_reference(lo, hi, 1)
 
 
 @pytest.mark.parametrize("emission", ["treelets", "depth_first"])
@@ -453,9 +456,7 @@ def test_median_ties_on_a_lattice_go_to_the_lower_axis(device, shape):
 def test_sweep_sah_ties_on_a_lattice_equal_the_exhaustive_greedy(device, shape, emission):
     # Equal, evenly spaced boxes: many split positions tie exactly in cost, and the mirror
     # positions k and n - k tie in balance too; the first most balanced one must win.
-    cells = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
-    lo = cells.astype(np.float32) * np.float32(2.0)
-    hi = lo + np.float32(1.0)
+    lo, hi = _lattice_boxes(shape)
     tree = hw.build_from_bounds(lo, hi, method="sweep_sah", device=device,
                                 config=hw.BuildConfig(emission=emission)).to_numpy()
     assert _node_sets(tree) == greedy_sweep_reference(lo, hi)
