@@ -152,11 +152,18 @@ def _require_whole_boxes(bvh: Bvh, name: str):
 
 
 def _t_max_values(t_max, num_rays: int) -> np.ndarray:
-    """``t_max`` as float32: ``(1,)`` for one number, ``(num_rays,)`` for one per ray."""
+    """``t_max`` as float32: ``(1,)`` for one number (or a one-element array), ``(num_rays,)`` for
+    one per ray. Rounded to nearest: hits count for t < t_max, an open bound either way."""
     values = np.asarray(t_max.numpy() if isinstance(t_max, wp.array) else t_max)
+    if values.ndim == 0 and values.dtype.kind not in "fiu":
+        # What float() takes: a Python int past int64 (an object array), "inf", a Fraction, a bool.
+        try:
+            values = np.asarray(float(t_max))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"t_max must be a number, got {t_max!r}") from exc
     if values.dtype.kind not in "fiu":
         raise ValueError(f"t_max must hold real numbers, got dtype {values.dtype}")
-    if values.ndim == 0:
+    if values.size == 1 and values.ndim <= 1:
         values = values.reshape(1)
     elif values.shape != (num_rays,):
         raise ValueError(f"t_max must be a number or have shape ({num_rays},), got {values.shape}")

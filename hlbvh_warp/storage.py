@@ -85,8 +85,8 @@ def load(path, device=None) -> Bvh:
     Raises:
         ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
     """
-    name = os.fspath(path)
-    if not name.endswith(".npz") and not os.path.exists(name) and os.path.exists(name + ".npz"):
+    name = os.fsdecode(path)
+    if not name.endswith(".npz") and not os.path.lexists(name) and os.path.isfile(name + ".npz"):
         path = name + ".npz"  # save(bvh, "tree") wrote tree.npz
     try:
         # np.load takes any other file for a pickle and says so: name what the file is not instead.

@@ -83,6 +83,10 @@ class RayMeshIntersector:
             ray_origins = ray_origins.reshape(1, -1)
         if ray_directions.ndim == 1:
             ray_directions = ray_directions.reshape(1, -1)
+        if ray_origins.shape != ray_directions.shape and 1 in (len(ray_origins), len(ray_directions)):
+            # One origin (or direction) for every ray, as the queries take it: the hit locations
+            # index the rays by their ids, so the rows are spelled out here too.
+            ray_origins, ray_directions = np.broadcast_arrays(ray_origins, ray_directions)
         if multiple_hits:
             index_ray, index_tri, t = query.intersect_all(self.bvh, ray_origins, ray_directions)
         else:

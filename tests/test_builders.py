@@ -524,6 +524,10 @@ def test_sah_termination_on_many_items_and_threads(device, threads):
     check_tree_invariants(tree, len(f), 8)
     sizes = tree["node_end"] - tree["node_begin"]
     assert (sizes[tree["node_left"] < 0] > 1).any()  # the rule kept some leaves of several
+    # The same tree whatever the thread count (the termination makes it one thread's work).
+    one = build_top_down(wl, wh, hw.BuildConfig(max_leaf_size=1, cpu_threads=1), device, StageTimer(device, False),
+                         method="sweep_sah", terminate_leaf_size=8)
+    assert _node_sets(tree) == _node_sets(one.to_numpy())
 
 
 @pytest.mark.parametrize("t1", [0.3, 1.0])

@@ -585,10 +585,27 @@ def test_per_ray_t_max_and_one_origin_for_every_ray(device, rng, scene):
     t_eye, p_eye = query.intersect(bvh, eye, d)
     assert_hits_match(t_eye, p_eye, *brute_force_closest_hit(verts, faces, np.tile(eye, (300, 1)), d))
     assert np.array_equal(query.occluded(bvh, o, d[:1]), query.occluded(bvh, o, np.tile(d[:1], (300, 1))))
+    # One limit in any form float() takes, a one-element array included, is every ray's.
+    ts = np.sort(t_ref[hit])
+    cut = float(0.5 * (ts[len(ts) // 2 - 1] + ts[len(ts) // 2]))  # between two hits: no ray ties it
+    assert ts[len(ts) // 2] - ts[len(ts) // 2 - 1] > 1e-5 * cut
+    t_one, prim_one = query.intersect(bvh, o, d, t_max=cut)
+    assert_hits_match(t_one, prim_one, *brute_force_closest_hit(verts, faces, o, d, t_max=cut))
+    for same in (np.array([cut]), wp.array([cut], dtype=float, device=device), np.float64(cut)):
+        assert np.array_equal(query.intersect(bvh, o, d, t_max=same)[1], prim_one)
+        assert np.array_equal(query.occluded(bvh, o, d, t_max=same), prim_one >= 0)
+    for unbounded in (10**40, "inf", np.inf, 1e39):
+        assert np.array_equal(query.intersect(bvh, o, d, t_max=unbounded)[1], query.intersect(bvh, o, d)[1])
+    # A NaN limit finds nothing for its ray only.
+    nan_limits = np.where(np.arange(300) % 2 == 0, np.nan, np.inf)
+    t_nan, prim_nan = query.intersect(bvh, o, d, t_max=nan_limits)
+    assert (prim_nan[::2] == -1).all() and np.array_equal(prim_nan[1::2], query.intersect(bvh, o, d)[1][1::2])
     with pytest.raises(ValueError, match=r"t_max must be a number or have shape \(300,\)"):
         query.intersect(bvh, o, d, t_max=limits[:5])
-    with pytest.raises(ValueError, match="t_max must hold real numbers"):
+    with pytest.raises(ValueError, match="t_max must be a number"):
         query.intersect_all(bvh, o, d, t_max="far")
+    with pytest.raises(ValueError, match="t_max must hold real numbers"):
+        query.occluded(bvh, o, d, t_max=np.full(300, "x"))
 
 
 def test_empty_batches(device, scene):

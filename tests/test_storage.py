@@ -4,6 +4,7 @@ file refused with a ValueError naming the problem (a bad id would send the trave
 from __future__ import annotations
 
 import json
+import os
 import zipfile
 
 import numpy as np
@@ -58,9 +59,11 @@ def test_a_box_tree_comes_back_the_same(device, rng, tmp_path):
     bvh = hb.build_from_bounds(lo, hi, method="binned_sah", device=device)
     hb.save_bvh(bvh, tmp_path / "boxes")  # NumPy adds .npz
     loaded = hb.load_bvh(tmp_path / "boxes.npz", device=device)
-    # The name it was saved under finds the file too.
-    np.testing.assert_array_equal(hb.load_bvh(str(tmp_path / "boxes"), device=device).to_numpy()["node_left"],
-                                  loaded.to_numpy()["node_left"])
+    # The name it was saved under finds the file too, as str, path or bytes.
+    for name in (str(tmp_path / "boxes"), tmp_path / "boxes", os.fsencode(tmp_path / "boxes"),
+                 os.fsencode(tmp_path / "boxes.npz")):
+        np.testing.assert_array_equal(hb.load_bvh(name, device=device).to_numpy()["node_left"],
+                                      loaded.to_numpy()["node_left"])
     assert loaded.vertices is None and loaded.faces is None
     np.testing.assert_array_equal(loaded.to_numpy()["prim_lowers"], lo)
     q_lo, q_hi = lo[:50] - 0.01, hi[:50] + 0.01

@@ -288,6 +288,28 @@ def test_a_single_ray_is_one_row_in_every_ray_call(device, rng, reference):
         assert ours.intersects_first(o[k], d[k]).tolist() == ref.intersects_first(o[k:k + 1], d[k:k + 1]).tolist()
 
 
+def test_one_origin_serves_every_ray_in_every_ray_call(device, rng, reference):
+    # The queries take one origin for many directions; intersects_id then indexed the hit
+    # locations by ray ids past the one origin row (an IndexError). Oracle: trimesh's answers for
+    # the origin repeated on every row (trimesh itself takes only equal shapes).
+    mesh, o, d = _scene(rng)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    eye = np.array([[0.3, -0.2, -4.0]])
+    tiled = np.repeat(eye, len(o), axis=0)
+    d = rng.normal(scale=0.3, size=o.shape) - eye  # from one eye toward points inside the sphere
+    tri, ray = ours.intersects_id(eye, d)
+    tri_ref, ray_ref = ref.intersects_id(tiled, d)
+    assert len(tri_ref) > 50
+    assert sorted(zip(ray.tolist(), tri.tolist())) == sorted(zip(ray_ref.tolist(), tri_ref.tolist()))
+    locations, ray, tri = ours.intersects_location(eye, d)
+    assert np.array_equal(ray, ours.intersects_location(tiled, d)[1])
+    np.testing.assert_allclose(locations, ours.intersects_location(tiled, d)[0])
+    assert np.array_equal(ours.intersects_first(eye, d), ref.intersects_first(tiled, d))
+    assert np.array_equal(ours.intersects_any(o, d[:1]), ref.intersects_any(o, np.repeat(d[:1], len(o), axis=0)))
+    with pytest.raises(ValueError, match="differ in shape"):
+        ours.intersects_id(o[:2], d[:3])
+
+
 def test_nearest_vertex_is_trimeshs(device, rng):
     pytest.importorskip("scipy")  # trimesh's KD-tree
     from hlbvh_warp import ProximityQuery
