@@ -114,7 +114,9 @@ def cost_from_sum(bvh: Bvh, total: float, count: int, t_traversal: float, t_inte
     extent = upper - lower
     root_area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0])
     if root_area > 0.0:
-        return float(total / root_area)
+        # An infinite root (a frame that blew up) prices as NaN, quietly: the caller decides.
+        with np.errstate(invalid="ignore"):
+            return float(total / root_area)
     # Zero-area root: every ratio is taken as 1, so the cost is the sum of the terms of a binary
     # tree with N references in (count + 1) / 2 leaves.
     return float(2.0 * t_traversal * ((count + 1) // 2 - 1) + t_intersect * bvh.num_refs)

@@ -687,3 +687,128 @@ def test_auto_rules_from_a_set_history(device, rng, case):
     else:
         assert report["reason"].startswith("chaotic motion") and builder.chaotic_frames == 1, report
         assert "sah" in report["stages_skipped"] and builder.sah_reference == reference, report
+
+
+# ----------------------------------------------------------------- pinned by the second mutation audit
+def _soup(rng, n):
+    c = rng.random((n, 1, 3))
+    v = (c + 0.02 * rng.standard_normal((n, 3, 3))).reshape(-1, 3).astype(np.float32)
+    return v, np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("moved_vertex", [0, 4095, 4096, 4499])
+def test_auto_measures_and_loads_every_vertex_past_one_chunk(device, moved_vertex):
+    # The CPU motion measure runs in chunks of vertices (builder.MOTION_CHUNK_CPU): one vertex at a
+    # chunk's end, never measured, left the frame "unchanged" and the tree stale.
+    v, f = _soup(np.random.default_rng(0), 1500)  # 4,500 vertices: more than one chunk
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(v, f)
+    moved = v.copy()
+    moved[moved_vertex] += np.float32(1e-3)
+    report = builder.update(moved)
+    expected = float(np.sqrt(((moved.astype(np.float64) - v) ** 2).sum(1)).max())
+    assert report["decision"] != "none", report
+    assert report["max_displacement"] == pytest.approx(expected, rel=1e-6)
+    np.testing.assert_array_equal(builder.vertices.numpy(), moved)
+
+
+def test_a_frame_half_written_in_place_loads_the_other_half(device, rng):
+    # Lowers written into the builder's buffer, new uppers passed as an array: both must count.
+    lo = rng.random((300, 3)).astype(np.float32)
+    builder = Builder(300, device=device, policy="rebuild")
+    builder.build_from_bounds(lo, lo + np.float32(0.01))
+    lo2, hi2 = lo + np.float32(0.5), lo + np.float32(0.51)
+    builder.prim_lowers.assign(lo2)
+    builder.rebuild(bounds=(builder.prim_lowers, hi2))
+    np.testing.assert_array_equal(builder.bvh.to_numpy()["prim_uppers"], hi2)
+    q_lo, q_hi = lo2[:20], hi2[:20]
+    assert np.array_equal(hw.query_aabb(builder.bvh, q_lo, q_hi), brute_overlaps(lo2, hi2, q_lo, q_hi).sum(1))
+
+
+def test_a_view_from_before_a_set_up_with_more_vertices_reads_in_bounds(device, rng):
+    from hlbvh_warp import query
+
+    v, f = _soup(rng, 200)
+    builder = Builder(len(f), device=device)
+    builder.build(v, f)
+    old = query.view(builder.bvh)
+    builder.build(np.concatenate([v, rng.random((600, 3)).astype(np.float32)]), (f + 600).astype(np.int32))
+    assert int(old.faces.numpy().max()) < old.vertices.shape[0]
+
+
+def test_auto_motion_exactly_at_the_large_limit_is_not_large(device, rng):
+    # `large_motion`: a rebuild when a vertex moved farther than this fraction, not as far.
+    v, f = _soup(rng, 500)
+    moved = v.copy()
+    moved[0] += np.float32(0.01)
+    probe = Builder(len(f), device=device, policy="auto")
+    probe.build(v, f)
+    limit = probe.update(moved)["relative_motion"]
+    builder = Builder(len(f), device=device, policy="auto", large_motion=limit)
+    builder.build(v, f)
+    report = builder.update(moved)
+    assert report["relative_motion"] == limit and not report["reason"].startswith("large motion"), report
+
+
+def test_auto_projects_with_the_larger_of_the_last_and_the_mean_step(device, rng):
+    # Growths 0.04 then 0.07 over two refits: last step 0.03, mean step 0.035, so on course for
+    # 0.07 + 0.035 = 0.105, past the 0.10 limit (with the last step alone, 0.10: not past it).
+    v, f = _soup(rng, 1500)
+    builder = Builder(len(f), device=device, policy="auto", sah_growth_limit=0.10, max_refits=8)
+    builder.build(v, f)
+    builder.refits_since_rebuild, builder.previous_growth, builder.last_growth = 2, 0.04, 0.07
+    report = builder.update(v + np.float32(1e-4))
+    assert report["decision"] == "rebuild" and "on course" in report["reason"], report
+
+
+def test_a_new_mesh_starts_with_no_chaotic_wait(device, rng):
+    v, f = _soup(rng, 1500)
+    builder = Builder(len(f), device=device, policy="auto", max_refits=8)
+    builder.build(v, f)
+    builder.chaotic_frames = 5  # as after a refit that failed on its first frame
+    v2, _ = _soup(rng, 1500)
+    builder.build(v2, f)
+    report = builder.update(v2 + np.float32(1e-5))
+    assert not report["reason"].startswith("chaotic"), report
+
+
+def test_an_infinite_frame_sets_no_reference_for_later_refits(device, rng):
+    # A non-finite frame written in place is rebuilt and priced; its cost must not become the
+    # reference a later refit is compared with (that refit would fail and start a chaotic wait).
+    v, f = _soup(rng, 1500)
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(v, f)
+    bad = v.copy()
+    bad[7] = np.inf  # (a NaN corner drops out of the box min/max; an infinite one does not)
+    builder.vertices.assign(bad)
+    builder.update()
+    builder.refit(v)
+    builder.update(v + np.float32(1e-5))
+    assert builder.update(v + np.float32(2e-5))["decision"] == "refit"
+
+
+def test_the_exploding_scene_scales_with_the_mesh(device, rng):
+    v, f = _soup(rng, 300)
+    a = ExplodingMesh(v, f, device=device, seed=4).update(0.5).numpy().astype(np.float64)
+    b = ExplodingMesh(v * np.float32(1000.0), f, device=device, seed=4).update(0.5).numpy().astype(np.float64)
+    assert np.abs(b / 1000.0 - a).max() / np.abs(a).max() < 1e-4
+
+
+@pytest.mark.parametrize("amount", [-0.5, 0.5])
+def test_bending_either_way_matches_the_float64_bend(device, rng, amount):
+    v, f = _soup(rng, 400)
+    mesh = BendingMesh(v, f, device=device)
+    got = mesh.update(amount).numpy().astype(np.float64)
+    # The documented bend in float64: about the inner surface (lo or hi on the bend axis by sign).
+    curv = amount * mesh.max_angle / mesh.length
+    L, B = mesh.length_axis, mesh.bend_axis
+    inner = mesh._inner[1] if amount < 0 else mesh._inner[0]
+    origin = mesh.origin + (inner - mesh.origin @ B) * B
+    p = v.astype(np.float64) - origin
+    along, across = p @ L, p @ B
+    other = p - along[:, None] * L - across[:, None] * B
+    radius = 1.0 / curv
+    r = radius - across
+    theta = along * curv
+    want = origin + (r * np.sin(theta))[:, None] * L + (radius - r * np.cos(theta))[:, None] * B + other
+    assert np.abs(got - want).max() / mesh.length < 1e-4

@@ -335,3 +335,21 @@ def test_resort_sample_spans_the_whole_previous_order(device, rng):
     assert exact - first_half > 0.3, (exact, first_half)  # the scene does what the test means
     sampled = builder.last_report["sampled_run_fraction"]
     assert abs(sampled - exact) < 0.1, (sampled, exact)  # 256 samples: one standard error 0.03
+
+
+def test_the_resort_sample_reaches_the_last_pair(device):
+    # With as many samples as adjacent pairs every pair is sampled, the last one included: here
+    # it alone descends (codes ascend with x otherwise).
+    from hlbvh_warp.kernels import dynamic as dynamic_kernels
+
+    n = 257
+    lo = np.zeros((n, 3), np.float32)
+    lo[:, 0] = np.linspace(0.0, 1.0, n, dtype=np.float32)
+    order = np.arange(n, dtype=np.int32)
+    order[-2:] = order[-2:][::-1]
+    bounds = wp.array(np.array([[0, 0, 0], [1, 1, 1]], np.float32), dtype=wp.vec3, device=device)
+    breaks = wp.zeros(2, dtype=wp.int32, device=device)
+    boxes = wp.array(lo, dtype=wp.vec3, device=device)
+    wp.launch(dynamic_kernels.sample_run_breaks_kernel, dim=n - 1, device=device,
+              inputs=[wp.array(order, device=device), boxes, boxes, bounds, 10, n, n - 1, 0, breaks])
+    assert int(breaks.numpy()[1]) == 1

@@ -287,3 +287,51 @@ def test_scratch_cache_counts_a_replaced_set_once():
     assert cache.take("a") is not None and cache.held_bytes == 50
     cache.trim(0)
     assert cache.held_bytes == 0 and not cache._entries
+
+
+# ----------------------------------------------------------------- pinned by the second mutation audit
+KIB = 1024
+
+
+@pytest.mark.parametrize("set_first", [True, False])
+def test_idle_blocks_and_kept_sets_share_one_cap_either_way_round(pool, set_first):
+    limit = 4 * 1024 * KIB
+    memory.set_host_cache_limit(limit)
+    if set_first:
+        memory.give_back_scratch("set", object(), 3 * 1024 * KIB)
+    block = memory.empty(2 * 1024 * KIB // 4, wp.float32, "cpu")
+    del block
+    gc.collect()
+    if not set_first:
+        memory.give_back_scratch("set", object(), 3 * 1024 * KIB)
+    assert 0 < memory.host_cache_bytes() <= limit
+
+
+def test_trim_drops_the_largest_blocks_first_and_no_more_than_asked():
+    pool = memory.HostBufferPool(limit=1 << 30)
+    blocks = [pool.empty(n // 4, wp.float32, "cpu") for n in (64 * KIB, 128 * KIB, 1024 * KIB)]
+    del blocks
+    gc.collect()
+    total = pool.idle_bytes
+    pool.trim(total)  # already within: nothing goes
+    assert pool.idle_bytes == total
+    pool.trim(total - 1)  # the largest block goes, and only it
+    assert sorted(size for size, idle in pool._idle.items() for _ in idle) == [64 * KIB, 128 * KIB]
+
+
+def test_a_set_larger_than_the_cap_is_not_kept_and_evicts_nothing(pool):
+    memory.set_host_cache_limit(1024 * KIB)
+    memory.give_back_scratch("small", object(), 100 * KIB)
+    memory.give_back_scratch("huge", object(), 2048 * KIB)
+    assert memory.take_scratch("huge") is None
+    assert memory.take_scratch("small") is not None
+
+
+def test_pooling_starts_at_its_documented_size_and_classes_waste_at_most_an_eighth(pool):
+    array = memory.empty(memory.MIN_POOLED_BYTES // 4, wp.int32, "cpu")
+    del array
+    gc.collect()
+    assert memory._POOL.idle_bytes == memory.MIN_POOLED_BYTES
+    sizes = np.arange(512 * KIB + 4, 4096 * KIB, 36 * KIB + 4)
+    assert max(memory._size_class(int(n)) / n - 1.0 for n in sizes) <= 0.125
+    assert all(memory._size_class(int(n)) >= n for n in sizes)

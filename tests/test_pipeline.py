@@ -700,3 +700,19 @@ def test_input_forms_and_their_checks(device):
         hb.build_from_bounds(np.zeros((4, 3)), np.ones((5, 3)), device=device)
     with pytest.raises(ValueError, match="no primitives"):
         hb.build_from_bounds(np.zeros((0, 3)), np.zeros((0, 3)), device=device)
+
+
+# ----------------------------------------------------------------- pinned by the second mutation audit
+def test_vertex_input_edges(device):
+    faces = [[0, 1, 2]]
+    # float32's largest value, given as float64, fits exactly: accepted (only beyond it is refused).
+    big = float(np.finfo(np.float32).max)
+    bvh = hb.build(np.array([[0, 0, 0], [1, 0, 0], [0, big, 0]], np.float64), faces, device=device)
+    assert bvh.to_numpy()["node_uppers"][0][1] == np.float32(big)
+    with pytest.raises(ValueError, match="beyond the float32 range"):
+        hb.build(np.array([[0, 0, 0], [1, 0, 0], [0, 2 * big, 0]], np.float64), faces, device=device)
+    # A flat NumPy array is not (n, 3) vertices (only a flat wp.array of floats is read as rows).
+    with pytest.raises(ValueError, match=r"must have shape \(n, 3\)"):
+        hb.build(np.array([0, 0, 0, 1, 0, 0, 0, 1, 0], np.float32), faces, device=device)
+    with pytest.raises(ValueError, match="real numbers"):
+        hb.build(np.eye(3, dtype=bool), faces, device=device)

@@ -38,7 +38,7 @@ from hlbvh_warp import api, host_morton, query, stress_report
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.bvh import bvh_from_numpy
 from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
-from hlbvh_warp.kernels import traversal
+from hlbvh_warp.kernels import proximity, traversal
 
 api._load_optional_builders()
 METHODS = sorted(api.BUILDERS)
@@ -971,3 +971,38 @@ def test_morton_codes_interleave_bits():
     pts = np.array([[0, 0, 0], [1, 1, 1], [np.nan, 0, 0], [0.5, 0.5, 0.5]], np.float32)
     codes = host_morton.morton_codes(pts)
     assert codes[0] == 0 and codes[1] == (1 << 30) - 1 and codes[2] > codes[1] and 0 < codes[3] < codes[1]
+
+
+# ----------------------------------------------------------------- pinned by the second mutation audit
+@wp.kernel
+def _exact_normals_kernel(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), c: wp.array(dtype=wp.vec3),
+                          out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    out[i] = proximity.exact_normal(a[i], b[i], c[i])
+
+
+def test_exact_normal_is_within_an_ulp_of_the_rational_cross_product(device):
+    """Needles whose vertices differ widely in magnitude, where the float64 cross product cancels
+    badly: each component of `proximity.exact_normal` within about an ulp of the exact one."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(3)
+    n = 400
+    a = (rng.standard_normal((n, 3)) * 10.0 ** rng.uniform(-3, 7, (n, 1))).astype(np.float32)
+    direction = rng.standard_normal((n, 3))
+    b = (a + direction * 10.0 ** rng.uniform(-3, 3, (n, 1))).astype(np.float32)
+    c = (a + (direction + 1e-5 * rng.standard_normal((n, 3))) * 10.0 ** rng.uniform(-3, 3, (n, 1))).astype(np.float32)
+    out = wp.zeros(n, dtype=wp.vec3d, device=device)
+    wp.launch(_exact_normals_kernel, dim=n, device=device,
+              inputs=[wp.array(x, dtype=wp.vec3, device=device) for x in (a, b, c)] + [out])
+    got = out.numpy()
+    worst = 0.0
+    for i in range(n):
+        pa, pb, pc = ([Fraction(float(x)) for x in p[i]] for p in (a, b, c))
+        u = [pb[k] - pa[k] for k in range(3)]
+        w = [pc[k] - pa[k] for k in range(3)]
+        exact = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]]
+        for k in range(3):
+            if exact[k] != 0:
+                worst = max(worst, float(abs(Fraction(float(got[i][k])) - exact[k]) / abs(exact[k])))
+    assert worst <= 2.0**-51

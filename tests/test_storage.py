@@ -64,6 +64,11 @@ def test_a_box_tree_comes_back_the_same(device, rng, tmp_path):
                  os.fsencode(tmp_path / "boxes.npz")):
         np.testing.assert_array_equal(hb.load_bvh(name, device=device).to_numpy()["node_left"],
                                       loaded.to_numpy()["node_left"])
+    # Where a file sits at the name itself, that file is the one read, not the .npz beside it.
+    other = hb.build_from_bounds(lo[:10], hi[:10], device=device)
+    hb.save_bvh(other, tmp_path / "ten")
+    os.replace(tmp_path / "ten.npz", tmp_path / "boxes")
+    assert hb.load_bvh(tmp_path / "boxes", device=device).num_prims == 10
     assert loaded.vertices is None and loaded.faces is None
     np.testing.assert_array_equal(loaded.to_numpy()["prim_lowers"], lo)
     q_lo, q_hi = lo[:50] - 0.01, hi[:50] + 0.01
@@ -302,3 +307,111 @@ def test_save_through_a_link_keeps_the_link_and_the_files_permissions(device, tm
     long_name = tmp_path / ("t" * 240 + ".npz")  # the temporary name is short, whatever the target's
     hb.save_bvh(bvh, long_name)
     assert hb.load_bvh(long_name, device=device).num_prims == len(faces)
+
+
+# ----------------------------------------------------------------- pinned by the second mutation audit
+def _arrays_of(bvh, tmp_path):
+    path = tmp_path / "source.npz"
+    hb.save_bvh(bvh, path)
+    with np.load(path) as data:
+        return {name: data[name].copy() for name in data.files}
+
+
+def _sbvh_arrays(tmp_path, device, leaf=1):
+    rng = np.random.default_rng(1)
+    c = rng.uniform(0.0, 1.0, (120, 1, 3))
+    tris = np.concatenate([c + 0.03 * rng.normal(size=(120, 3, 3)), rng.uniform(0.0, 1.0, (8, 3, 3))])
+    verts = tris.reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    bvh = hb.build(verts, faces, method="sbvh", device=device, config=BuildConfig(sbvh_alpha=0.0, max_leaf_size=leaf))
+    assert bvh.has_duplicates
+    return _arrays_of(bvh, tmp_path)
+
+
+def _whole_triangle_leaf(arrays):
+    """A leaf of a spatial-split tree listing only triangles no other leaf lists."""
+    order, counts = arrays["prim_order"], np.bincount(arrays["prim_order"])
+    return next(int(f) for f in _leaves(arrays)
+                if (counts[order[arrays["node_begin"][f]:arrays["node_end"][f]]] == 1).all())
+
+
+def _more_corruptions(tmp_path, device):
+    """(what, arrays) for checks of box trees and spatial-split trees the mesh file above cannot
+    reach; each such file loaded (queries then missed boxes or triangles) or raised another error
+    when its check was taken out."""
+    rng = np.random.default_rng(2)
+    lo = rng.random((64, 3)).astype(np.float32)
+    boxes = _arrays_of(hb.build_from_bounds(lo, lo + np.float32(0.05), method="binned_sah", device=device), tmp_path)
+    out = []
+
+    def box_case(what, edit):
+        a = {k: v.copy() for k, v in boxes.items()}
+        edit(a)
+        out.append((what, a))
+
+    leaf = next(int(f) for f in _leaves(boxes) if boxes["node_parent"][f] > 0)
+    prim = int(boxes["prim_order"][boxes["node_begin"][leaf]])
+    outside = np.float32(boxes["node_lowers"][0][0] - 1.0)
+    box_case("NaN primitive box", lambda a: a["prim_lowers"].__setitem__((5, 0), np.nan))
+    box_case("inverted primitive box", lambda a: a.update(prim_lowers=boxes["prim_uppers"].copy(),
+                                                          prim_uppers=boxes["prim_lowers"].copy()))
+    box_case("primitive box below its leaf", lambda a: a["prim_lowers"].__setitem__((prim, 0), outside))
+
+    def leaf_below_parent(a):
+        a["prim_lowers"][prim, 0] = outside
+        a["node_lowers"][leaf, 0] = outside  # the leaf holds its box; it leaves its parent
+    box_case("child below its parent", leaf_below_parent)
+    box_case("one primitive box short", lambda a: a.update(prim_lowers=boxes["prim_lowers"][:-1],
+                                                           prim_uppers=boxes["prim_uppers"][:-1]))
+    box_case("method not a name", lambda a: a.update(meta=_meta(boxes, method={"not": "a name"})))
+
+    split = _sbvh_arrays(tmp_path, device)
+    order, counts = split["prim_order"], np.bincount(split["prim_order"])
+    whole = _whole_triangle_leaf(split)
+
+    def split_case(what, edit, arrays=split):
+        a = {k: v.copy() for k, v in arrays.items()}
+        edit(a)
+        out.append((what, a))
+
+    duplicated = int(np.nonzero(counts[order] > 1)[0][0])
+    split_case("split tree: primitive id equal to the count",
+               lambda a: a["prim_order"].__setitem__(duplicated, len(split["faces"])))
+    split_case("split tree: whole-triangle leaf's lower corner raised",
+               lambda a: a["node_lowers"].__setitem__(whole, split["node_uppers"][whole]))
+    upper = split["node_uppers"][whole]
+    split_case("split tree: whole-triangle leaf cut 100 ulps inside",
+               lambda a: a["node_uppers"].__setitem__(
+                   whole, upper - np.float32(100 * np.finfo(np.float32).eps) * np.abs(upper).max()))
+    wide_leaves = _sbvh_arrays(tmp_path, device, leaf=4)
+    assert wide_leaves["node_end"][wide_leaves["node_begin"] == 0].min() > 1
+    split_case("split tree: the root's range begins at 1",
+               lambda a: a["node_begin"].__setitem__(wide_leaves["node_begin"] == 0, 1), wide_leaves)
+
+    # By hand: ten boxes on a line whose children's ranges are not side by side (the right child
+    # of the root ends at 9, not 10): box 9 is in no walk's range, and box 5 in two.
+    lo = np.stack([np.arange(10), np.zeros(10), np.zeros(10)], 1).astype(np.float32)
+    hi = lo + np.float32(0.5)
+    begin = np.array([0, 0, 5, 0, 3, 5, 7], np.int32)
+    end = np.array([10, 5, 9, 3, 6, 7, 9], np.int32)
+    node_lo, node_hi = np.zeros((7, 3), np.float32), np.zeros((7, 3), np.float32)
+    for n, ps in {3: [0, 1, 2], 4: [3, 4, 5], 5: [5, 6, 7], 6: [7, 8, 9]}.items():
+        node_lo[n], node_hi[n] = lo[ps].min(0), hi[ps].max(0)
+    for n, (left, right) in {1: (3, 4), 2: (5, 6), 0: (1, 2)}.items():
+        node_lo[n], node_hi[n] = np.minimum(node_lo[left], node_lo[right]), np.maximum(node_hi[left], node_hi[right])
+    meta = {"format": json.loads(str(boxes["meta"]))["format"], "version": json.loads(str(boxes["meta"]))["version"],
+            "method": "binned_sah", "num_prims": 10, "config": {}}
+    out.append(("ranges not side by side at the right end", dict(
+        node_left=np.array([1, 3, 5, -1, -1, -1, -1], np.int32), node_right=np.array([2, 4, 6, -1, -1, -1, -1], np.int32),
+        node_parent=np.array([-1, 0, 0, 1, 1, 2, 2], np.int32), node_begin=begin, node_end=end,
+        node_lowers=node_lo, node_uppers=node_hi, prim_order=np.arange(10, dtype=np.int32), prim_lowers=lo,
+        prim_uppers=hi, meta=np.array(json.dumps(meta)))))
+    return out
+
+
+def test_box_and_spatial_split_files_are_refused_by_name(device, tmp_path):
+    for what, bad in _more_corruptions(tmp_path, device):
+        path = _write(tmp_path, bad)
+        with pytest.raises(ValueError) as error:
+            hb.load_bvh(path, device=device)
+        assert str(path) in str(error.value), (what, str(error.value))

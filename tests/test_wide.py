@@ -304,3 +304,15 @@ def test_wide_sah_of_a_zero_area_tree(device, width):
     assert wide.sah_cost(w, 1.5, 2.0) == pytest.approx(1.5 * slots + 2.0 * n, rel=1e-12)
     if width == 2:
         assert wide.sah_cost(w, 1.5, 2.0) == pytest.approx(2 * 1.5 * (n - 1) + 2.0 * n, rel=1e-12)
+
+
+def test_a_tiny_direction_gives_the_distance_in_its_units(device):
+    # As the binary walk does (traversal.ray_direction_scale): the scaled walk's t scaled back.
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, -1], [1, 0, -1], [0, 1, -1]], np.float32)
+    f = np.array([[0, 1, 2], [3, 4, 5]], np.int32)
+    bvh = hw.build(v, f, device=device)
+    o, d = np.array([[0.2, 0.2, 1.0]], np.float32), np.array([[0.0, 0.0, -1e-30]], np.float32)
+    expected = 1.0 / np.float64(np.float32(1e-30))  # the plane z = 0 at distance 1
+    for width in (2, 4, 8):
+        t, prim = wide.intersect(wide.collapse(bvh, width=width), o, d)
+        assert prim[0] == 0 and t[0] == pytest.approx(expected, rel=1e-5), width
