@@ -33,7 +33,8 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
             w = np.einsum("rk,rfk->rf", d[:, 0], q) * inv
             t = np.einsum("rfk,fk->rf", q, e2) * inv
             eps = 1e-12
-            ok = (det != 0) & (u >= -eps) & (w >= -eps) & (u + w <= 1 + eps) & (t > 0) & (t < limits[s : s + chunk, None])
+            ok = (det != 0) & (u >= -eps) & (w >= -eps) & (u + w <= 1 + eps) & (t > 0)
+            ok &= t < limits[s : s + chunk, None]
             ok &= np.isfinite(t)
             t = np.where(ok, t, np.inf)
             idx = np.argmin(t, axis=1)

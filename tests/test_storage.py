@@ -402,7 +402,8 @@ def _more_corruptions(tmp_path, device):
     meta = {"format": json.loads(str(boxes["meta"]))["format"], "version": json.loads(str(boxes["meta"]))["version"],
             "method": "binned_sah", "num_prims": 10, "config": {}}
     out.append(("ranges not side by side at the right end", dict(
-        node_left=np.array([1, 3, 5, -1, -1, -1, -1], np.int32), node_right=np.array([2, 4, 6, -1, -1, -1, -1], np.int32),
+        node_left=np.array([1, 3, 5, -1, -1, -1, -1], np.int32),
+        node_right=np.array([2, 4, 6, -1, -1, -1, -1], np.int32),
         node_parent=np.array([-1, 0, 0, 1, 1, 2, 2], np.int32), node_begin=begin, node_end=end,
         node_lowers=node_lo, node_uppers=node_hi, prim_order=np.arange(10, dtype=np.int32), prim_lowers=lo,
         prim_uppers=hi, meta=np.array(json.dumps(meta)))))

@@ -214,7 +214,8 @@ def test_walks_past_the_stack_write_in_bounds(device, tmp_path):
     tests_dir = str(Path(__file__).resolve().parent)
     result = subprocess.run([sys.executable, str(script), device, tests_dir], capture_output=True, text=True,
                             timeout=600)
-    assert result.returncode == 0 and result.stdout.strip().endswith("ok"), result.stdout[-2000:] + result.stderr[-4000:]
+    output = result.stdout[-2000:] + result.stderr[-4000:]
+    assert result.returncode == 0 and result.stdout.strip().endswith("ok"), output
 
 
 def test_tiny_triangles_at_every_scale(device, rng):
