@@ -12,6 +12,7 @@ import warp as wp
 
 import hlbvh_warp as hw
 from hlbvh_warp import hlbvh, query, spatial_split, wide
+from hlbvh_warp.kernels import spatial_split as sk
 from hlbvh_warp.metrics import end_point_overlap, sah_cost
 from oracles import (assert_hits_match, brute_force_closest_hit, numpy_end_point_overlap, random_rays,
                      sbvh_root_candidates, triangle_slab_bounds)
@@ -374,28 +375,26 @@ def test_boxes_ending_on_a_plane_price_like_the_enumeration(device, rng, bins):
     check_parts_bounded(bvh, verts, faces)
 
 
+@wp.kernel
+def _part_boxes_kernel(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), c: wp.array(dtype=wp.vec3),
+                       slab: wp.array(dtype=wp.vec2), out_lo: wp.array(dtype=wp.vec3), out_hi: wp.array(dtype=wp.vec3)):
+    """The box of the part of each triangle within its x slab, as the spatial-split search clips it."""
+    i = wp.tid()
+    lo = wp.min(wp.min(a[i], b[i]), c[i])
+    hi = wp.max(wp.max(a[i], b[i]), c[i])
+    polygon, count = sk.triangle_in_box(a[i], b[i], c[i], lo, hi)
+    margin = sk.clip_margin(a[i], b[i], c[i])
+    part_lo, part_hi = sk.slab_part_box(polygon, count, 0, lo, hi, slab[i][0], slab[i][1], margin)
+    out_lo[i] = part_lo
+    out_hi[i] = part_hi
+
+
 def test_clipped_part_boxes_hold_the_exact_parts(device, rng):
     # The kernels' slab_part_box on long triangles in the plane y = -x spanning +-1e6, cut into
     # slabs near the origin: each box must hold the exact part (x in [p0, p1], y = -x, z from
     # z0 up to the slanted edge), computed here in rationals. The float64 clip is off by about
     # 1e-10 there, far more than a float32 unit of the part's coordinates.
     from fractions import Fraction
-
-    import warp as wp
-
-    from hlbvh_warp.kernels import spatial_split as sk
-
-    @wp.kernel
-    def part_boxes(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), c: wp.array(dtype=wp.vec3),
-                   slab: wp.array(dtype=wp.vec2), out_lo: wp.array(dtype=wp.vec3), out_hi: wp.array(dtype=wp.vec3)):
-        i = wp.tid()
-        lo = wp.min(wp.min(a[i], b[i]), c[i])
-        hi = wp.max(wp.max(a[i], b[i]), c[i])
-        polygon, count = sk.triangle_in_box(a[i], b[i], c[i], lo, hi)
-        margin = sk.clip_margin(a[i], b[i], c[i])
-        part_lo, part_hi = sk.slab_part_box(polygon, count, 0, lo, hi, slab[i][0], slab[i][1], margin)
-        out_lo[i] = part_lo
-        out_hi[i] = part_hi
 
     radius = np.float32(1e6)
     num = 400
@@ -409,7 +408,7 @@ def test_clipped_part_boxes_hold_the_exact_parts(device, rng):
     slab = wp.array(np.stack([p0, p1], 1), dtype=wp.vec2, device=device)
     out_lo = wp.zeros(num, dtype=wp.vec3, device=device)
     out_hi = wp.zeros(num, dtype=wp.vec3, device=device)
-    wp.launch(part_boxes, dim=num, inputs=[*arrays, slab, out_lo, out_hi], device=device)
+    wp.launch(_part_boxes_kernel, dim=num, inputs=[*arrays, slab, out_lo, out_hi], device=device)
     lo, hi = out_lo.numpy(), out_hi.numpy()
     r = Fraction(float(radius))
     for i in range(num):
@@ -420,6 +419,51 @@ def test_clipped_part_boxes_hold_the_exact_parts(device, rng):
         for d in range(3):
             assert Fraction(float(lo[i, d])) <= exact_lo[d], (i, d, "lower")
             assert Fraction(float(hi[i, d])) >= exact_hi[d], (i, d, "upper")
+
+
+def _clip_exact(polygon, axis, bound, sign):
+    """Sutherland-Hodgman against one plane, in rationals: the part with sign * (p - bound) >= 0."""
+    out = []
+    for i in range(len(polygon)):
+        p, q = polygon[i], polygon[(i + 1) % len(polygon)]
+        dp, dq = sign * (p[axis] - bound), sign * (q[axis] - bound)
+        if dp >= 0:
+            out.append(p)
+        if (dp >= 0) != (dq >= 0):
+            t = dp / (dp - dq)
+            out.append(tuple(p[k] + t * (q[k] - p[k]) for k in range(3)))
+    return out
+
+
+def test_clipped_part_boxes_hold_the_exact_parts_when_z_is_large(device, rng):
+    # Triangles in the plane z = -1e6 x, x in [-1, 1]: only z carries large coordinates, so the
+    # clip's margin must look at z too (a mutation audit found a margin of x and y alone passing
+    # the test above, whose large coordinates are in x and y). Oracle: the part clipped in rationals.
+    from fractions import Fraction
+
+    num, big = 400, 1.0e6
+    y0 = rng.integers(0, 8, num).astype(np.float64)
+    a = np.stack([np.full(num, -1.0), y0, np.full(num, big)], 1).astype(np.float32)
+    b = np.stack([np.full(num, 1.0), y0, np.full(num, -big)], 1).astype(np.float32)
+    c = np.stack([np.full(num, -1.0), y0 + 1.0, np.full(num, big)], 1).astype(np.float32)
+    s0 = (10.0 ** rng.uniform(-12, -6, num) * rng.choice([-1.0, 1.0], num)).astype(np.float32)
+    s1 = (s0 + np.abs(s0) * rng.uniform(1e-3, 1.0, num)).astype(np.float32)
+    out_lo, out_hi = wp.zeros(num, dtype=wp.vec3, device=device), wp.zeros(num, dtype=wp.vec3, device=device)
+    wp.launch(_part_boxes_kernel, dim=num, device=device,
+              inputs=[*(wp.array(x, dtype=wp.vec3, device=device) for x in (a, b, c)),
+                      wp.array(np.stack([s0, s1], 1), dtype=wp.vec2, device=device), out_lo, out_hi])
+    lo, hi = out_lo.numpy(), out_hi.numpy()
+    checked = 0
+    for i in range(num):
+        tri = [tuple(Fraction(float(v)) for v in p) for p in (a[i], b[i], c[i])]
+        part = _clip_exact(_clip_exact(tri, 0, Fraction(float(s0[i])), 1), 0, Fraction(float(s1[i])), -1)
+        if not part:
+            continue
+        checked += 1
+        for k in range(3):
+            assert Fraction(float(lo[i][k])) <= min(p[k] for p in part), (i, k, "lower")
+            assert Fraction(float(hi[i][k])) >= max(p[k] for p in part), (i, k, "upper")
+    assert checked > 300
 
 
 def test_no_spatial_search_where_the_object_split_does_not_overlap(device, rng):

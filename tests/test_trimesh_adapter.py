@@ -320,3 +320,20 @@ def test_nearest_vertex_is_trimeshs(device, rng):
     all_distances = np.linalg.norm(points[:, None] - mesh.vertices[None], axis=2)
     np.testing.assert_allclose(distance, all_distances.min(axis=1), rtol=1e-12)
     np.testing.assert_array_equal(vertex, all_distances.argmin(axis=1))
+
+
+def test_signed_distance_of_a_point_in_a_face_plane_outside_the_mesh(device):
+    # A point in the plane of its closest triangle, just outside that triangle's edge: the normal
+    # cannot side it, and the answer must still say outside (negative, trimesh's sign).
+    from hlbvh_warp import ProximityQuery
+
+    size = 1.0e4
+    box = trimesh.creation.box(extents=(size, size, size))
+    box.apply_translation((size / 2, size / 2, size / 2))  # [0, size]^3
+    faces = np.asarray(box.faces)
+    bottom = (np.asarray(box.vertices)[faces][:, :, 2] == 0).all(axis=1)
+    # The bottom face's triangles first, so that they win the distance tie at the edge.
+    mesh = trimesh.Trimesh(box.vertices, np.concatenate([faces[bottom], faces[~bottom]]), process=False)
+    points = np.array([[0.3 * size, -1.0e-5, 0.0], [0.3 * size, 1.0e-5, 0.0]])  # out of and on the box
+    sd = ProximityQuery(mesh, device=device).signed_distance(points)
+    assert sd[0] < 0 and sd[1] == pytest.approx(0.0, abs=1e-3), sd
