@@ -245,9 +245,7 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     _require_mesh(bvh, "occluded")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    t_arr = _t_max_values(t_max, num_rays)
-    if t_arr.shape[0] != num_rays:
-        t_arr = np.full(num_rays, t_arr[0], dtype=np.float32)
+    t_arr = _t_max_values(t_max, num_rays)  # one limit, or one per ray (`traversal.ray_limit`)
     device = bvh.device
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)

@@ -1166,7 +1166,7 @@ def occluded_kernel(
     prims_tested: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
-    h = bvh_any_hit(bvh, origins[tid], directions[tid], t_max[tid])
+    h = bvh_any_hit(bvh, origins[tid], directions[tid], ray_limit(t_max, tid))
     occluded[tid] = wp.where(h.prim >= 0, 1, 0)
     if nodes_visited.shape[0] > 0:
         nodes_visited[tid] = h.nodes_visited
