@@ -56,6 +56,12 @@ def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
     """(vertices float32 (V, 3), faces int32 (F, 3)) from a trimesh.Trimesh or two arrays."""
     is_mesh = hasattr(mesh, "vertices") and hasattr(mesh, "faces")
     if faces is None:
+        if hasattr(mesh, "geometry") and hasattr(mesh, "graph"):
+            raise ValueError("build() takes one mesh, got a trimesh.Scene: make it one first (scene.to_mesh(), or "
+                             "trimesh.util.concatenate(scene.dump())); face ids then run through its meshes in order")
+        if isinstance(mesh, (list, tuple)) and mesh and all(hasattr(m, "faces") for m in mesh):
+            raise ValueError(f"build() takes one mesh, got a {type(mesh).__name__} of {len(mesh)}: make them one "
+                             "first (trimesh.util.concatenate(meshes)); face ids then run through them in order")
         if not is_mesh:
             raise ValueError("build() takes a trimesh.Trimesh, or vertices with faces=")
         vertices, faces = mesh.vertices, mesh.faces

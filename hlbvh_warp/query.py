@@ -171,6 +171,36 @@ def _t_max_values(t_max, num_rays: int) -> np.ndarray:
         return values.astype(np.float32)
 
 
+def _max_dist_values(max_dist, num_points: int) -> np.ndarray:
+    """``max_dist`` as float32 bounds: ``(1,)`` for one number (or a one-element array),
+    ``(num_points,)`` for one per point. The kernel takes float32: each bound is rounded up, never
+    to nearest, so that a triangle at exactly the float64 bound still counts (inclusive); past
+    float32's range a bound is unbounded."""
+    values = np.asarray(max_dist.numpy() if isinstance(max_dist, wp.array) else max_dist)
+    if values.ndim == 0 and values.dtype.kind not in "fiu":
+        # What float() takes: a Python int past int64 (an object array), "inf", a Fraction.
+        try:
+            values = np.asarray(float(max_dist))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"max_dist must be a number, got {type(max_dist).__name__} {max_dist!r}") from exc
+    if values.dtype.kind not in "fiu":
+        raise ValueError(f"max_dist must hold real numbers, got dtype {values.dtype}")
+    if values.size == 1 and values.ndim <= 1:
+        values = values.reshape(1)
+    elif values.shape != (num_points,):
+        raise ValueError(f"max_dist must be a number or have shape ({num_points},), got {values.shape}")
+    values = values.astype(np.float64)
+    bad = np.flatnonzero(~(values >= 0.0))
+    if bad.size:
+        where = "" if values.shape[0] == 1 else f" (point {bad[0]})"
+        raise ValueError(f"max_dist must be >= 0, got {values[bad[0]]}{where}")
+    with np.errstate(over="ignore"):
+        bounds = values.astype(np.float32)
+    low = bounds.astype(np.float64) < values
+    bounds[low] = np.nextafter(bounds[low], np.float32(np.inf))
+    return bounds
+
+
 def _empty(dtype, device, shape=0):
     return wp.empty(shape, dtype=dtype, device=device)
 
@@ -245,7 +275,7 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     _require_mesh(bvh, "occluded")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    t_arr = _t_max_values(t_max, num_rays)  # one limit, or one per ray (`traversal.ray_limit`)
+    t_arr = _t_max_values(t_max, num_rays)  # one limit, or one per ray (`traversal.query_limit`)
     device = bvh.device
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
@@ -395,8 +425,8 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         points: ``(P, 3)`` query points (NumPy or Warp, any real dtype; a single ``(3,)`` point is
             accepted). A point with a NaN or Inf coordinate finds nothing.
         max_dist: only triangles within this distance (inclusive) count; a point with none finds
-            nothing. A smaller bound is faster: boxes beyond it are never opened. Taken as the
-            float32 at or above it.
+            nothing. One number, or one per point (``(P,)``, NumPy or Warp). A smaller bound is
+            faster: boxes beyond it are never opened. Taken as the float32 at or above it.
         return_barycentrics: also return ``u, v``, the weights of the triangle's second and third
             vertex at the closest point (0 where nothing was found).
         stats: also return a `TraversalStats` (nodes visited, triangles tested per point).
@@ -409,29 +439,19 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
         found: a distance past float32's range (two points near +-3e38) reads inf as well.
 
     Raises:
-        ValueError: a BVH over bare boxes, points of a wrong shape or dtype, or a negative or NaN
-            ``max_dist``.
+        ValueError: a BVH over bare boxes, points of a wrong shape or dtype, or a ``max_dist`` of
+            a wrong shape, negative or NaN (the first such point named).
     """
     _require_mesh(bvh, "closest_point")
     p = inputs.query_array(points, "points")
-    try:
-        max_dist = float(max_dist)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"max_dist must be a number, got {max_dist!r}") from exc
-    if not max_dist >= 0.0:
-        raise ValueError(f"max_dist must be >= 0, got {max_dist}")
-    # The kernel takes a float32 bound: round up, never to nearest, so that a triangle at exactly
-    # max_dist still counts (inclusive); past float32's range it is unbounded.
-    with np.errstate(over="ignore"):
-        bound = np.float32(max_dist)
-    if float(bound) < max_dist:
-        bound = np.nextafter(bound, np.float32(np.inf))
-    max_dist = float(bound)
     num_points = p.shape[0]
+    bounds = _max_dist_values(max_dist, num_points)
     device = bvh.device
     order = _point_order(p, device)
     if order is not None:
         p = p[order]
+        if bounds.shape[0] > 1:
+            bounds = bounds[order]
     out_point = wp.empty(num_points, dtype=wp.vec3, device=device)
     out_distance = wp.empty(num_points, dtype=float, device=device)
     out_prim = wp.empty(num_points, dtype=wp.int32, device=device)
@@ -439,7 +459,8 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
     visits, tests = _optional_outputs(wp.int32, num_points, stats, device)
     if num_points:
         wp.launch(proximity.closest_point_kernel, dim=num_points, device=device,
-                  inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device), max_dist, out_point, out_distance,
+                  inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device),
+                          wp.array(bounds, dtype=float, device=device), out_point, out_distance,
                           out_prim, out_u, out_v, visits, tests])
     out = [out_point.numpy().reshape(num_points, 3), out_distance.numpy(), out_prim.numpy()]
     if return_barycentrics:

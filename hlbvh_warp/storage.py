@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import io
 import json
 import os
 import stat
@@ -38,7 +39,8 @@ _BOX_FIELDS = ("node_lowers", "node_uppers")
 
 @holding_tree
 def save(bvh: Bvh, path, compressed: bool = False) -> None:
-    """Write ``bvh`` to ``path`` (an ``.npz`` file; NumPy adds the suffix if it is missing).
+    """Write ``bvh`` to ``path`` (an ``.npz`` file; the suffix is added if it is missing), or to an
+    open binary file (``open(..., "wb")``, ``io.BytesIO``), as ``np.savez`` takes either.
 
     ``compressed``: zlib the arrays: for the armadillo's ``sbvh`` tree (100k triangles) 5.8 MB
     written in about 0.6 s, against 11.7 MB in 20 ms uncompressed; either loads in under 0.1 s.
@@ -57,6 +59,9 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
             "config": dataclasses.asdict(bvh.config)}
     # A 0-d unicode array: read back without allow_pickle.
     arrays["meta"] = np.array(json.dumps(meta))
+    if hasattr(path, "write"):
+        (np.savez_compressed if compressed else np.savez)(path, **arrays)
+        return
     path = os.fspath(path)
     if not path.endswith(".npz"):
         path += ".npz"  # as NumPy names a file it is given by name
@@ -67,7 +72,12 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
     path = os.path.realpath(path)
     temporary = os.path.join(os.path.dirname(path), f".{os.getpid()}-{threading.get_ident()}.partial")
     try:
-        with open(temporary, "wb") as file:
+        file = open(temporary, "wb")
+    except OSError as error:
+        # Name the file asked for, not the temporary one beside it.
+        raise type(error)(error.errno, f"cannot write {path}: {error.strerror}", os.path.dirname(path)) from None
+    try:
+        with file:
             (np.savez_compressed if compressed else np.savez)(file, **arrays)
         if os.path.exists(path):
             os.chmod(temporary, stat.S_IMODE(os.stat(path).st_mode))
@@ -80,20 +90,29 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
 
 def load(path, device=None) -> Bvh:
     """The BVH saved in ``path``, on ``device`` (default: Warp's default device). A name without
-    the ``.npz`` suffix that `save` added finds the file it wrote.
+    the ``.npz`` suffix that `save` added finds the file it wrote; an open binary file (positioned
+    at the archive's start) is read from.
 
     Raises:
         ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
     """
-    name = os.fsdecode(path)
-    if not name.endswith(".npz") and not os.path.lexists(name) and os.path.isfile(name + ".npz"):
-        path = name + ".npz"  # save(bvh, "tree") wrote tree.npz
+    if hasattr(path, "read"):
+        source, path = io.BytesIO(path.read()), getattr(path, "name", None) or "<file object>"
+    else:
+        name = os.fsdecode(path)
+        if not name.endswith(".npz") and not os.path.lexists(name) and os.path.isfile(name + ".npz"):
+            path = name + ".npz"  # save(bvh, "tree") wrote tree.npz
+        source = os.fspath(path)
     try:
         # np.load takes any other file for a pickle and says so: name what the file is not instead.
-        with open(os.fspath(path), "rb") as file:
-            if file.read(4) != b"PK\x03\x04":
-                raise ValueError("not a saved BVH (not an .npz archive)")
-        with np.load(os.fspath(path), allow_pickle=False) as data:
+        if isinstance(source, io.BytesIO):
+            head = source.getvalue()[:4]
+        else:
+            with open(source, "rb") as file:
+                head = file.read(4)
+        if head != b"PK\x03\x04":
+            raise ValueError("not a saved BVH (not an .npz archive)")
+        with np.load(source, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
     except FileNotFoundError:
         raise

@@ -8,6 +8,9 @@ query through the result, and its SAH cost:
     wide = hlbvh_warp.wide.collapse(bvh, width=4)
     t, prim = hlbvh_warp.wide.intersect(wide, origins, directions)
 
+and, in a user kernel, ``hlbvh_warp.wide.bvh_wide_closest_hit(view, origin, direction, t_max)``
+on the struct ``hlbvh_warp.wide.view(wide)``.
+
 The wide tree shares the binary tree's ``prim_order``, vertices and faces; it owns only its
 nodes. ``width=2`` gives the binary tree itself in the wide layout, the baseline of a k-ary
 comparison that changes nothing but k.
@@ -24,6 +27,7 @@ from . import inputs, metrics
 from .bvh import Bvh, holding_tree
 from .kernels import wide as kernels
 from .kernels.traversal import PackedTriangle
+from .kernels.wide import WideHit, WideView, bvh_wide_closest_hit  # noqa: F401  (re-exported for user kernels)
 
 WIDTHS = tuple(range(2, kernels.MAX_WIDTH + 1))
 
@@ -63,6 +67,7 @@ class WideBvh:
         self.depth = levels
         for name, array in arrays.items():
             setattr(self, name, array)
+        self._view = None  # `view` makes it on the first call
 
     @property
     def device(self):
@@ -173,39 +178,69 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
     return float(t_traversal * root_children + terms.numpy().sum())
 
 
-def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max: float, hit_t: wp.array,
-                  hit_prim: wp.array, counts: wp.array) -> list:
-    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs."""
+def view(wide: WideBvh) -> kernels.WideView:
+    """The `WideView` struct of ``wide`` for user kernels, which call
+    ``hlbvh_warp.wide.bvh_wide_closest_hit(view, origin, direction, t_max)``.
+
+    Like the wide tree, a snapshot of the binary tree it was collapsed from: after a refit or
+    rebuild of that tree, collapse it again and take a new view.
+
+    Raises:
+        ValueError: not a `WideBvh`, or one collapsed from a BVH over bare boxes (no triangles to hit).
+    """
+    if not isinstance(wide, WideBvh):
+        raise ValueError(f"view() takes a WideBvh (wide.collapse), got {type(wide).__name__}")
     bvh = wide.bvh
+    if bvh.vertices is None or bvh.faces is None:
+        raise ValueError("view() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
+    cached = getattr(wide, "_view", None)
+    if cached is not None:
+        return cached
+    v = kernels.WideView()
+    v.width = wide.width
     # The root's box: one element read back, not the node arrays (a copy of each on CUDA).
-    root_lo = wp.vec3(*bvh.node_lowers[0:1].numpy()[0])
-    root_hi = wp.vec3(*bvh.node_uppers[0:1].numpy()[0])
-    return [wide.width, root_lo, root_hi, wide.slots, wide.wide_begin, wide.wide_end, bvh.prim_order, wide.triangles,
-            origins, directions, float(t_max), hit_t, hit_prim, counts]
+    v.root_lower = wp.vec3(*bvh.node_lowers[0:1].numpy()[0])
+    v.root_upper = wp.vec3(*bvh.node_uppers[0:1].numpy()[0])
+    v.slots = wide.slots
+    v.wide_begin = wide.wide_begin
+    v.wide_end = wide.wide_end
+    v.prim_order = bvh.prim_order
+    v.triangles = wide.triangles
+    wide._view = v
+    return v
 
 
-def intersect(wide: WideBvh, origins, directions, t_max: float = float("inf"), stats: bool = False):
+def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, hit_t: wp.array,
+                  hit_prim: wp.array, counts: wp.array) -> list:
+    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs;
+    ``t_max`` is a number or a float32 Warp array of one limit or one per ray."""
+    if not isinstance(t_max, wp.array):
+        t_max = wp.array([float(t_max)], dtype=float, device=wide.device)
+    return [view(wide), origins, directions, t_max, hit_t, hit_prim, counts]
+
+
+def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False):
     """Closest hit of every ray through the wide tree: ``(t, prim)`` as `hlbvh_warp.intersect`
-    returns them (a miss is ``(inf, -1)``), and a `WideTraversalStats` with `stats`."""
+    returns them (a miss is ``(inf, -1)``), and a `WideTraversalStats` with `stats`. ``t_max``:
+    one number, or one per ray, as `hlbvh_warp.intersect` takes it."""
+    from .query import _t_max_values
+
     if not isinstance(wide, WideBvh):
         raise ValueError(f"intersect() takes a WideBvh, got {type(wide).__name__}")
     bvh = wide.bvh
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError("intersect() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
     o, d = inputs.ray_arrays(origins, directions)
-    try:
-        t_max = float(t_max)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"t_max must be a number, got {t_max!r}") from exc
     device = wide.device
     n = o.shape[0]
+    limits = wp.array(_t_max_values(t_max, n), dtype=float, device=device)
     hit_t = wp.empty(n, dtype=float, device=device)
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
     if n:
         wp.launch(kernels.wide_closest_hit_kernel, dim=n, device=device,
                   inputs=launch_inputs(wide, wp.array(o, dtype=wp.vec3, device=device),
-                                       wp.array(d, dtype=wp.vec3, device=device), t_max, hit_t, hit_prim, counts))
+                                       wp.array(d, dtype=wp.vec3, device=device), limits, hit_t, hit_prim, counts))
     out = (hit_t.numpy(), hit_prim.numpy())
     if stats:
         c = counts.numpy().reshape(-1, 3)

@@ -27,6 +27,7 @@ from .traversal import (
     PackedNode,
     PackedTriangle,
     prefetch_child,
+    query_limit,
     vec64f,
     vec64i,
 )
@@ -460,7 +461,7 @@ def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
 def closest_point_kernel(
     bvh: BvhView,
     points: wp.array(dtype=wp.vec3),
-    max_dist: float,
+    max_dist: wp.array(dtype=float),
     out_point: wp.array(dtype=wp.vec3),
     out_distance: wp.array(dtype=float),
     out_prim: wp.array(dtype=wp.int32),
@@ -472,7 +473,7 @@ def closest_point_kernel(
     """One point per thread; the weights and the statistics are written when their arrays are
     not empty."""
     tid = wp.tid()
-    r = bvh_closest_point(bvh, points[tid], max_dist)
+    r = bvh_closest_point(bvh, points[tid], query_limit(max_dist, tid))
     out_point[tid] = r.point
     out_distance[tid] = r.distance
     out_prim[tid] = r.prim

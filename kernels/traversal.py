@@ -1123,9 +1123,10 @@ def closest_hit_kernel(
 
 
 @wp.func
-def ray_limit(t_max: wp.array(dtype=float), ray: int):
-    """``t_max`` holds one limit for every ray (shape 1) or one per ray."""
-    return t_max[wp.where(t_max.shape[0] == 1, 0, ray)]
+def query_limit(limits: wp.array(dtype=float), query: int):
+    """``limits`` holds one limit for every query (shape 1) or one per query: a ray's ``t_max``,
+    a point's ``max_dist``."""
+    return limits[wp.where(limits.shape[0] == 1, 0, query)]
 
 
 @wp.kernel
@@ -1141,10 +1142,10 @@ def closest_hit_details_kernel(
     nodes_visited: wp.array(dtype=wp.int32),
     prims_tested: wp.array(dtype=wp.int32),
 ):
-    """One ray per thread, its limit from `ray_limit`; ``hit_u``/``hit_v`` and the statistics are
+    """One ray per thread, its limit from `query_limit`; ``hit_u``/``hit_v`` and the statistics are
     written when non-empty."""
     tid = wp.tid()
-    h = bvh_closest_hit(bvh, origins[tid], directions[tid], ray_limit(t_max, tid))
+    h = bvh_closest_hit(bvh, origins[tid], directions[tid], query_limit(t_max, tid))
     hit_t[tid] = h.t
     hit_prim[tid] = h.prim
     if hit_u.shape[0] > 0:
@@ -1166,7 +1167,7 @@ def occluded_kernel(
     prims_tested: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
-    h = bvh_any_hit(bvh, origins[tid], directions[tid], ray_limit(t_max, tid))
+    h = bvh_any_hit(bvh, origins[tid], directions[tid], query_limit(t_max, tid))
     occluded[tid] = wp.where(h.prim >= 0, 1, 0)
     if nodes_visited.shape[0] > 0:
         nodes_visited[tid] = h.nodes_visited
@@ -1185,9 +1186,9 @@ def all_hits_kernel(
     out_t: wp.array(dtype=float),
 ):
     """Count pass when ``out_prim`` is empty (writes ``counts``), else write pass at ``offsets``;
-    the ray's limit from `ray_limit`."""
+    the ray's limit from `query_limit`."""
     tid = wp.tid()
-    limit = ray_limit(t_max, tid)
+    limit = query_limit(t_max, tid)
     if out_prim.shape[0] == 0:
         counts[tid] = bvh_ray_all_hits(bvh, origins[tid], directions[tid], limit, out_prim, out_t, 0, 0)
     else:

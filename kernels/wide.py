@@ -17,7 +17,7 @@ import warp as wp
 
 from .metrics import box_area64
 from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, ray_box_entry, ray_direction_scale,
-                        ray_inverse_direction, ray_is_valid, ray_scaled_t_max)
+                        ray_inverse_direction, ray_is_valid, query_limit, ray_scaled_t_max)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -353,28 +353,47 @@ def wide_closest_hit(
     return result
 
 
+@wp.struct
+class WideView:
+    """Everything `bvh_wide_closest_hit` reads, passed by value into user kernels (see
+    ``hlbvh_warp.wide.view``). ``width`` is k; ``slots`` holds k records per wide node (the layout
+    of the module docstring); ``wide_begin`` / ``wide_end`` are each wide node's range of
+    ``prim_order``; ``triangles`` are the binary tree's packed triangles in ``prim_order`` order;
+    ``root_lower`` / ``root_upper`` are the root's box."""
+
+    width: int
+    root_lower: wp.vec3
+    root_upper: wp.vec3
+    slots: wp.array(dtype=WideSlot)
+    wide_begin: wp.array(dtype=wp.int32)
+    wide_end: wp.array(dtype=wp.int32)
+    prim_order: wp.array(dtype=wp.int32)
+    triangles: wp.array(dtype=PackedTriangle)
+
+
+@wp.func
+def bvh_wide_closest_hit(view: WideView, origin: wp.vec3, direction: wp.vec3, t_max: float):
+    """Closest hit of one ray through a wide BVH, for user kernels: a `WideHit` (``prim`` -1 and
+    ``t`` inf on a miss; hits count for t < t_max). The same hits as ``hlbvh_warp.wide.intersect``
+    (see `wide_closest_hit`)."""
+    return wide_closest_hit(view.width, view.root_lower, view.root_upper, view.slots, view.wide_begin, view.wide_end,
+                            view.prim_order, view.triangles, origin, direction, t_max)
+
+
 @wp.kernel
 def wide_closest_hit_kernel(
-    width: int,
-    root_lower: wp.vec3,
-    root_upper: wp.vec3,
-    slots: wp.array(dtype=WideSlot),
-    wide_begin: wp.array(dtype=wp.int32),
-    wide_end: wp.array(dtype=wp.int32),
-    prim_order: wp.array(dtype=wp.int32),
-    triangles: wp.array(dtype=PackedTriangle),
+    view: WideView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
-    t_max: float,
+    t_max: wp.array(dtype=float),
     hit_t: wp.array(dtype=float),
     hit_prim: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.vec3i),
 ):
-    """One ray per thread; ``counts`` (nodes visited, boxes tested, triangles tested) is written
-    when it has an entry per ray."""
+    """One ray per thread; ``t_max`` holds one limit or one per ray; ``counts`` (nodes visited,
+    boxes tested, triangles tested) is written when it has an entry per ray."""
     i = wp.tid()
-    h = wide_closest_hit(width, root_lower, root_upper, slots, wide_begin, wide_end, prim_order, triangles,
-                         origins[i], directions[i], t_max)
+    h = bvh_wide_closest_hit(view, origins[i], directions[i], query_limit(t_max, i))
     hit_t[i] = h.t
     hit_prim[i] = h.prim
     if counts.shape[0] > 0:

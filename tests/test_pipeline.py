@@ -702,6 +702,27 @@ def test_input_forms_and_their_checks(device):
         hb.build_from_bounds(np.zeros((0, 3)), np.zeros((0, 3)), device=device)
 
 
+
+def test_several_meshes_are_refused_with_the_way_to_join_them(device):
+    # A scene or a list of meshes is the natural thing to pass; the error says how to make one
+    # mesh of it, and the joined mesh builds (face ids running through the meshes in order).
+    meshes = [trimesh.creation.box(), trimesh.creation.icosphere(subdivisions=1)]
+    with pytest.raises(ValueError, match=r"trimesh\.Scene.*to_mesh\(\)"):
+        hb.build(trimesh.Scene(meshes), device=device)
+    for given in (meshes, tuple(meshes)):
+        with pytest.raises(ValueError, match=r"of 2: .*trimesh\.util\.concatenate"):
+            hb.build(given, device=device)
+    with pytest.raises(ValueError, match="trimesh.Scene"):
+        hb.Builder(92, device=device).build(trimesh.Scene(meshes))
+    joined = trimesh.util.concatenate(meshes)
+    # A ray down onto the sphere (moved aside: its vertices follow the box's 8) hits a face past
+    # the box's 12.
+    joined.vertices[8:] += (3.0, 0.0, 0.0)
+    bvh = hb.build(joined, device=device)
+    t, prim = hb.intersect(bvh, [[3.0, 0.0, 5.0], [0.0, 0.0, 5.0]], [0.0, 0.0, -1.0])
+    assert prim[0] >= 12 and 0 <= prim[1] < 12
+
+
 # ----------------------------------------------------------------- pinned by the second mutation audit
 def test_vertex_input_edges(device):
     faces = [[0, 1, 2]]

@@ -456,6 +456,47 @@ def test_max_dist_between_float32_values_still_includes_its_triangle(device, rng
         assert hlbvh_warp.closest_point(bvh, p, max_dist=d * (1.0 - 1e-6))[2][0] == -1, (p, d)
 
 
+
+@pytest.mark.parametrize("sort_from", [16, 10**9])
+def test_one_max_dist_per_point(device, rng, monkeypatch, sort_from):
+    """A bound per point, as a contact query with a thickness per particle asks: each bound rounds
+    up on its own (a triangle at exactly its float64 distance counts, a relative 1e-6 below does
+    not) and follows its point through the query order the CPU sorts points into."""
+    verts, faces = random_soup(rng, 200)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    points = rng.uniform(-0.5, 1.5, (400, 3)).astype(np.float32)
+    exact, nearest, _ = oracle_closest(verts, faces, points)
+    below = np.arange(len(points)) % 2 == 1
+    bounds = np.where(below, exact * (1.0 - 1e-6), exact)
+    monkeypatch.setattr(query, "SORT_QUERIES_FROM", sort_from)
+    if sort_from == 16 and wp.get_device(device).is_cpu:
+        assert query._point_order(points, wp.get_device(device)) is not None  # the sorted path runs
+    for bound_array in (bounds, wp.array(bounds, dtype=wp.float64, device=device)):
+        closest, distance, prim = hlbvh_warp.closest_point(bvh, points, max_dist=bound_array)
+        assert (prim[below] == -1).all() and np.isinf(distance[below]).all()
+        assert np.array_equal(prim[~below], nearest[~below])
+        assert np.allclose(distance[~below], exact[~below], rtol=1e-6, atol=0.0)
+    # One bound in a one-element array is every point's bound.
+    one = float(np.median(exact))
+    _, distance, prim = hlbvh_warp.closest_point(bvh, points, max_dist=np.array([one]))
+    found_ref = exact <= one * (1 - 1e-6)
+    assert np.array_equal(prim[found_ref], nearest[found_ref])
+    assert (prim[exact > one * (1 + 1e-6)] == -1).all()
+
+
+def test_bad_max_dist_arrays_name_the_point(device):
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+    bvh = hlbvh_warp.build(verts, faces=np.array([[0, 1, 2]]), device=device)
+    points = np.zeros((4, 3))
+    with pytest.raises(ValueError, match=r"shape \(4,\), got \(3,\)"):
+        hlbvh_warp.closest_point(bvh, points, max_dist=np.ones(3))
+    with pytest.raises(ValueError, match=r"max_dist must be >= 0, got nan \(point 2\)"):
+        hlbvh_warp.closest_point(bvh, points, max_dist=np.array([1.0, 2.0, np.nan, -1.0]))
+    with pytest.raises(ValueError, match="real numbers"):
+        hlbvh_warp.closest_point(bvh, points, max_dist=np.array(["a"] * 4))
+    # Nothing was left behind: the next query answers.
+    assert hlbvh_warp.closest_point(bvh, points, max_dist=np.full(4, 0.5))[2].tolist() == [0] * 4
+
 @pytest.mark.parametrize("method", METHODS)
 def test_exact_ties_go_to_the_lowest_id(device, rng, method):
     """Points midway between the two triangles of a pair are at bitwise equal distances from both

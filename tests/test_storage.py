@@ -290,6 +290,53 @@ def test_save_replaces_the_file_whole_or_not_at_all(device, tmp_path, monkeypatc
     assert hb.load_bvh(tmp_path / "named.npz", device=device).num_prims == len(faces)
 
 
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_open_files_and_buffers_as_numpy_takes_them(device, rng, tmp_path, compressed):
+    """save_bvh writes to an open binary file or an in-memory buffer (as np.savez does), and
+    load_bvh reads from one, with the same checks as from a path."""
+    import io
+
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    buffer = io.BytesIO()
+    hb.save_bvh(bvh, buffer, compressed=compressed)
+    buffer.seek(0)
+    from_buffer = hb.load_bvh(buffer, device=device)
+    with open(tmp_path / "tree.npz", "wb") as file:
+        hb.save_bvh(bvh, file, compressed=compressed)
+    with open(tmp_path / "tree.npz", "rb") as file:
+        from_file = hb.load_bvh(file, device=device)
+    for loaded in (from_buffer, from_file):
+        for name in NODE_FIELDS + ("prim_order",):
+            np.testing.assert_array_equal(loaded.to_numpy()[name], bvh.to_numpy()[name], err_msg=name)
+    o, d = random_rays(rng, verts, 200)
+    assert_hits_match(*hb.intersect(from_buffer, o, d), *brute_force_closest_hit(verts, faces, o, d))
+    # Damage is refused by name from a buffer too, the buffer's own name when it has one.
+    with pytest.raises(ValueError, match="<file object>: not a saved BVH"):
+        hb.load_bvh(io.BytesIO(b"not a zip at all"), device=device)
+    arrays = {name: np.asarray(value) for name, value in np.load(tmp_path / "tree.npz").items()}
+    arrays["node_left"][0] = len(arrays["node_left"]) + 5
+    damaged = io.BytesIO()
+    np.savez(damaged, **arrays)
+    damaged.seek(0)
+    with pytest.raises(ValueError, match="<file object>: a child id"):
+        hb.load_bvh(damaged, device=device)
+    with open(tmp_path / "tree.npz", "rb") as file:
+        file.read(1)  # not at the archive's start
+        with pytest.raises(ValueError, match="tree.npz: not a saved BVH"):
+            hb.load_bvh(file, device=device)
+
+
+def test_saving_into_a_missing_folder_names_the_path_asked_for(device, tmp_path):
+    # The error named the temporary file written beside the target.
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    with pytest.raises(FileNotFoundError, match=r"cannot write .*missing.tree\.npz") as error:
+        hb.save_bvh(bvh, tmp_path / "missing" / "tree")
+    assert ".partial" not in str(error.value)
+    assert list(tmp_path.iterdir()) == []
+
 def test_save_through_a_link_keeps_the_link_and_the_files_permissions(device, tmp_path):
     # Renaming a new file over the path replaced a symbolic link with a plain file (its target
     # unchanged) and gave a private file the default permissions.

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 
 import hlbvh_warp as hw
 from hlbvh_warp import metrics, wide
@@ -149,6 +150,47 @@ def test_wide_rays_match_the_brute_force(device, rng, width):
     assert (prim2[(prim_ref < 0) | (t_ref > cut * (1 + 1e-5))] < 0).all()
 
 
+
+@wp.kernel
+def _user_wide_rays(view: wide.WideView, origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
+                    t_max: wp.array(dtype=float), hit_t: wp.array(dtype=float), hit_prim: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    h = wide.bvh_wide_closest_hit(view, origins[i], directions[i], t_max[i])
+    hit_t[i] = h.t
+    hit_prim[i] = h.prim
+
+
+@pytest.mark.parametrize("width", [2, 4, 16])
+def test_wide_rays_with_a_limit_per_ray_and_from_a_user_kernel(device, rng, width):
+    """One t_max per ray (half of the hits cut off before the triangle, half after), through
+    `wide.intersect` and through `bvh_wide_closest_hit` in a user kernel, against the brute force."""
+    from hlbvh_warp.reference import count_mismatches
+
+    v, f = random_soup(rng, 300, scale=0.15)
+    bvh = hw.build(v, f, method="hlbvh", device=device)
+    w = wide.collapse(bvh, width)
+    o, d = random_rays(rng, v, 500)
+    t_ref, prim_ref = brute_force_closest_hit(v, f, o, d)
+    hits = prim_ref >= 0
+    assert hits.sum() > 100
+    # Far from every hit distance, so float32 rounding of a limit cannot decide.
+    limits = np.where(np.arange(len(o)) % 2 == 0, 0.5, 1.5) * np.where(hits, t_ref, rng.uniform(0.1, 5.0, len(o)))
+    t_cut, prim_cut = brute_force_closest_hit(v, f, o, d, t_max=limits)
+    assert 0 < (prim_cut >= 0).sum() < hits.sum()
+    t, prim = wide.intersect(w, o, d, t_max=limits)
+    assert count_mismatches(t, prim, t_cut, prim_cut) == 0
+    view = wide.view(w)
+    assert wide.view(w) is view  # made once per wide tree
+    n = len(o)
+    out_t, out_prim = wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(_user_wide_rays, dim=n, device=device,
+              inputs=[view, wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device),
+                      wp.array(limits, dtype=float, device=device), out_t, out_prim])
+    assert np.array_equal(out_prim.numpy(), prim) and np.array_equal(out_t.numpy(), t)
+    # A wrong number of limits names the shape, not the values.
+    with pytest.raises(ValueError, match=r"shape \(500,\), got \(3,\)"):
+        wide.intersect(w, o, d, t_max=np.ones(3))
+
 def test_wide_rays_on_a_tree_deeper_than_the_stack(device, rng):
     # A caterpillar collapsed at width 16: 15 leaves and one interior child per level, about
     # 40 levels, so rays through the middle would stack more than the traversal's 256 entries.
@@ -193,6 +235,10 @@ def test_bad_arguments(device):
         wide.intersect(w, v, v)
     with pytest.raises(ValueError, match="takes a WideBvh"):
         wide.intersect(bvh, v, v)
+    with pytest.raises(ValueError, match="mesh"):
+        wide.view(w)
+    with pytest.raises(ValueError, match="takes a WideBvh"):
+        wide.view(bvh)
     with pytest.raises(ValueError, match="t_intersect"):
         wide.sah_cost(w, 1.0, 0.0)
     with pytest.raises(ValueError, match="takes a WideBvh"):
