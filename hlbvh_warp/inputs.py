@@ -35,6 +35,10 @@ def _check_points(values, name: str) -> np.ndarray:
         arr = arr.reshape(-1, 3)  # a wp.array of vec3 comes back as (n, 3) already; flat floats too
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
+    if arr.dtype.kind in "iu":
+        # Straight to float32, rounded once: through float64 a 64-bit integer past 2^53 would be
+        # rounded twice. Every integer fits float32's range.
+        return np.ascontiguousarray(arr.astype(np.float32))
     if arr.dtype != np.float32:
         arr = arr.astype(np.float64, copy=False)
     check_float32_range(arr, name)
@@ -52,16 +56,22 @@ def check_float32_range(arr: np.ndarray, name: str):
         raise ValueError(f"{name} has a coordinate beyond the float32 range")
 
 
+def refuse_several_meshes(mesh, caller: str):
+    """A trimesh.Scene or a list of meshes, the natural things to pass, refused with how to make
+    one mesh of them."""
+    if hasattr(mesh, "geometry") and hasattr(mesh, "graph"):
+        raise ValueError(f"{caller} takes one mesh, got a trimesh.Scene: make it one first (scene.to_mesh(), or "
+                         "trimesh.util.concatenate(scene.dump())); face ids then run through its meshes in order")
+    if isinstance(mesh, (list, tuple)) and mesh and all(hasattr(m, "faces") for m in mesh):
+        raise ValueError(f"{caller} takes one mesh, got a {type(mesh).__name__} of {len(mesh)}: make them one "
+                         "first (trimesh.util.concatenate(meshes)); face ids then run through them in order")
+
+
 def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
     """(vertices float32 (V, 3), faces int32 (F, 3)) from a trimesh.Trimesh or two arrays."""
     is_mesh = hasattr(mesh, "vertices") and hasattr(mesh, "faces")
     if faces is None:
-        if hasattr(mesh, "geometry") and hasattr(mesh, "graph"):
-            raise ValueError("build() takes one mesh, got a trimesh.Scene: make it one first (scene.to_mesh(), or "
-                             "trimesh.util.concatenate(scene.dump())); face ids then run through its meshes in order")
-        if isinstance(mesh, (list, tuple)) and mesh and all(hasattr(m, "faces") for m in mesh):
-            raise ValueError(f"build() takes one mesh, got a {type(mesh).__name__} of {len(mesh)}: make them one "
-                             "first (trimesh.util.concatenate(meshes)); face ids then run through them in order")
+        refuse_several_meshes(mesh, "build()")
         if not is_mesh:
             raise ValueError("build() takes a trimesh.Trimesh, or vertices with faces=")
         vertices, faces = mesh.vertices, mesh.faces

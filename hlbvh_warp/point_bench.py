@@ -92,11 +92,10 @@ def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, dev
         none_f, none_i = wp.empty(0, dtype=float, device=device), wp.empty(0, dtype=wp.int32, device=device)
         # wp.mesh_query_point_no_sign takes a finite bound.
         ref_max = max_dist if np.isfinite(max_dist) else 1.0e30
-        bound = wp.array([max_dist], dtype=float, device=device)
 
         def ours():
             wp.launch(proximity.closest_point_kernel, dim=n, device=device,
-                      inputs=[bvh_view, pw, bound, *ours_out, none_f, none_f, none_i, none_i])
+                      inputs=[bvh_view, pw, float(max_dist), *ours_out, none_f, none_f, none_i, none_i])
 
         def reference():
             wp.launch(proximity.warp_mesh_closest_point_kernel, dim=n, device=device,

@@ -176,6 +176,23 @@ def _max_dist_values(max_dist, num_points: int) -> np.ndarray:
     ``(num_points,)`` for one per point. The kernel takes float32: each bound is rounded up, never
     to nearest, so that a triangle at exactly the float64 bound still counts (inclusive); past
     float32's range a bound is unbounded."""
+    if isinstance(max_dist, float):
+        values = np.array([max_dist])  # the common call: no checks of an array's shape and dtype
+    else:
+        values = _max_dist_array(max_dist, num_points)
+    bad = np.flatnonzero(~(values >= 0.0))
+    if bad.size:
+        where = "" if values.shape[0] == 1 else f" (point {bad[0]})"
+        raise ValueError(f"max_dist must be >= 0, got {values[bad[0]]}{where}")
+    with np.errstate(over="ignore"):
+        bounds = values.astype(np.float32)
+    low = bounds.astype(np.float64) < values
+    bounds[low] = np.nextafter(bounds[low], np.float32(np.inf))
+    return bounds
+
+
+def _max_dist_array(max_dist, num_points: int) -> np.ndarray:
+    """``max_dist`` other than a Python float, checked: a float64 array of 1 or ``num_points``."""
     values = np.asarray(max_dist.numpy() if isinstance(max_dist, wp.array) else max_dist)
     if values.ndim == 0 and values.dtype.kind not in "fiu":
         # What float() takes: a Python int past int64 (an object array), "inf", a Fraction.
@@ -189,16 +206,7 @@ def _max_dist_values(max_dist, num_points: int) -> np.ndarray:
         values = values.reshape(1)
     elif values.shape != (num_points,):
         raise ValueError(f"max_dist must be a number or have shape ({num_points},), got {values.shape}")
-    values = values.astype(np.float64)
-    bad = np.flatnonzero(~(values >= 0.0))
-    if bad.size:
-        where = "" if values.shape[0] == 1 else f" (point {bad[0]})"
-        raise ValueError(f"max_dist must be >= 0, got {values[bad[0]]}{where}")
-    with np.errstate(over="ignore"):
-        bounds = values.astype(np.float32)
-    low = bounds.astype(np.float64) < values
-    bounds[low] = np.nextafter(bounds[low], np.float32(np.inf))
-    return bounds
+    return values.astype(np.float64)
 
 
 def _empty(dtype, device, shape=0):
@@ -458,9 +466,10 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
     out_u, out_v = _optional_outputs(float, num_points, return_barycentrics, device)
     visits, tests = _optional_outputs(wp.int32, num_points, stats, device)
     if num_points:
+        # One bound goes by value (see `traversal.query_limit`): no array to make or pack.
+        limit = float(bounds[0]) if bounds.shape[0] == 1 else wp.array(bounds, dtype=float, device=device)
         wp.launch(proximity.closest_point_kernel, dim=num_points, device=device,
-                  inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device),
-                          wp.array(bounds, dtype=float, device=device), out_point, out_distance,
+                  inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device), limit, out_point, out_distance,
                           out_prim, out_u, out_v, visits, tests])
     out = [out_point.numpy().reshape(num_points, 3), out_distance.numpy(), out_prim.numpy()]
     if return_barycentrics:

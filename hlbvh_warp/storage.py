@@ -37,6 +37,20 @@ _INT_FIELDS = ("node_left", "node_right", "node_parent", "node_begin", "node_end
 _BOX_FIELDS = ("node_lowers", "node_uppers")
 
 
+def _binary_file(file, mode: str):
+    """Refuse a file object opened in text mode, which NumPy would fail on half way (``save``
+    leaving an empty file) with a TypeError or UnicodeDecodeError."""
+    if isinstance(file, io.TextIOBase):
+        raise ValueError(f"a file object in text mode: open it in binary mode ('{mode}') or use io.BytesIO")
+    return file
+
+
+def _file_name(file) -> str:
+    """What to call a file object in messages: its name when that is a path (not a descriptor)."""
+    name = getattr(file, "name", None)
+    return os.fsdecode(name) if isinstance(name, (str, bytes, os.PathLike)) else "<file object>"
+
+
 @holding_tree
 def save(bvh: Bvh, path, compressed: bool = False) -> None:
     """Write ``bvh`` to ``path`` (an ``.npz`` file; the suffix is added if it is missing), or to an
@@ -47,6 +61,15 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
     """
     if not isinstance(bvh, Bvh):
         raise ValueError(f"save() takes a Bvh, got {type(bvh).__name__}")
+    if hasattr(path, "write"):
+        file = _binary_file(path, "wb")
+    elif isinstance(path, (str, bytes, os.PathLike)):
+        file = None
+        path = os.fsdecode(path)
+        if not path.endswith(".npz"):
+            path += ".npz"  # as NumPy names a file it is given by name
+    else:
+        raise ValueError(f"save() writes to a path or an open binary file, got {type(path).__name__}")
     tree = bvh.to_numpy()
     arrays = {name: tree[name] for name in NODE_FIELDS + ("prim_order",)}
     if bvh.vertices is not None and bvh.faces is not None:
@@ -59,29 +82,30 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
             "config": dataclasses.asdict(bvh.config)}
     # A 0-d unicode array: read back without allow_pickle.
     arrays["meta"] = np.array(json.dumps(meta))
-    if hasattr(path, "write"):
-        (np.savez_compressed if compressed else np.savez)(path, **arrays)
+    write = np.savez_compressed if compressed else np.savez
+    if file is not None:
+        write(file, **arrays)
         return
-    path = os.fspath(path)
-    if not path.endswith(".npz"):
-        path += ".npz"  # as NumPy names a file it is given by name
     # Written beside the target and renamed over it: a reader (another thread, another process)
     # sees the old file or the new one, never one half written.
     # A link's target is what gets replaced (the link stays), an existing file keeps its
     # permissions, and the short name (process and thread) fits wherever the target's does.
-    path = os.path.realpath(path)
-    temporary = os.path.join(os.path.dirname(path), f".{os.getpid()}-{threading.get_ident()}.partial")
+    # Errors name the path as asked for, not the temporary file or the link's target.
+    target = os.path.realpath(path)
+    temporary = os.path.join(os.path.dirname(target), f".{os.getpid()}-{threading.get_ident()}.partial")
     try:
         file = open(temporary, "wb")
     except OSError as error:
-        # Name the file asked for, not the temporary one beside it.
-        raise type(error)(error.errno, f"cannot write {path}: {error.strerror}", os.path.dirname(path)) from None
+        raise type(error)(error.errno, f"cannot write {path}: {error.strerror}") from None
     try:
         with file:
-            (np.savez_compressed if compressed else np.savez)(file, **arrays)
-        if os.path.exists(path):
-            os.chmod(temporary, stat.S_IMODE(os.stat(path).st_mode))
-        os.replace(temporary, path)
+            write(file, **arrays)
+        if os.path.exists(target):
+            os.chmod(temporary, stat.S_IMODE(os.stat(target).st_mode))
+        try:
+            os.replace(temporary, target)
+        except OSError as error:
+            raise type(error)(error.errno, f"cannot write {path}: {error.strerror}") from None
     except BaseException:
         with contextlib.suppress(OSError):
             os.remove(temporary)
@@ -90,14 +114,21 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
 
 def load(path, device=None) -> Bvh:
     """The BVH saved in ``path``, on ``device`` (default: Warp's default device). A name without
-    the ``.npz`` suffix that `save` added finds the file it wrote; an open binary file (positioned
-    at the archive's start) is read from.
+    the ``.npz`` suffix that `save` added finds the file it wrote. An open binary file (or
+    ``io.BytesIO``) is read from its position to its end, which must hold one archive.
 
     Raises:
         ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
     """
     if hasattr(path, "read"):
-        source, path = io.BytesIO(path.read()), getattr(path, "name", None) or "<file object>"
+        data = _binary_file(path, "rb").read()
+        if not isinstance(data, (bytes, bytearray)):
+            raise ValueError(f"a file object whose read() gave {type(data).__name__}: open it in binary mode ('rb')")
+        source, path = io.BytesIO(data), _file_name(path)
+    elif isinstance(path, (bytearray, memoryview)) or (isinstance(path, bytes) and (
+            path.startswith(b"PK\x03\x04") or b"\0" in path)):
+        raise ValueError(f"load() reads a path or an open binary file, got {len(path)} bytes of data: "
+                         "wrap them in io.BytesIO")
     else:
         name = os.fsdecode(path)
         if not name.endswith(".npz") and not os.path.lexists(name) and os.path.isfile(name + ".npz"):

@@ -17,7 +17,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import api, query
+from . import api, inputs, query
+
+
+def _check_mesh(mesh, caller: str):
+    """Refused at construction, not at the first query (where hashing a list fails without
+    saying why)."""
+    inputs.refuse_several_meshes(mesh, caller)
+    if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+        raise ValueError(f"{caller} takes a trimesh.Trimesh, got {type(mesh).__name__}")
 
 
 class RayMeshIntersector:
@@ -30,6 +38,7 @@ class RayMeshIntersector:
     """
 
     def __init__(self, mesh, device=None, method: str = "hlbvh"):
+        _check_mesh(mesh, "RayMeshIntersector")
         self.mesh = mesh
         self.device = device
         self.method = method
@@ -138,6 +147,7 @@ class ProximityQuery:
     """
 
     def __init__(self, mesh, device=None, method: str = "hlbvh"):
+        _check_mesh(mesh, "ProximityQuery")
         self._rays = RayMeshIntersector(mesh, device=device, method=method)
 
     @property

@@ -67,7 +67,11 @@ class WideBvh:
         self.depth = levels
         for name, array in arrays.items():
             setattr(self, name, array)
-        self._view = None  # `view` makes it on the first call
+        self._view = None  # `collapse` makes it for a mesh tree, with the slots it snapshots
+
+    def view(self):
+        """A `WideView` struct of this tree for user kernels (``bvh_wide_closest_hit``)."""
+        return view(self)
 
     @property
     def device(self):
@@ -148,12 +152,15 @@ def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
               inputs=[arrays["slot_lowers"], arrays["slot_uppers"], arrays["slot_child"], arrays["slot_begin"],
                       arrays["slot_end"], arrays["slots"]])
     if bvh.vertices is not None and bvh.faces is not None:
-        from .query import view
+        from .query import view as binary_view
 
-        arrays["triangles"] = view(bvh).packed_triangles
+        arrays["triangles"] = binary_view(bvh).packed_triangles
     else:
         arrays["triangles"] = wp.empty(0, dtype=PackedTriangle, device=device)
-    return WideBvh(bvh, width, total, arrays, len(level_arrays))
+    wide = WideBvh(bvh, width, total, arrays, len(level_arrays))
+    if bvh.vertices is not None and bvh.faces is not None:
+        view(wide)  # the root box read now, with the slots: one snapshot even if the tree is refit later
+    return wide
 
 
 def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> float:
@@ -212,11 +219,23 @@ def view(wide: WideBvh) -> kernels.WideView:
 
 def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, hit_t: wp.array,
                   hit_prim: wp.array, counts: wp.array) -> list:
-    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs;
-    ``t_max`` is a number or a float32 Warp array of one limit or one per ray."""
-    if not isinstance(t_max, wp.array):
-        t_max = wp.array([float(t_max)], dtype=float, device=wide.device)
-    return [view(wide), origins, directions, t_max, hit_t, hit_prim, counts]
+    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs.
+    ``t_max``: one number, or one per ray as `intersect` takes it (a float32 Warp array on the
+    tree's device of 1 or ``len(origins)`` entries is used as it is)."""
+    n = origins.shape[0]
+    if isinstance(t_max, wp.array):
+        if t_max.dtype != wp.float32 or t_max.ndim != 1 or t_max.shape[0] not in (1, n) or \
+                t_max.device != wide.device:
+            raise ValueError(f"t_max as a Warp array must be float32 of shape (1,) or ({n},) on {wide.device}, "
+                             f"got {wp.types.type_repr(t_max.dtype)} of shape {t_max.shape} on {t_max.device}")
+        limit = t_max
+    else:
+        from .query import _t_max_values
+
+        values = _t_max_values(t_max, n)
+        # One limit goes by value (`kernels.traversal.query_limit`): no array to make or pack.
+        limit = float(values[0]) if values.shape[0] == 1 else wp.array(values, dtype=float, device=wide.device)
+    return [view(wide), origins, directions, limit, hit_t, hit_prim, counts]
 
 
 def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False):
@@ -233,7 +252,7 @@ def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: boo
     o, d = inputs.ray_arrays(origins, directions)
     device = wide.device
     n = o.shape[0]
-    limits = wp.array(_t_max_values(t_max, n), dtype=float, device=device)
+    limits = _t_max_values(t_max, n)
     hit_t = wp.empty(n, dtype=float, device=device)
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)

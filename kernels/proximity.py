@@ -18,6 +18,8 @@
   leaf over its whole primitive range.
 """
 
+from typing import Any
+
 import warp as wp
 
 from .traversal import (
@@ -461,7 +463,7 @@ def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
 def closest_point_kernel(
     bvh: BvhView,
     points: wp.array(dtype=wp.vec3),
-    max_dist: wp.array(dtype=float),
+    max_dist: Any,
     out_point: wp.array(dtype=wp.vec3),
     out_distance: wp.array(dtype=float),
     out_prim: wp.array(dtype=wp.int32),
@@ -470,8 +472,8 @@ def closest_point_kernel(
     nodes_visited: wp.array(dtype=wp.int32),
     prims_tested: wp.array(dtype=wp.int32),
 ):
-    """One point per thread; the weights and the statistics are written when their arrays are
-    not empty."""
+    """One point per thread; ``max_dist`` is one bound (a float) or one per point (an array, see
+    `query_limit`); the weights and the statistics are written when their arrays are not empty."""
     tid = wp.tid()
     r = bvh_closest_point(bvh, points[tid], query_limit(max_dist, tid))
     out_point[tid] = r.point
@@ -483,6 +485,11 @@ def closest_point_kernel(
     if nodes_visited.shape[0] > 0:
         nodes_visited[tid] = r.nodes_visited
         prims_tested[tid] = r.prims_tested
+
+
+# One bound for every point (the common call: nothing to pack but a float), or one per point.
+wp.overload(closest_point_kernel, {"max_dist": float})
+wp.overload(closest_point_kernel, {"max_dist": wp.array(dtype=float)})
 
 
 @wp.kernel

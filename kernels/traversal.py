@@ -1129,6 +1129,12 @@ def query_limit(limits: wp.array(dtype=float), query: int):
     return limits[wp.where(limits.shape[0] == 1, 0, query)]
 
 
+@wp.func
+def query_limit(limits: float, query: int):  # noqa: F811  (a Warp overload, chosen by type)
+    """One limit for every query, passed by value: the launch packs no array for it."""
+    return limits
+
+
 @wp.kernel
 def closest_hit_details_kernel(
     bvh: BvhView,

@@ -13,6 +13,8 @@ triangles are the range), or ``EMPTY`` past the last child. The child boxes sit 
 (as in the multi-BVH nodes of Ernst & Greiner 2008), so a step tests all k boxes of one node.
 """
 
+from typing import Any
+
 import warp as wp
 
 from .metrics import box_area64
@@ -385,16 +387,21 @@ def wide_closest_hit_kernel(
     view: WideView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
-    t_max: wp.array(dtype=float),
+    t_max: Any,
     hit_t: wp.array(dtype=float),
     hit_prim: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.vec3i),
 ):
-    """One ray per thread; ``t_max`` holds one limit or one per ray; ``counts`` (nodes visited,
-    boxes tested, triangles tested) is written when it has an entry per ray."""
+    """One ray per thread; ``t_max`` is one limit (a float) or one per ray (an array, see
+    `query_limit`); ``counts`` (nodes visited, boxes tested, triangles tested) is written when it
+    has an entry per ray."""
     i = wp.tid()
     h = bvh_wide_closest_hit(view, origins[i], directions[i], query_limit(t_max, i))
     hit_t[i] = h.t
     hit_prim[i] = h.prim
     if counts.shape[0] > 0:
         counts[i] = wp.vec3i(h.nodes_visited, h.boxes_tested, h.prims_tested)
+
+
+wp.overload(wide_closest_hit_kernel, {"t_max": float})
+wp.overload(wide_closest_hit_kernel, {"t_max": wp.array(dtype=float)})

@@ -41,7 +41,10 @@ def load_script(relative: str):
 
 
 def kernel_count(module) -> int:
-    return sum(isinstance(value, wp.Kernel) for value in vars(module).values())
+    """Entry points the module compiles to: one per kernel, one per declared overload of a
+    generic one (such as the closest-point kernel's one bound or one per point)."""
+    return sum(len(value.overloads) if value.is_generic else 1
+               for value in vars(module).values() if isinstance(value, wp.Kernel))
 
 
 def compile_for_cuda(module, arch: int, out_dir: pathlib.Path) -> str:

@@ -703,6 +703,16 @@ def test_input_forms_and_their_checks(device):
 
 
 
+
+def test_wide_integer_vertices_are_rounded_once(device):
+    # Through float64, 2^54 + 2^30 + 1 rounded to 2^54 + 2^30 and then (a tie) to 2^54; the
+    # float32 nearest to it is 2^54 + 2^31.
+    x = 2**54 + 2**30 + 1
+    for dtype in (np.int64, np.uint64):
+        v = np.array([[x, 0, 0], [x, 1, 0], [x, 0, 1]], dtype=dtype)
+        bvh = hb.build(v, faces=[[0, 1, 2]], device=device)
+        assert bvh.vertices.numpy()[0, 0] == np.float32(2**54 + 2**31)
+
 def test_several_meshes_are_refused_with_the_way_to_join_them(device):
     # A scene or a list of meshes is the natural thing to pass; the error says how to make one
     # mesh of it, and the joined mesh builds (face ids running through the meshes in order).

@@ -337,6 +337,57 @@ def test_saving_into_a_missing_folder_names_the_path_asked_for(device, tmp_path)
     assert ".partial" not in str(error.value)
     assert list(tmp_path.iterdir()) == []
 
+
+def test_text_files_bytes_and_descriptors_are_named_as_such(device, tmp_path):
+    """Text-mode files failed half way inside NumPy (save left an empty file); an archive's bytes
+    passed as a path put the whole archive in the message; a file opened from a descriptor was
+    named by its number."""
+    import io
+
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    with open(tmp_path / "text.npz", "w") as file:
+        with pytest.raises(ValueError, match="binary mode"):
+            hb.save_bvh(bvh, file)
+    assert (tmp_path / "text.npz").read_bytes() == b""
+    with pytest.raises(ValueError, match="binary mode"):
+        hb.save_bvh(bvh, io.StringIO())
+    hb.save_bvh(bvh, os.fsencode(tmp_path / "tree"))  # a bytes path, as load takes
+    for encoding in ("utf-8", "latin-1"):
+        with open(tmp_path / "tree.npz", encoding=encoding) as file:
+            with pytest.raises(ValueError, match="binary mode"):
+                hb.load_bvh(file, device=device)
+    data = (tmp_path / "tree.npz").read_bytes()
+    for data_form in (data, bytearray(data), memoryview(data)):
+        with pytest.raises(ValueError, match=r"bytes of data: wrap them in io\.BytesIO") as error:
+            hb.load_bvh(data_form, device=device)
+        assert len(str(error.value)) < 200
+    with pytest.raises(ValueError, match="writes to a path or an open binary file"):
+        hb.save_bvh(bvh, 42)
+    descriptor = os.open(tmp_path / "text.npz", os.O_RDONLY)
+    with open(descriptor, "rb") as file:
+        with pytest.raises(ValueError, match="^<file object>: not a saved BVH"):
+            hb.load_bvh(file, device=device)
+    assert hb.load_bvh(os.fsencode(tmp_path / "tree"), device=device).num_prims == len(faces)
+
+
+def test_save_errors_name_the_path_as_given(device, tmp_path, monkeypatch):
+    # Not the temporary file beside it, and not the path with its links resolved.
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "link").symlink_to(tmp_path)
+    for asked in ("missing/tree.npz", str(tmp_path / "link" / "missing" / "tree.npz")):
+        with pytest.raises(FileNotFoundError) as error:
+            hb.save_bvh(bvh, asked)
+        assert f"cannot write {asked}:" in str(error.value)
+    # The rename fails (a folder sits at the name): named, and nothing left beside it.
+    (tmp_path / "folder.npz").mkdir()
+    with pytest.raises(OSError, match="cannot write folder.npz") as error:
+        hb.save_bvh(bvh, "folder")
+    assert ".partial" not in str(error.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder.npz", "link"]
+
 def test_save_through_a_link_keeps_the_link_and_the_files_permissions(device, tmp_path):
     # Renaming a new file over the path replaced a symbolic link with a plain file (its target
     # unchanged) and gave a private file the default permissions.

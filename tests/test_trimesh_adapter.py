@@ -8,7 +8,7 @@ import trimesh
 from oracles import random_rays
 from trimesh.ray import ray_triangle
 
-from hlbvh_warp.trimesh_adapter import RayMeshIntersector
+from hlbvh_warp.trimesh_adapter import ProximityQuery, RayMeshIntersector
 
 
 class _BoxTree:
@@ -337,3 +337,14 @@ def test_signed_distance_of_a_point_in_a_face_plane_outside_the_mesh(device):
     points = np.array([[0.3 * size, -1.0e-5, 0.0], [0.3 * size, 1.0e-5, 0.0]])  # out of and on the box
     sd = ProximityQuery(mesh, device=device).signed_distance(points)
     assert sd[0] < 0 and sd[1] == pytest.approx(0.0, abs=1e-3), sd
+
+
+@pytest.mark.parametrize("cls", [RayMeshIntersector, ProximityQuery])
+def test_drop_ins_refuse_several_meshes_when_made(cls):
+    # A list reached the first query and failed there hashing itself ("unhashable type").
+    meshes = [trimesh.creation.box(), trimesh.creation.icosphere(subdivisions=1)]
+    for given in (meshes, trimesh.Scene(meshes)):
+        with pytest.raises(ValueError, match=f"{cls.__name__} takes one mesh.*concatenate"):
+            cls(given)
+    with pytest.raises(ValueError, match=f"{cls.__name__} takes a trimesh.Trimesh, got ndarray"):
+        cls(np.zeros((3, 3)))

@@ -191,6 +191,60 @@ def test_wide_rays_with_a_limit_per_ray_and_from_a_user_kernel(device, rng, widt
     with pytest.raises(ValueError, match=r"shape \(500,\), got \(3,\)"):
         wide.intersect(w, o, d, t_max=np.ones(3))
 
+
+def test_launch_inputs_checks_its_limits(device):
+    """`launch_inputs` (what the bench and the camera example launch with) takes a limit as
+    `intersect` does, and a Warp array of limits only when the kernel can read it whole: a wrong
+    length would read past its end, another dtype would fail inside Warp."""
+    from hlbvh_warp.kernels import wide as wide_kernels
+
+    sphere = hw.build(trimesh_icosphere(), device=device)
+    w = wide.collapse(sphere, 4)
+    n = 10
+    o = wp.zeros(n, dtype=wp.vec3, device=device)
+    d = wp.array(np.tile([0.0, 0.0, 1.0], (n, 1)), dtype=wp.vec3, device=device)
+    out_t, out_prim = wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device)
+    no_counts = wp.empty(0, dtype=wp.vec3i, device=device)
+    for bad in (wp.zeros(0, dtype=float, device=device), wp.zeros(2, dtype=float, device=device),
+                wp.zeros(n, dtype=wp.float64, device=device), wp.zeros((n, 1), dtype=float, device=device)):
+        with pytest.raises(ValueError, match="t_max as a Warp array"):
+            wide.launch_inputs(w, o, d, bad, out_t, out_prim, no_counts)
+    # The sphere lies at t of about 1 (0.95-1) from its centre: limits of 0.5 miss, 2.0 hit.
+    limits = np.where(np.arange(n) % 2 == 0, 0.5, 2.0)
+    for given in (limits, wp.array(limits, dtype=float, device=device), 2.0):
+        wp.launch(wide_kernels.wide_closest_hit_kernel, dim=n, device=device,
+                  inputs=wide.launch_inputs(w, o, d, given, out_t, out_prim, no_counts))
+        expect = np.full(n, True) if isinstance(given, float) else limits > 1.0
+        assert np.array_equal(out_prim.numpy() >= 0, expect)
+        t, prim = wide.intersect(w, o.numpy(), d.numpy(), t_max=given if isinstance(given, float) else limits)
+        assert np.array_equal(prim, out_prim.numpy()) and np.array_equal(t, out_t.numpy())
+
+
+def trimesh_icosphere():
+    import trimesh
+
+    return trimesh.creation.icosphere(subdivisions=2)
+
+
+def test_a_wide_view_is_the_snapshot_of_its_collapse(device):
+    """The view is made with the collapse: its root box is the one the slots were cut from, even
+    when the binary tree is refit before the first view is asked for."""
+    mesh = trimesh_icosphere()
+    builder = hw.Builder(len(mesh.faces), device=device, policy="refit")
+    builder.build(mesh.vertices, mesh.faces)
+    w = wide.collapse(builder.bvh, 4)
+    root_slots_upper = w.slot_uppers.numpy()[:4][w.slot_child.numpy()[:4] != kernels_empty()].max(axis=0)
+    builder.update(np.asarray(mesh.vertices) * 2.0)  # the binary root box doubles
+    assert np.allclose(builder.bvh.node_uppers.numpy()[0], 2.0 * root_slots_upper, rtol=1e-6)
+    assert np.array_equal(np.array(w.view().root_upper), root_slots_upper)
+    assert w.view() is wide.view(w)
+
+
+def kernels_empty():
+    from hlbvh_warp.kernels import wide as wide_kernels
+
+    return wide_kernels.EMPTY_SLOT
+
 def test_wide_rays_on_a_tree_deeper_than_the_stack(device, rng):
     # A caterpillar collapsed at width 16: 15 leaves and one interior child per level, about
     # 40 levels, so rays through the middle would stack more than the traversal's 256 entries.
