@@ -25,7 +25,6 @@ import hlbvh_warp
 from hlbvh_warp import api, query, reference, render, scenes, wide
 from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh
 from hlbvh_warp.kernels import traversal
-from hlbvh_warp.kernels import wide as wide_kernels
 
 
 class Example:
@@ -73,9 +72,8 @@ class Example:
         size = self.resolution
         self.image = render.shade(self.vertices, self.faces, prim_ref, directions, size, size)
         for key, tree in self.trees.items():
-            inputs = wide.launch_inputs(tree, o, d, float("inf"), self.hit_t, self.hit_prim, self.no_counts)
-            ms, t, prim = self._trace(lambda inputs=inputs: wp.launch(
-                wide_kernels.wide_closest_hit_kernel, dim=n, inputs=inputs))
+            kernel, inputs = wide.launch_args(tree, o, d, float("inf"), self.hit_t, self.hit_prim, self.no_counts)
+            ms, t, prim = self._trace(lambda kernel=kernel, inputs=inputs: wp.launch(kernel, dim=n, inputs=inputs))
             self.ms[key].append(ms)
             self.disagree[key] += reference.count_mismatches(t, prim, t_ref, prim_ref)
             image = render.shade(self.vertices, self.faces, prim, directions, size, size)

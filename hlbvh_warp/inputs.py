@@ -130,7 +130,7 @@ def query_array(values, name: str) -> np.ndarray:
     real numbers, as contiguous float32. NaN or Inf is not an error here: such a query finds
     nothing; only shapes and dtypes are."""
     arr = _to_numpy(values, name)
-    if arr.shape == (0,):
+    if arr.shape == (0,) and arr.dtype.kind in "fiu":
         arr = arr.reshape(0, 3).astype(np.float32)  # an empty list: no queries
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")

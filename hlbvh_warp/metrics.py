@@ -112,11 +112,13 @@ def cost_from_sum(bvh: Bvh, total: float, count: int, t_traversal: float, t_inte
     lower = bvh.node_lowers[0:1].numpy()[0].astype(np.float64)
     upper = bvh.node_uppers[0:1].numpy()[0].astype(np.float64)
     extent = upper - lower
+    if not np.isfinite(extent).all():
+        # A root reaching infinity (a frame that blew up) prices as NaN, quietly: the caller
+        # decides. Its area is no guide: a flat one's, inf x 0, would read as zero below.
+        return float("nan")
     root_area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0])
     if root_area > 0.0:
-        # An infinite root (a frame that blew up) prices as NaN, quietly: the caller decides.
-        with np.errstate(invalid="ignore"):
-            return float(total / root_area)
+        return float(total / root_area)
     # Zero-area root: every ratio is taken as 1, so the cost is the sum of the terms of a binary
     # tree with N references in (count + 1) / 2 leaves.
     return float(2.0 * t_traversal * ((count + 1) // 2 - 1) + t_intersect * bvh.num_refs)

@@ -171,24 +171,37 @@ def _t_max_values(t_max, num_rays: int) -> np.ndarray:
         return values.astype(np.float32)
 
 
-def _max_dist_values(max_dist, num_points: int) -> np.ndarray:
-    """``max_dist`` as float32 bounds: ``(1,)`` for one number (or a one-element array),
-    ``(num_points,)`` for one per point. The kernel takes float32: each bound is rounded up, never
-    to nearest, so that a triangle at exactly the float64 bound still counts (inclusive); past
-    float32's range a bound is unbounded."""
+def _max_dist_values(max_dist, num_points: int):
+    """``max_dist`` as float32 bounds: a float for one number (or a one-element array), a
+    ``(num_points,)`` float32 array for one per point. The kernel takes float32: each bound is
+    rounded up, never to nearest, so that a triangle at exactly the float64 bound still counts
+    (inclusive); past float32's range a bound is unbounded."""
     if isinstance(max_dist, float):
-        values = np.array([max_dist])  # the common call: no checks of an array's shape and dtype
-    else:
-        values = _max_dist_array(max_dist, num_points)
+        # The common call, in scalar arithmetic: a small query must not pay for array checks.
+        if not max_dist >= 0.0:
+            raise ValueError(f"max_dist must be >= 0, got {max_dist}")
+        return _round_up_to_float32(max_dist)
+    values = _max_dist_array(max_dist, num_points)
     bad = np.flatnonzero(~(values >= 0.0))
     if bad.size:
         where = "" if values.shape[0] == 1 else f" (point {bad[0]})"
         raise ValueError(f"max_dist must be >= 0, got {values[bad[0]]}{where}")
+    if values.shape[0] == 1:
+        return _round_up_to_float32(float(values[0]))
     with np.errstate(over="ignore"):
         bounds = values.astype(np.float32)
     low = bounds.astype(np.float64) < values
     bounds[low] = np.nextafter(bounds[low], np.float32(np.inf))
     return bounds
+
+
+def _round_up_to_float32(value: float) -> float:
+    """The float32 at or above ``value`` (inf past float32's range), as a Python float."""
+    with np.errstate(over="ignore"):
+        bound = np.float32(value)
+    if float(bound) < value:
+        bound = np.nextafter(bound, np.float32(np.inf))
+    return float(bound)
 
 
 def _max_dist_array(max_dist, num_points: int) -> np.ndarray:
@@ -458,7 +471,7 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
     order = _point_order(p, device)
     if order is not None:
         p = p[order]
-        if bounds.shape[0] > 1:
+        if isinstance(bounds, np.ndarray):
             bounds = bounds[order]
     out_point = wp.empty(num_points, dtype=wp.vec3, device=device)
     out_distance = wp.empty(num_points, dtype=float, device=device)
@@ -467,8 +480,11 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
     visits, tests = _optional_outputs(wp.int32, num_points, stats, device)
     if num_points:
         # One bound goes by value (see `traversal.query_limit`): no array to make or pack.
-        limit = float(bounds[0]) if bounds.shape[0] == 1 else wp.array(bounds, dtype=float, device=device)
-        wp.launch(proximity.closest_point_kernel, dim=num_points, device=device,
+        if isinstance(bounds, float):
+            kernel, limit = proximity.closest_point_one_bound_kernel, bounds
+        else:
+            kernel, limit = proximity.closest_point_bounds_kernel, wp.array(bounds, dtype=float, device=device)
+        wp.launch(kernel, dim=num_points, device=device,
                   inputs=[view(bvh), wp.array(p, dtype=wp.vec3, device=device), limit, out_point, out_distance,
                           out_prim, out_u, out_v, visits, tests])
     out = [out_point.numpy().reshape(num_points, 3), out_distance.numpy(), out_prim.numpy()]

@@ -88,11 +88,13 @@ class RayMeshIntersector:
         # broke the hit locations with a NumPy broadcast error.
         ray_origins = np.asanyarray(ray_origins, dtype=np.float64)
         ray_directions = np.asanyarray(ray_directions, dtype=np.float64)
+        # An empty list is no rays, as the other calls take it, not one ray of no coordinates.
         if ray_origins.ndim == 1:
-            ray_origins = ray_origins.reshape(1, -1)
+            ray_origins = ray_origins.reshape((0, 3) if ray_origins.size == 0 else (1, -1))
         if ray_directions.ndim == 1:
-            ray_directions = ray_directions.reshape(1, -1)
-        if ray_origins.shape != ray_directions.shape and 1 in (len(ray_origins), len(ray_directions)):
+            ray_directions = ray_directions.reshape((0, 3) if ray_directions.size == 0 else (1, -1))
+        if ray_origins.shape != ray_directions.shape and 1 in (len(ray_origins), len(ray_directions)) and \
+                ray_origins.shape[1:] == ray_directions.shape[1:]:  # other shapes: the query names them
             # One origin (or direction) for every ray, as the queries take it: the hit locations
             # index the rays by their ids, so the rows are spelled out here too.
             ray_origins, ray_directions = np.broadcast_arrays(ray_origins, ray_directions)

@@ -217,25 +217,30 @@ def view(wide: WideBvh) -> kernels.WideView:
     return v
 
 
-def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, hit_t: wp.array,
-                  hit_prim: wp.array, counts: wp.array) -> list:
-    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for `wide` and these rays and outputs.
-    ``t_max``: one number, or one per ray as `intersect` takes it (a float32 Warp array on the
-    tree's device of 1 or ``len(origins)`` entries is used as it is)."""
+def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, hit_t: wp.array,
+                hit_prim: wp.array, counts: wp.array) -> tuple:
+    """``(kernel, inputs)`` to launch the closest hits of these rays through `wide` into these
+    outputs (``wp.launch(kernel, dim=len(origins), inputs=inputs)``): the overload of
+    ``kernels.wide.wide_closest_hit_kernel`` for one limit or one per ray. ``t_max``: one number,
+    or one per ray as `intersect` takes it (a float32 Warp array on the tree's device of 1 or
+    ``len(origins)`` entries is used as it is)."""
     n = origins.shape[0]
     if isinstance(t_max, wp.array):
         if t_max.dtype != wp.float32 or t_max.ndim != 1 or t_max.shape[0] not in (1, n) or \
                 t_max.device != wide.device:
             raise ValueError(f"t_max as a Warp array must be float32 of shape (1,) or ({n},) on {wide.device}, "
                              f"got {wp.types.type_repr(t_max.dtype)} of shape {t_max.shape} on {t_max.device}")
-        limit = t_max
-    else:
-        from .query import _t_max_values
+        return kernels.wide_closest_hit_limits_kernel, [view(wide), origins, directions, t_max, hit_t, hit_prim,
+                                                        counts]
+    from .query import _t_max_values
 
-        values = _t_max_values(t_max, n)
+    values = _t_max_values(t_max, n)
+    if values.shape[0] == 1:
         # One limit goes by value (`kernels.traversal.query_limit`): no array to make or pack.
-        limit = float(values[0]) if values.shape[0] == 1 else wp.array(values, dtype=float, device=wide.device)
-    return [view(wide), origins, directions, limit, hit_t, hit_prim, counts]
+        return kernels.wide_closest_hit_one_limit_kernel, [view(wide), origins, directions, float(values[0]), hit_t,
+                                                           hit_prim, counts]
+    limits = wp.array(values, dtype=float, device=wide.device)
+    return kernels.wide_closest_hit_limits_kernel, [view(wide), origins, directions, limits, hit_t, hit_prim, counts]
 
 
 def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False):
@@ -257,9 +262,9 @@ def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: boo
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
     if n:
-        wp.launch(kernels.wide_closest_hit_kernel, dim=n, device=device,
-                  inputs=launch_inputs(wide, wp.array(o, dtype=wp.vec3, device=device),
-                                       wp.array(d, dtype=wp.vec3, device=device), limits, hit_t, hit_prim, counts))
+        kernel, args = launch_args(wide, wp.array(o, dtype=wp.vec3, device=device),
+                                   wp.array(d, dtype=wp.vec3, device=device), limits, hit_t, hit_prim, counts)
+        wp.launch(kernel, dim=n, device=device, inputs=args)
     out = (hit_t.numpy(), hit_prim.numpy())
     if stats:
         c = counts.numpy().reshape(-1, 3)

@@ -39,7 +39,6 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
     from .ray_bench import best_times
     from .config import TRAVERSAL_STACK_SIZE, BuildConfig
     from .kernels import traversal
-    from .kernels import wide as wide_kernels
     from .query import intersect, view
 
     bvh = api.build(vertices, faces, method=method, device=device, config=BuildConfig(cpu_threads=args.cpu_threads))
@@ -81,9 +80,8 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         for k in widths:
             w = trees[k]
             t, prim, stats = wide.intersect(w, o_np, d_np, stats=True)
-            inputs = wide.launch_inputs(w, o, d, float("inf"), out_t, out_p, no_counts)
-            fns.append(lambda inputs=inputs: wp.launch(wide_kernels.wide_closest_hit_kernel, dim=n, inputs=inputs,
-                                                       device=device))
+            kernel, inputs = wide.launch_args(w, o, d, float("inf"), out_t, out_p, no_counts)
+            fns.append(lambda kernel=kernel, inputs=inputs: wp.launch(kernel, dim=n, inputs=inputs, device=device))
             summary = stats.summary()
             entries.append({"k": k, "nodes": w.num_nodes, "depth": w.depth, "collapse_ms": w.collapse_ms,
                             "sah": wide.sah_cost(w), "n_s": summary["mean_nodes_visited"],

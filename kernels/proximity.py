@@ -488,8 +488,10 @@ def closest_point_kernel(
 
 
 # One bound for every point (the common call: nothing to pack but a float), or one per point.
-wp.overload(closest_point_kernel, {"max_dist": float})
-wp.overload(closest_point_kernel, {"max_dist": wp.array(dtype=float)})
+# Launched as these concrete overloads: launching the generic kernel would infer its argument
+# types on every call (about 50 us, a quarter of a small query on the CPU).
+closest_point_one_bound_kernel = wp.overload(closest_point_kernel, {"max_dist": float})
+closest_point_bounds_kernel = wp.overload(closest_point_kernel, {"max_dist": wp.array(dtype=float)})
 
 
 @wp.kernel

@@ -403,5 +403,7 @@ def wide_closest_hit_kernel(
         counts[i] = wp.vec3i(h.nodes_visited, h.boxes_tested, h.prims_tested)
 
 
-wp.overload(wide_closest_hit_kernel, {"t_max": float})
-wp.overload(wide_closest_hit_kernel, {"t_max": wp.array(dtype=float)})
+# One limit for every ray, or one per ray; launched as these concrete overloads (see
+# `proximity.closest_point_one_bound_kernel`).
+wide_closest_hit_one_limit_kernel = wp.overload(wide_closest_hit_kernel, {"t_max": float})
+wide_closest_hit_limits_kernel = wp.overload(wide_closest_hit_kernel, {"t_max": wp.array(dtype=float)})

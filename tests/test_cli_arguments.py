@@ -125,3 +125,34 @@ def test_mesh_file_errors_name_the_file(tmp_path, capsys, no_builds):
         for path, problem in ((text, "file_type 'txt' not supported"), (garbage, "Not a ply file")):
             err = error_of([command, "--mesh", str(path), "--json", str(tmp_path / "x.json")], capsys)
             assert f"hlbvh_warp {command}: error: {path}: {problem}" in err, err
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+def test_a_mesh_must_be_a_regular_file(capsys, no_builds):
+    # /dev/null exists but holds no mesh (and a FIFO would block trimesh's read): refused by
+    # argparse like a missing file, before any work.
+    import os
+
+    err = error_of(["quality", "--mesh", os.devnull], capsys)
+    assert f"argument --mesh: no such mesh file: {os.devnull}" in err, err
+
+
+@pytest.mark.parametrize("error", [OSError(28, "No space left on device"), NotImplementedError("no such format"),
+                                   ValueError("an empty scene")])
+def test_a_commands_input_errors_end_in_one_line(error, capsys, monkeypatch):
+    # Bad input the library names ends a command in one line and status 2, whatever its kind.
+    def failing(argv):
+        raise error
+
+    monkeypatch.setattr(quality, "main", failing)
+    err = error_of(["quality"], capsys)
+    assert err.strip() == f"hlbvh_warp quality: error: {error}", err
+
+
+def test_a_commands_bug_keeps_its_traceback(monkeypatch):
+    def failing(argv):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(quality, "main", failing)
+    with pytest.raises(RuntimeError, match="a bug"):
+        cli.main(["quality"])

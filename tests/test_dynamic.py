@@ -812,3 +812,93 @@ def test_bending_either_way_matches_the_float64_bend(device, rng, amount):
     theta = along * curv
     want = origin + (r * np.sin(theta))[:, None] * L + (radius - r * np.cos(theta))[:, None] * B + other
     assert np.abs(got - want).max() / mesh.length < 1e-4
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+@pytest.mark.parametrize("policy", ["rebuild", "auto"])
+def test_float64_frames_without_recorded_launches(device, small_scene, rng, policy):
+    # record_launches=False rounds a float64 frame with a plain launch: every vertex, last included.
+    v, f = small_scene
+    builder = Builder(len(f), device=device, policy=policy, record_launches=False)
+    builder.build(v, f)
+    for step, dtype in enumerate([wp.vec3d, wp.float64]):
+        moved = v.astype(np.float64) * (1.0 + 0.01 * (step + 1)) + 1e-9
+        moved[-1] += 0.125  # the last vertex moves on its own
+        builder.update(wp.array(moved, dtype=dtype, device=device))
+        np.testing.assert_array_equal(builder.vertices.numpy(), moved.astype(np.float32))
+        check_rays(builder.bvh, moved.astype(np.float32), f, rng)
+
+
+def test_a_float64_frame_on_the_builders_device_is_never_read_back(device, small_scene, monkeypatch):
+    # Rounded on the device as it is loaded: the caller's float64 array is not copied to the host.
+    v, f = small_scene
+    moved = v.astype(np.float64) * 1.25 + 1e-9
+    frames = [wp.array(moved, dtype=wp.vec3d, device=device), wp.array(moved, dtype=wp.float64, device=device)]
+    read = []
+    real_numpy = wp.array.numpy
+
+    def numpy(self):
+        if self.ptr in [frame.ptr for frame in frames]:
+            read.append(self.dtype)
+        return real_numpy(self)
+
+    monkeypatch.setattr(wp.array, "numpy", numpy)
+    for policy in ("rebuild", "auto"):
+        builder = Builder(len(f), device=device, policy=policy)
+        builder.build(v, f)
+        for frame in frames:
+            builder.update(frame)
+    assert read == []
+    np.testing.assert_array_equal(real_numpy(builder.vertices), moved.astype(np.float32))
+
+
+def test_float64_frames_are_swapped_into_one_record(device, small_scene):
+    # A new float64 array every frame: one record of the rounding launch, holding only the latest
+    # array (a record per array kept each caller's frame alive with the builder).
+    import gc
+    import weakref
+
+    v, f = small_scene
+    for policy in ("rebuild", "auto"):
+        builder = Builder(len(f), device=device, policy=policy)
+        builder.build(v, f)
+        refs = []
+        for k in range(4):
+            frame = wp.array(v.astype(np.float64) * (1.0 + 0.01 * k), dtype=wp.vec3d, device=device)
+            refs.append(weakref.ref(frame))
+            builder.update(frame)
+            del frame
+        gc.collect()
+        assert sum(ref() is not None for ref in refs[:-1]) == 0, policy
+
+
+def test_a_float64_half_of_a_frame_beside_one_written_in_place(device, rng):
+    # Lowers written into the builder's buffer, float64 uppers passed on its device: under `auto`
+    # the passed half is rounded into its buffer, and the motion of both is measured.
+    lo = rng.random((300, 3)).astype(np.float32)
+    builder = Builder(300, device=device, policy="auto")
+    builder.build_from_bounds(lo, lo + np.float32(0.01))
+    lo2 = lo + np.float32(0.5)
+    hi2 = lo2.astype(np.float64) + 0.01 + 1e-9
+    builder.prim_lowers.assign(lo2)
+    report = builder.update(bounds=(builder.prim_lowers, wp.array(hi2, dtype=wp.vec3d, device=device)))
+    assert report["decision"] == "rebuild", report
+    hi32 = hi2.astype(np.float32)
+    np.testing.assert_array_equal(builder.bvh.to_numpy()["prim_uppers"], hi32)
+    q_lo, q_hi = lo2[:20], hi32[:20]
+    assert np.array_equal(hw.query_aabb(builder.bvh, q_lo, q_hi), brute_overlaps(lo2, hi32, q_lo, q_hi).sum(1))
+
+
+@pytest.mark.skipif(not wp.get_cuda_devices(), reason="another device than the builder's needs a CUDA device")
+def test_a_float64_frame_from_another_device_is_checked_on_the_host(small_scene):
+    # From the host to a CUDA builder, a float64 frame is rounded on the host and checked there as
+    # NumPy input is: a coordinate past float32's range would otherwise load as inf.
+    v, f = small_scene
+    builder = Builder(len(f), device="cuda:0")
+    builder.build(v, f)
+    for bad, message in ((1e39, "beyond the float32 range"), (np.nan, "NaN or Inf")):
+        frame = v.astype(np.float64)
+        frame[5, 1] = bad
+        with pytest.raises(ValueError, match=message):
+            builder.update(wp.array(frame, dtype=wp.vec3d, device="cpu"))
+    np.testing.assert_array_equal(builder.vertices.numpy(), v)

@@ -401,3 +401,62 @@ def test_example_scripts_hand_the_mesh_they_checked_to_the_example(tmp_path, cap
     load_example("example_scene_builds").main(["--headless", "--num-frames", "1", "--mesh", str(path),
                                                "--mesh", str(path)])
     assert "2 meshes (320, 320 triangles)" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+COUNT_OPTIONS = [
+    *[(name, "--num-frames") for name in TINY_ARGS],
+    *[(name, "--num-tris") for name in ("example_exploding_mesh", "example_bending_mesh", "example_frame_timing",
+                                        "example_mesh_contact", "example_mesh_collision", "example_camera_orbit")],
+    ("example_exploding_mesh", "--image-size"), ("example_bending_mesh", "--image-size"),
+    ("example_mesh_contact", "--num-particles"), ("example_particle_collisions", "--num-particles"),
+    ("example_user_kernel", "--resolution"), ("example_camera_orbit", "--resolution"),
+]
+NON_NEGATIVE_OPTIONS = [("example_frame_timing", "--cpu-threads"), ("example_frame_timing", "--subdivide"),
+                        ("example_scene_builds", "--scratch-sets")]
+
+
+@pytest.mark.parametrize("name,option,value,message", [
+    *[(name, option, "0", f"argument {option}: must be at least 1, got 0") for name, option in COUNT_OPTIONS],
+    *[(name, option, "-1", f"argument {option}: must be at least 0, got -1") for name, option in NON_NEGATIVE_OPTIONS],
+])
+def test_example_scripts_refuse_counts_below_their_least(name, option, value, message, capsys, monkeypatch):
+    # A count of 0 (or -1 where 0 is allowed) ran no frame, or failed in the library as a traceback.
+    assert message in argument_error(name, [*TINY_ARGS[name], f"{option}={value}"], capsys, monkeypatch)
+
+
+@pytest.mark.parametrize("widths", ["1", "2,32", "2,x", "", "2,,4", "4,-8"])
+def test_camera_orbit_checks_its_widths_first(widths, capsys, monkeypatch):
+    # Only branching factors the wide trees have (2 to 16), every word of the list one of them
+    # (a word dropped silently ran fewer widths; a factor of 1 or 32 failed in the first collapse).
+    args = list(TINY_ARGS["example_camera_orbit"])
+    args[args.index("--widths") + 1] = widths
+    err = argument_error("example_camera_orbit", args, capsys, monkeypatch)
+    assert f"--widths takes branching factors from 2 to 16, got {widths}".strip() in err, err
+
+
+@pytest.mark.parametrize("option,value,message", [
+    ("--modes", "hlbvh scratch,hlbvh nothing", "unknown mode(s) ['hlbvh nothing']"),
+    ("--sequences", "explode,wobble", "unknown sequence(s) ['wobble']"),
+])
+def test_frame_timing_checks_its_modes_and_sequences_first(option, value, message, capsys, monkeypatch):
+    args = list(TINY_ARGS["example_frame_timing"])
+    args[args.index(option) + 1] = value
+    assert message in argument_error("example_frame_timing", args, capsys, monkeypatch)
+
+
+@pytest.mark.parametrize("value", ["nan", "-0.5", "-inf"])
+def test_bending_refuses_a_growth_limit_that_is_no_limit(value, capsys, monkeypatch):
+    err = argument_error("example_bending_mesh", [*TINY_ARGS["example_bending_mesh"], f"--sah-growth-limit={value}"],
+                         capsys, monkeypatch)
+    assert f"--sah-growth-limit: must be a number >= 0, got {value}" in err, err
+
+
+def test_frame_timing_checks_its_plot_folder_even_headless(tmp_path, capsys, monkeypatch):
+    # The plot is written headless too, so --out is checked before the first frame either way.
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    args = [*TINY_ARGS["example_frame_timing"], "--out", str(a_file)]
+    assert "--headless" in args
+    assert f"--out {a_file} is a file, not a folder" in argument_error("example_frame_timing", args, capsys,
+                                                                        monkeypatch)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -223,3 +225,43 @@ def test_cost_functions_name_a_tree_that_is_not_one(device):
         for not_a_tree in (None, builder):
             with pytest.raises(ValueError, match="takes a Bvh"):
                 cost(not_a_tree)
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+def test_an_infinite_root_prices_as_nan_without_a_warning(device, rng):
+    # A frame that blew up (an infinite vertex written into a Builder's buffer in place): the tree
+    # over it is priced as NaN, quietly (`cost_from_sum`), by `auto` as it rebuilds and on request.
+    from hlbvh_warp import Builder
+
+    v, f = random_soup(rng, 300)
+    bad = v.copy()
+    bad[4] = np.inf
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(v, f)
+    builder.vertices.assign(bad)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        builder.update()  # no snapshot of the last frame: rebuilt and priced
+        assert builder.sah_reference is None
+        assert np.isnan(builder.sah_cost()) and np.isnan(sah_cost(builder.bvh))
+
+
+def test_an_infinite_frame_of_a_flat_scene_prices_as_nan(device, rng):
+    # A flat scene (every z = 0) with one infinite x: the root's extent is (inf, y, 0), whose
+    # area inf*y + y*0 + 0*inf is NaN, not inf. `root_area > 0` is False for NaN, so the tree was
+    # priced by the zero-area formula (a finite 2 T1 (N - 1) + T2 N) with a NumPy warning, and
+    # `auto` took that as its reference and refit a tree built over the infinite frame.
+    from hlbvh_warp import Builder
+
+    v, f = random_soup(rng, 300)
+    v[:, 2] = 0.0
+    bad = v.copy()
+    bad[4, 0] = np.inf
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(v, f)
+    builder.vertices.assign(bad)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        builder.update()
+        assert builder.sah_reference is None
+        assert np.isnan(builder.sah_cost())

@@ -713,6 +713,16 @@ def test_wide_integer_vertices_are_rounded_once(device):
         bvh = hb.build(v, faces=[[0, 1, 2]], device=device)
         assert bvh.vertices.numpy()[0, 0] == np.float32(2**54 + 2**31)
 
+def test_empty_query_arrays_of_no_numbers_are_refused(device):
+    # Only an empty array of numbers is no queries; an empty object, string or bool array is the
+    # same dtype error as a full one.
+    bvh = hb.build(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), faces=[[0, 1, 2]], device=device)
+    assert hb.closest_point(bvh, [])[2].shape == (0,)
+    for empty in (np.array([], dtype=object), np.array([], dtype=str), np.array([], dtype=bool)):
+        with pytest.raises(ValueError, match="points must hold real numbers"):
+            hb.closest_point(bvh, empty)
+
+
 def test_several_meshes_are_refused_with_the_way_to_join_them(device):
     # A scene or a list of meshes is the natural thing to pass; the error says how to make one
     # mesh of it, and the joined mesh builds (face ids running through the meshes in order).

@@ -494,6 +494,19 @@ def test_bad_max_dist_arrays_name_the_point(device):
         hlbvh_warp.closest_point(bvh, points, max_dist=np.array([1.0, 2.0, np.nan, -1.0]))
     with pytest.raises(ValueError, match="real numbers"):
         hlbvh_warp.closest_point(bvh, points, max_dist=np.array(["a"] * 4))
+    # A (1, 1) or (P, 1) array is neither one bound nor one per point; booleans are no distances.
+    for bad in (np.array([[5.0]]), np.full((4, 1), 5.0)):
+        with pytest.raises(ValueError, match=r"max_dist must be a number or have shape \(4,\)"):
+            hlbvh_warp.closest_point(bvh, points, max_dist=bad)
+    with pytest.raises(ValueError, match="max_dist must hold real numbers, got dtype bool"):
+        hlbvh_warp.closest_point(bvh, points, max_dist=np.array([True, False, True, True]))
+    # Bounds past float32's range are unbounded, quietly, one or one per point.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for huge in (1e39, 10**40, np.float64(1e300), np.full(4, 1e39), [1e39]):
+            assert hlbvh_warp.closest_point(bvh, points, max_dist=huge)[2].tolist() == [0] * 4
     # Nothing was left behind: the next query answers.
     assert hlbvh_warp.closest_point(bvh, points, max_dist=np.full(4, 0.5))[2].tolist() == [0] * 4
 

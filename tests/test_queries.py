@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib.util
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -648,3 +650,110 @@ def test_result_totals_past_int32_are_refused_before_any_write(device):
     counts = wp.array(np.array([3, 0, 5, 2], np.int32), dtype=wp.int32, device=device)
     offsets, total = query._offsets(counts, "ray hits")
     assert total == 10 and offsets.numpy().tolist() == [0, 3, 3, 8]
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+def test_two_rays_each_with_its_own_t_max(device):
+    # Per-ray limits on a batch of two: one limit per ray must reach the kernel that reads one
+    # per ray, not the lean one-limit kernel (which took the first ray's limit for both).
+    verts, faces = _stacked_triangles([1.0, 2.0])
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o = np.float32([[0.2, 0.2, 0.0], [0.2, 0.2, 0.0]])
+    d = np.float32([[0, 0, 1], [0, 0, 1]])  # both hit triangle 0 at t = 1 and triangle 1 at t = 2
+    for limits in ([0.5, 1.5], [1.5, 0.5], [1.5, 2.5]):
+        t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d, t_max=np.array(limits))
+        t, prim = query.intersect(bvh, o, d, t_max=np.array(limits))
+        assert prim.tolist() == prim_ref.tolist(), limits
+        assert_hits_match(t, prim, t_ref, prim_ref)
+        assert query.occluded(bvh, o, d, t_max=limits).tolist() == (prim_ref >= 0).tolist()
+        ray_id, _, all_t = query.intersect_all(bvh, o, d, t_max=limits)
+        assert np.bincount(ray_id, minlength=2).tolist() == [int((np.float32([1, 2]) < lim).sum()) for lim in limits]
+
+
+@pytest.mark.parametrize("call", ["intersect", "occluded", "intersect_all"])
+def test_t_max_shapes_and_dtypes(device, scene, call):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    fn = getattr(query, call)
+    o = np.tile(np.float32([[0.01, 0.02, -3.0]]), (4, 1))
+    d = np.tile(np.float32([[0.0, 0.0, 1.0]]), (4, 1))  # each hits the sphere near t = 2
+    # One number is a scalar or a one-element vector; a (1, 1) array or a (R, 2) array is neither.
+    for bad in (np.array([[5.0]]), np.full((4, 2), 5.0), np.full((4, 1), 5.0)):
+        with pytest.raises(ValueError, match=r"t_max must be a number or have shape \(4,\)"):
+            fn(bvh, o, d, t_max=bad)
+    # Booleans are no distances, per ray or not (True as a Python number is float(True) = 1).
+    with pytest.raises(ValueError, match="t_max must hold real numbers, got dtype bool"):
+        fn(bvh, o, d, t_max=np.array([True, True, False, True]))
+    # Unsigned integers are real numbers like any other.
+    unsigned = fn(bvh, o, d, t_max=np.array([1, 5, 1, 5], dtype=np.uint32))
+    floats = fn(bvh, o, d, t_max=np.array([1.0, 5.0, 1.0, 5.0]))
+    for a, b in zip(unsigned, floats):
+        assert np.array_equal(a, b)
+    hit = unsigned[1] >= 0 if call == "intersect" else (unsigned if call == "occluded" else None)
+    if hit is not None:
+        assert hit.tolist() == [False, True, False, True]
+    # An empty batch checks its limit like any other.
+    with pytest.raises(ValueError, match="t_max must be a number"):
+        fn(bvh, [], [], t_max="far")
+    with pytest.raises(ValueError, match=r"have shape \(0,\)"):
+        fn(bvh, [], [], t_max=np.ones(3))
+
+
+def test_huge_t_max_is_unbounded_without_a_warning(device, scene, rng):
+    # A limit past float32's range rounds to inf, quietly: 1e39 is as unbounded as inf.
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 50)
+    unbounded = query.intersect(bvh, o, d)[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for huge in (1e39, 10**40, np.float64(1e300), np.full(50, 1e39), [1e39]):
+            assert np.array_equal(query.intersect(bvh, o, d, t_max=huge)[1], unbounded)
+            assert np.array_equal(query.occluded(bvh, o, d, t_max=huge), unbounded >= 0)
+            assert np.array_equal(np.unique(query.intersect_all(bvh, o, d, t_max=huge)[0]),
+                                  np.flatnonzero(unbounded >= 0))
+
+
+def test_a_ray_with_no_t_range_walks_nothing(device, scene):
+    # t_max 0, negative or NaN: no t in (0, t_max), so the ray misses without entering the tree.
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o = np.zeros((3, 3), np.float32)  # inside the sphere: the root box contains every origin
+    d = np.float32([[0, 0, 1], [1, 0, 0], [0, -1, 0]])
+    for limit in (0.0, -1.0, np.nan, np.float32([0.0, -0.0, np.nan])):
+        t, prim, stats = query.intersect(bvh, o, d, t_max=limit, stats=True)
+        assert (prim == -1).all() and np.isinf(t).all()
+        assert stats.nodes_visited.tolist() == [0, 0, 0] and stats.prims_tested.tolist() == [0, 0, 0]
+        occluded, stats = query.occluded(bvh, o, d, t_max=limit, stats=True)
+        assert not occluded.any() and stats.nodes_visited.tolist() == [0, 0, 0]
+        assert len(query.intersect_all(bvh, o, d, t_max=limit)[0]) == 0
+    assert (query.intersect(bvh, o, d)[1] >= 0).all()  # the same rays hit with a range
+
+
+def test_one_origin_or_direction_with_an_empty_batch(device, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    eye, none = np.float32([0.1, 0.2, -4.0]), np.zeros((0, 3), np.float32)
+    # One origin (or one direction) for no rays: an empty batch, as for many rays.
+    for o, d in ((eye, none), (none, eye), ([eye], none)):
+        t, prim = query.intersect(bvh, o, d)
+        assert t.shape == prim.shape == (0,)
+        assert query.occluded(bvh, o, d).shape == (0,)
+        assert len(query.intersect_all(bvh, o, d)[0]) == 0
+    # No rows against several is a shape mismatch, not a broadcast.
+    for o, d in ((none, np.ones((5, 3))), (np.ones((5, 3)), none)):
+        with pytest.raises(ValueError, match="origins and directions differ in shape"):
+            query.intersect(bvh, o, d)
+
+
+def test_an_empty_batch_of_the_wrong_width_is_a_shape_error(device, scene):
+    # Only an empty list (shape (0,)) is read as no rows of three: (0, 2) is the caller's mistake.
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    for bad in (np.zeros((0, 2)), np.zeros((0, 4)), np.zeros((2, 0))):
+        with pytest.raises(ValueError, match=r"origins must have shape \(n, 3\)"):
+            query.intersect(bvh, bad, bad)
+        with pytest.raises(ValueError, match=r"points must have shape \(n, 3\)"):
+            query.closest_point(bvh, bad)
+        with pytest.raises(ValueError, match=r"lowers must have shape \(n, 3\)"):
+            query.query_aabb(bvh, bad, bad)

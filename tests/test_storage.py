@@ -514,3 +514,32 @@ def test_box_and_spatial_split_files_are_refused_by_name(device, tmp_path):
         with pytest.raises(ValueError) as error:
             hb.load_bvh(path, device=device)
         assert str(path) in str(error.value), (what, str(error.value))
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+def test_the_npz_fallback_only_for_a_name_with_nothing_at_it(device, tmp_path):
+    # load_bvh("tree") reads tree.npz only where nothing at all sits at "tree" and a file sits at
+    # "tree.npz"; otherwise the name is opened as given, and its error names it.
+    rng = np.random.default_rng(3)
+    lo = rng.random((40, 3)).astype(np.float32)
+    hb.save_bvh(hb.build_from_bounds(lo, lo + np.float32(0.1), device=device), tmp_path / "tree")
+    assert hb.load_bvh(tmp_path / "tree", device=device).num_prims == 40
+    # A dangling link at the name is something there: its own error, not the .npz beside it.
+    os.symlink(tmp_path / "nowhere", tmp_path / "link")
+    os.replace(tmp_path / "tree.npz", tmp_path / "link.npz")
+    with pytest.raises(FileNotFoundError) as error:
+        hb.load_bvh(tmp_path / "link", device=device)
+    assert error.value.filename == str(tmp_path / "link")
+    # A folder named name.npz is no file to fall back on: the name's own FileNotFoundError.
+    (tmp_path / "folder.npz").mkdir()
+    with pytest.raises(FileNotFoundError) as error:
+        hb.load_bvh(tmp_path / "folder", device=device)
+    assert error.value.filename == str(tmp_path / "folder")
+    # Nothing at either name: the error names the name asked for.
+    with pytest.raises(FileNotFoundError) as error:
+        hb.load_bvh(tmp_path / "missing", device=device)
+    assert error.value.filename == str(tmp_path / "missing")
+    # A name that has the suffix is never given another: save_bvh(bvh, "t.npz") writes t.npz.
+    os.replace(tmp_path / "link.npz", tmp_path / "t.npz.npz")
+    with pytest.raises(FileNotFoundError):
+        hb.load_bvh(tmp_path / "t.npz", device=device)

@@ -348,3 +348,51 @@ def test_drop_ins_refuse_several_meshes_when_made(cls):
             cls(given)
     with pytest.raises(ValueError, match=f"{cls.__name__} takes a trimesh.Trimesh, got ndarray"):
         cls(np.zeros((3, 3)))
+
+
+# ----------------------------------------------------------------- pinned by the third mutation audit
+@pytest.mark.parametrize("multiple_hits", [True, False])
+def test_one_direction_serves_every_origin_in_intersects_id(device, rng, reference, multiple_hits):
+    # A light's one direction for many origins: the hit locations index the directions by ray id
+    # too, so the direction row must be spelled out as the origin row is (the one-origin test
+    # above never reached this half of the broadcast: an IndexError without it).
+    mesh, _, _ = _scene(rng)
+    ours, ref = RayMeshIntersector(mesh, device=device), reference(mesh)
+    # Origins on a plane below the sphere and the box, one slanted direction up through both.
+    o = np.column_stack([rng.uniform(-1.2, 2.4, 200), rng.uniform(-1.2, 1.2, 200), np.full(200, -3.0)])
+    light = np.array([[0.05, -0.1, 1.0]])
+    tiled = np.repeat(light, len(o), axis=0)
+    tri, ray = ours.intersects_id(o, light, multiple_hits=multiple_hits)
+    tri_ref, ray_ref = ref.intersects_id(o, tiled, multiple_hits=multiple_hits)
+    assert len(set(ray_ref.tolist())) > 50
+    assert sorted(zip(ray.tolist(), tri.tolist())) == sorted(zip(ray_ref.tolist(), tri_ref.tolist()))
+    tri, ray, locations = ours.intersects_id(o, light, multiple_hits=multiple_hits, return_locations=True)
+    # Each location lies on its own ray (float64: o + t d for that ray's origin and the light).
+    along = np.einsum("ij,j->i", locations - o[ray], light[0]) / (light[0] @ light[0])
+    np.testing.assert_allclose(locations, o[ray] + along[:, None] * light[0], atol=1e-6)
+    assert (along > 0).all()
+    locations_t, ray_t, tri_t = ours.intersects_location(o, tiled, multiple_hits=multiple_hits)
+    np.testing.assert_allclose(ours.intersects_location(o, light, multiple_hits=multiple_hits)[0], locations_t)
+
+
+def test_empty_lists_are_empty_batches_in_every_ray_call(device):
+    # intersects_first / intersects_any take [] as no rays; intersects_id / intersects_location
+    # read a 1-D [] as one (3,) ray and reshaped it to (1, 0): "origins must have shape (n, 3),
+    # got (1, 0)".
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    ours = RayMeshIntersector(mesh, device=device)
+    assert ours.intersects_first([], []).shape == (0,)
+    assert ours.intersects_any([], []).shape == (0,)
+    tri, ray = ours.intersects_id([], [])
+    assert tri.shape == ray.shape == (0,)
+    locations, ray, tri = ours.intersects_location([], [])
+    assert locations.shape == (0, 3) and ray.shape == tri.shape == (0,)
+
+
+def test_a_row_against_rows_of_another_width_names_the_directions(device):
+    # One origin against directions of two columns: the query's own shape error, not NumPy's
+    # broadcast message.
+    ours = RayMeshIntersector(trimesh.creation.icosphere(subdivisions=1), device=device)
+    for call in (ours.intersects_id, ours.intersects_location):
+        with pytest.raises(ValueError, match=r"directions must have shape \(n, 3\), got \(5, 2\)"):
+            call(np.zeros((1, 3)), np.ones((5, 2)))

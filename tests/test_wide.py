@@ -192,8 +192,8 @@ def test_wide_rays_with_a_limit_per_ray_and_from_a_user_kernel(device, rng, widt
         wide.intersect(w, o, d, t_max=np.ones(3))
 
 
-def test_launch_inputs_checks_its_limits(device):
-    """`launch_inputs` (what the bench and the camera example launch with) takes a limit as
+def test_launch_args_check_their_limits(device):
+    """`launch_args` (what the bench and the camera example launch with) takes a limit as
     `intersect` does, and a Warp array of limits only when the kernel can read it whole: a wrong
     length would read past its end, another dtype would fail inside Warp."""
     from hlbvh_warp.kernels import wide as wide_kernels
@@ -208,15 +208,19 @@ def test_launch_inputs_checks_its_limits(device):
     for bad in (wp.zeros(0, dtype=float, device=device), wp.zeros(2, dtype=float, device=device),
                 wp.zeros(n, dtype=wp.float64, device=device), wp.zeros((n, 1), dtype=float, device=device)):
         with pytest.raises(ValueError, match="t_max as a Warp array"):
-            wide.launch_inputs(w, o, d, bad, out_t, out_prim, no_counts)
+            wide.launch_args(w, o, d, bad, out_t, out_prim, no_counts)
     # The sphere lies at t of about 1 (0.95-1) from its centre: limits of 0.5 miss, 2.0 hit.
     limits = np.where(np.arange(n) % 2 == 0, 0.5, 2.0)
-    for given in (limits, wp.array(limits, dtype=float, device=device), 2.0):
-        wp.launch(wide_kernels.wide_closest_hit_kernel, dim=n, device=device,
-                  inputs=wide.launch_inputs(w, o, d, given, out_t, out_prim, no_counts))
-        expect = np.full(n, True) if isinstance(given, float) else limits > 1.0
+    for given, kernel in ((limits, wide_kernels.wide_closest_hit_limits_kernel),
+                          (wp.array(limits, dtype=float, device=device), wide_kernels.wide_closest_hit_limits_kernel),
+                          (2.0, wide_kernels.wide_closest_hit_one_limit_kernel),
+                          (np.array([2.0]), wide_kernels.wide_closest_hit_one_limit_kernel)):
+        chosen, args = wide.launch_args(w, o, d, given, out_t, out_prim, no_counts)
+        assert chosen is kernel  # one limit goes by value
+        wp.launch(chosen, dim=n, device=device, inputs=args)
+        expect = limits > 1.0 if kernel is wide_kernels.wide_closest_hit_limits_kernel else np.full(n, True)
         assert np.array_equal(out_prim.numpy() >= 0, expect)
-        t, prim = wide.intersect(w, o.numpy(), d.numpy(), t_max=given if isinstance(given, float) else limits)
+        t, prim = wide.intersect(w, o.numpy(), d.numpy(), t_max=limits if np.size(given) == n else 2.0)
         assert np.array_equal(prim, out_prim.numpy()) and np.array_equal(t, out_t.numpy())
 
 
