@@ -151,22 +151,30 @@ def _require_whole_boxes(bvh: Bvh, name: str):
                          "splits triangles across leaves (spatial splits): build one with an object-split method")
 
 
-def _t_max_values(t_max, num_rays: int) -> np.ndarray:
-    """``t_max`` as float32: ``(1,)`` for one number (or a one-element array), ``(num_rays,)`` for
-    one per ray. Rounded to nearest: hits count for t < t_max, an open bound either way."""
-    values = np.asarray(t_max.numpy() if isinstance(t_max, wp.array) else t_max)
+def _per_query_values(value, count: int, name: str) -> np.ndarray:
+    """A limit given as one number (or a one-element array) or one per query, checked: a float64
+    array of shape ``(1,)`` or ``(count,)``. Shapes and dtypes are errors that name the shape,
+    never the values."""
+    values = np.asarray(value.numpy() if isinstance(value, wp.array) else value)
     if values.ndim == 0 and values.dtype.kind not in "fiu":
         # What float() takes: a Python int past int64 (an object array), "inf", a Fraction, a bool.
         try:
-            values = np.asarray(float(t_max))
+            values = np.asarray(float(value))
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"t_max must be a number, got {t_max!r}") from exc
+            raise ValueError(f"{name} must be a number, got {type(value).__name__} {value!r}") from exc
     if values.dtype.kind not in "fiu":
-        raise ValueError(f"t_max must hold real numbers, got dtype {values.dtype}")
+        raise ValueError(f"{name} must hold real numbers, got dtype {values.dtype}")
     if values.size == 1 and values.ndim <= 1:
         values = values.reshape(1)
-    elif values.shape != (num_rays,):
-        raise ValueError(f"t_max must be a number or have shape ({num_rays},), got {values.shape}")
+    elif values.shape != (count,):
+        raise ValueError(f"{name} must be a number or have shape ({count},), got {values.shape}")
+    return values.astype(np.float64)
+
+
+def _t_max_values(t_max, num_rays: int) -> np.ndarray:
+    """``t_max`` as float32: ``(1,)`` for one number (or a one-element array), ``(num_rays,)`` for
+    one per ray. Rounded to nearest: hits count for t < t_max, an open bound either way."""
+    values = _per_query_values(t_max, num_rays, "t_max")
     with np.errstate(over="ignore"):
         return values.astype(np.float32)
 
@@ -181,7 +189,7 @@ def _max_dist_values(max_dist, num_points: int):
         if not max_dist >= 0.0:
             raise ValueError(f"max_dist must be >= 0, got {max_dist}")
         return _round_up_to_float32(max_dist)
-    values = _max_dist_array(max_dist, num_points)
+    values = _per_query_values(max_dist, num_points, "max_dist")
     bad = np.flatnonzero(~(values >= 0.0))
     if bad.size:
         where = "" if values.shape[0] == 1 else f" (point {bad[0]})"
@@ -202,24 +210,6 @@ def _round_up_to_float32(value: float) -> float:
     if float(bound) < value:
         bound = np.nextafter(bound, np.float32(np.inf))
     return float(bound)
-
-
-def _max_dist_array(max_dist, num_points: int) -> np.ndarray:
-    """``max_dist`` other than a Python float, checked: a float64 array of 1 or ``num_points``."""
-    values = np.asarray(max_dist.numpy() if isinstance(max_dist, wp.array) else max_dist)
-    if values.ndim == 0 and values.dtype.kind not in "fiu":
-        # What float() takes: a Python int past int64 (an object array), "inf", a Fraction.
-        try:
-            values = np.asarray(float(max_dist))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"max_dist must be a number, got {type(max_dist).__name__} {max_dist!r}") from exc
-    if values.dtype.kind not in "fiu":
-        raise ValueError(f"max_dist must hold real numbers, got dtype {values.dtype}")
-    if values.size == 1 and values.ndim <= 1:
-        values = values.reshape(1)
-    elif values.shape != (num_points,):
-        raise ValueError(f"max_dist must be a number or have shape ({num_points},), got {values.shape}")
-    return values.astype(np.float64)
 
 
 def _empty(dtype, device, shape=0):
