@@ -94,7 +94,7 @@ def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, dev
         ref_max = max_dist if np.isfinite(max_dist) else 1.0e30
 
         def ours():
-            wp.launch(proximity.closest_point_one_bound_kernel, dim=n, device=device,
+            wp.launch(proximity.closest_point_kernel, dim=n, device=device,
                       inputs=[bvh_view, pw, float(max_dist), *ours_out, none_f, none_f, none_i, none_i])
 
         def reference():

@@ -471,7 +471,7 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
     if num_points:
         # One bound goes by value (see `traversal.query_limit`): no array to make or pack.
         if isinstance(bounds, float):
-            kernel, limit = proximity.closest_point_one_bound_kernel, bounds
+            kernel, limit = proximity.closest_point_kernel, bounds
         else:
             kernel, limit = proximity.closest_point_bounds_kernel, wp.array(bounds, dtype=float, device=device)
         wp.launch(kernel, dim=num_points, device=device,

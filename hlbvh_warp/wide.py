@@ -220,10 +220,10 @@ def view(wide: WideBvh) -> kernels.WideView:
 def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, hit_t: wp.array,
                 hit_prim: wp.array, counts: wp.array) -> tuple:
     """``(kernel, inputs)`` to launch the closest hits of these rays through `wide` into these
-    outputs (``wp.launch(kernel, dim=len(origins), inputs=inputs)``): the overload of
-    ``kernels.wide.wide_closest_hit_kernel`` for one limit or one per ray. ``t_max``: one number,
-    or one per ray as `intersect` takes it (a float32 Warp array on the tree's device of 1 or
-    ``len(origins)`` entries is used as it is)."""
+    outputs (``wp.launch(kernel, dim=len(origins), inputs=inputs)``): ``kernels.wide``'s
+    ``wide_closest_hit_kernel`` for one limit, ``wide_closest_hit_limits_kernel`` for one per
+    ray. ``t_max``: one number, or one per ray as `intersect` takes it (a float32 Warp array on
+    the tree's device of 1 or ``len(origins)`` entries is used as it is)."""
     n = origins.shape[0]
     if isinstance(t_max, wp.array):
         if t_max.dtype != wp.float32 or t_max.ndim != 1 or t_max.shape[0] not in (1, n) or \
@@ -237,10 +237,20 @@ def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, h
     values = _t_max_values(t_max, n)
     if values.shape[0] == 1:
         # One limit goes by value (`kernels.traversal.query_limit`): no array to make or pack.
-        return kernels.wide_closest_hit_one_limit_kernel, [view(wide), origins, directions, float(values[0]), hit_t,
+        return kernels.wide_closest_hit_kernel, [view(wide), origins, directions, float(values[0]), hit_t,
                                                            hit_prim, counts]
     limits = wp.array(values, dtype=float, device=wide.device)
     return kernels.wide_closest_hit_limits_kernel, [view(wide), origins, directions, limits, hit_t, hit_prim, counts]
+
+
+def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, hit_t: wp.array,
+                  hit_prim: wp.array, counts: wp.array) -> list:
+    """Inputs of ``kernels.wide.wide_closest_hit_kernel`` for one ``t_max`` for every ray (the
+    call before `launch_args`, which also takes one per ray and names the kernel to launch)."""
+    kernel, args = launch_args(wide, origins, directions, t_max, hit_t, hit_prim, counts)
+    if kernel is not kernels.wide_closest_hit_kernel:
+        raise ValueError("launch_inputs() takes one t_max for every ray; launch_args() takes one per ray")
+    return args
 
 
 def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False):

@@ -460,7 +460,7 @@ def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
 
 
 @wp.kernel
-def closest_point_kernel(
+def closest_point_any_bound_kernel(
     bvh: BvhView,
     points: wp.array(dtype=wp.vec3),
     max_dist: Any,
@@ -489,9 +489,11 @@ def closest_point_kernel(
 
 # One bound for every point (the common call: nothing to pack but a float), or one per point.
 # Launched as these concrete overloads: launching the generic kernel would infer its argument
-# types on every call (about 50 us, a quarter of a small query on the CPU).
-closest_point_one_bound_kernel = wp.overload(closest_point_kernel, {"max_dist": float})
-closest_point_bounds_kernel = wp.overload(closest_point_kernel, {"max_dist": wp.array(dtype=float)})
+# types on every call (about 50 us, a quarter of a small query on the CPU), and could not take
+# the int or np.float32 bound a float parameter takes. `closest_point_kernel` keeps the name and
+# signature the one-bound kernel always had.
+closest_point_kernel = wp.overload(closest_point_any_bound_kernel, {"max_dist": float})
+closest_point_bounds_kernel = wp.overload(closest_point_any_bound_kernel, {"max_dist": wp.array(dtype=float)})
 
 
 @wp.kernel

@@ -1135,6 +1135,13 @@ def query_limit(limits: float, query: int):  # noqa: F811  (a Warp overload, cho
     return limits
 
 
+@wp.func
+def query_limit(limits: int, query: int):  # noqa: F811  (a Warp overload, chosen by type)
+    """An integer limit (a generic kernel launched with an int): the same limit as a float. Without
+    it such a launch would fail to compile, and Warp would keep the failure for the whole module."""
+    return float(limits)
+
+
 @wp.kernel
 def closest_hit_details_kernel(
     bvh: BvhView,

@@ -383,7 +383,7 @@ def bvh_wide_closest_hit(view: WideView, origin: wp.vec3, direction: wp.vec3, t_
 
 
 @wp.kernel
-def wide_closest_hit_kernel(
+def wide_closest_hit_any_limit_kernel(
     view: WideView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
@@ -404,6 +404,6 @@ def wide_closest_hit_kernel(
 
 
 # One limit for every ray, or one per ray; launched as these concrete overloads (see
-# `proximity.closest_point_one_bound_kernel`).
-wide_closest_hit_one_limit_kernel = wp.overload(wide_closest_hit_kernel, {"t_max": float})
-wide_closest_hit_limits_kernel = wp.overload(wide_closest_hit_kernel, {"t_max": wp.array(dtype=float)})
+# `proximity.closest_point_kernel`), the one-limit one under the kernel's old name.
+wide_closest_hit_kernel = wp.overload(wide_closest_hit_any_limit_kernel, {"t_max": float})
+wide_closest_hit_limits_kernel = wp.overload(wide_closest_hit_any_limit_kernel, {"t_max": wp.array(dtype=float)})

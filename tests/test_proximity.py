@@ -484,6 +484,41 @@ def test_one_max_dist_per_point(device, rng, monkeypatch, sort_from):
     assert (prim[exact > one * (1 + 1e-6)] == -1).all()
 
 
+
+@wp.kernel
+def _integer_limit_kernel(limits: wp.array(dtype=wp.int32), out: wp.array(dtype=float)):
+    i = wp.tid()
+    out[i] = traversal.query_limit(limits[i], i) + traversal.query_limit(float(limits[i]), i)
+
+
+def test_the_kernel_takes_a_bound_as_its_float_parameter_always_did(device, rng):
+    """`closest_point_kernel` keeps the signature of the one-bound kernel users launched: an int or
+    a NumPy float is a bound as a Python float is (its generic form could not take them). And an
+    integer limit reads as the same float, so no launch of a generic kernel with one fails to
+    compile (Warp would keep that failure for the whole module)."""
+    verts, faces = random_soup(rng, 100)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    points = rng.uniform(-0.5, 1.5, (50, 3)).astype(np.float32)
+    expected = hlbvh_warp.closest_point(bvh, points, max_dist=0.25)[2]
+    assert 0 < (expected >= 0).sum() < len(points)
+    n = len(points)
+    none_f, none_i = wp.empty(0, dtype=float, device=device), wp.empty(0, dtype=wp.int32, device=device)
+    for bound in (0.25, np.float32(0.25), np.float64(0.25)):
+        out = [wp.empty(n, dtype=wp.vec3, device=device), wp.empty(n, dtype=float, device=device),
+               wp.empty(n, dtype=wp.int32, device=device)]
+        wp.launch(proximity.closest_point_kernel, dim=n, device=device,
+                  inputs=[hlbvh_warp.view(bvh), wp.array(points, dtype=wp.vec3, device=device), bound, *out,
+                          none_f, none_f, none_i, none_i])
+        assert np.array_equal(out[2].numpy(), expected), bound
+    wp.launch(proximity.closest_point_kernel, dim=n, device=device,
+              inputs=[hlbvh_warp.view(bvh), wp.array(points, dtype=wp.vec3, device=device), 2, *out,
+                      none_f, none_f, none_i, none_i])
+    assert np.array_equal(out[2].numpy(), hlbvh_warp.closest_point(bvh, points, max_dist=2.0)[2])
+    values = wp.array([3, -1, 0], dtype=wp.int32, device=device)
+    doubled = wp.empty(3, dtype=float, device=device)
+    wp.launch(_integer_limit_kernel, dim=3, device=device, inputs=[values, doubled])
+    assert doubled.numpy().tolist() == [6.0, -2.0, 0.0]
+
 def test_bad_max_dist_arrays_name_the_point(device):
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
     bvh = hlbvh_warp.build(verts, faces=np.array([[0, 1, 2]]), device=device)

@@ -213,8 +213,8 @@ def test_launch_args_check_their_limits(device):
     limits = np.where(np.arange(n) % 2 == 0, 0.5, 2.0)
     for given, kernel in ((limits, wide_kernels.wide_closest_hit_limits_kernel),
                           (wp.array(limits, dtype=float, device=device), wide_kernels.wide_closest_hit_limits_kernel),
-                          (2.0, wide_kernels.wide_closest_hit_one_limit_kernel),
-                          (np.array([2.0]), wide_kernels.wide_closest_hit_one_limit_kernel)):
+                          (2.0, wide_kernels.wide_closest_hit_kernel),
+                          (np.array([2.0]), wide_kernels.wide_closest_hit_kernel)):
         chosen, args = wide.launch_args(w, o, d, given, out_t, out_prim, no_counts)
         assert chosen is kernel  # one limit goes by value
         wp.launch(chosen, dim=n, device=device, inputs=args)
@@ -222,6 +222,15 @@ def test_launch_args_check_their_limits(device):
         assert np.array_equal(out_prim.numpy() >= 0, expect)
         t, prim = wide.intersect(w, o.numpy(), d.numpy(), t_max=limits if np.size(given) == n else 2.0)
         assert np.array_equal(prim, out_prim.numpy()) and np.array_equal(t, out_t.numpy())
+    # The one-limit kernel keeps its name and takes a limit as a float parameter takes one (the
+    # inputs of the call before `launch_args` still serve it).
+    args = wide.launch_inputs(w, o, d, 2.0, out_t, out_prim, no_counts)
+    for limit, hits in ((2, True), (np.float32(0.5), False), (np.float64(2.0), True)):
+        args[3] = limit
+        wp.launch(wide_kernels.wide_closest_hit_kernel, dim=n, device=device, inputs=args)
+        assert ((out_prim.numpy() >= 0) == hits).all(), limit
+    with pytest.raises(ValueError, match="launch_args"):
+        wide.launch_inputs(w, o, d, limits, out_t, out_prim, no_counts)
 
 
 def trimesh_icosphere():
