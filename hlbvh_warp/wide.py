@@ -200,9 +200,8 @@ def view(wide: WideBvh) -> kernels.WideView:
     bvh = wide.bvh
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError("view() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
-    cached = getattr(wide, "_view", None)
-    if cached is not None:
-        return cached
+    if wide._view is not None:
+        return wide._view
     v = kernels.WideView()
     v.width = wide.width
     # The root's box: one element read back, not the node arrays (a copy of each on CUDA).
@@ -234,12 +233,16 @@ def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, h
                                                         counts]
     from .query import _t_max_values
 
-    values = _t_max_values(t_max, n)
-    if values.shape[0] == 1:
+    return _launch_for(wide, origins, directions, _t_max_values(t_max, n), hit_t, hit_prim, counts)
+
+
+def _launch_for(wide: WideBvh, origins, directions, limits: np.ndarray, hit_t, hit_prim, counts) -> tuple:
+    """`launch_args` for limits already checked (`query._t_max_values`)."""
+    if limits.shape[0] == 1:
         # One limit goes by value (`kernels.traversal.query_limit`): no array to make or pack.
-        return kernels.wide_closest_hit_kernel, [view(wide), origins, directions, float(values[0]), hit_t,
-                                                           hit_prim, counts]
-    limits = wp.array(values, dtype=float, device=wide.device)
+        return kernels.wide_closest_hit_kernel, [view(wide), origins, directions, float(limits[0]), hit_t, hit_prim,
+                                                 counts]
+    limits = wp.array(limits, dtype=float, device=wide.device)
     return kernels.wide_closest_hit_limits_kernel, [view(wide), origins, directions, limits, hit_t, hit_prim, counts]
 
 
@@ -272,7 +275,7 @@ def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: boo
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
     if n:
-        kernel, args = launch_args(wide, wp.array(o, dtype=wp.vec3, device=device),
+        kernel, args = _launch_for(wide, wp.array(o, dtype=wp.vec3, device=device),
                                    wp.array(d, dtype=wp.vec3, device=device), limits, hit_t, hit_prim, counts)
         wp.launch(kernel, dim=n, device=device, inputs=args)
     out = (hit_t.numpy(), hit_prim.numpy())
