@@ -429,7 +429,8 @@ def parse_args(argv):
     parser.add_argument("--scene-tris", type=positive_int, default=60000,
                         help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
-                        help="comma-separated builders and peers (default: all)")
+                        help="comma-separated builders and peers (default: %(default)s; the offline recursive_sah and "
+                             "sbvh on request)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder (default: %(default)s)")
     parser.add_argument("--warmup", type=non_negative_int, default=1,

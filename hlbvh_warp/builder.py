@@ -18,10 +18,12 @@ frame) or arbitrary primitives given by their boxes (`Builder.build_from_bounds(
 then new ``bounds=(lowers, uppers)`` each frame: particles, spheres or capsules of a
 simulation's broad phase).
 
-Only ``"auto"`` reads values back to the host (the displacement every frame, the SAH cost of the
-trees a refit may compare with): it has to, to decide. ``rebuild`` and ``refit`` given device
-arrays never synchronize, and on CUDA ``rebuild`` can be captured in a CUDA graph
-(``wp.ScopedCapture``): there it runs the pipeline's ``sync_free`` build. A replay runs no Python:
+``"auto"`` reads values back to the host every frame (the displacement, the SAH cost of the
+trees a refit may compare with): it has to, to decide. ``refit`` given device arrays never
+synchronizes. An ``"hlbvh"`` or ``"lbvh"`` ``rebuild`` on CUDA runs the pipeline's ``sync_free``
+build: it never synchronizes either and can be captured in a CUDA graph (``wp.ScopedCapture``).
+Other rebuilds read small counts on the host (the runs, the resort sample, ``"hlbvh_sah"``'s
+cluster count) and refuse a capture. A replay runs no Python:
 call ``builder.bvh.invalidate()`` after each ``wp.capture_launch``, before host reads of the tree
 or ray queries (their host copies and, unless made before the capture, the traversal layout are
 refreshed there, not by the graph).
@@ -92,8 +94,9 @@ class Builder:
             captured in a CUDA graph).
         resort: feed each rebuild the primitives in the previous tree's order (paper 2.2).
         policy: ``"rebuild"``, ``"refit"`` or ``"auto"`` for `update`.
-        sah_growth_limit: ``auto`` rebuilds once a refit tree's SAH cost exceeds the cost right
-            after the last rebuild by more than this fraction (default 10%).
+        sah_growth_limit: ``auto`` rebuilds once a refit tree's SAH cost exceeds the lowest cost
+            since the last rebuild by more than this fraction (default 10%), or is on course to
+            exceed it by the next refit.
         large_motion: ``auto`` rebuilds without trying a refit when some vertex moved farther
             than this fraction of the scene's diagonal since the previous frame.
         max_refits: ``auto`` rebuilds after this many refit frames in a row even when the refit
@@ -601,7 +604,9 @@ class Builder:
         current contents of ``prim_lowers`` / ``prim_uppers``).
 
         Resorted when the builder was made with ``resort=True``. Given device arrays (or None)
-        it launches work only: no host synchronization, no allocation.
+        it allocates nothing; an ``"hlbvh"`` or ``"lbvh"`` rebuild on CUDA (the sync-free build)
+        also launches work only, with no host synchronization, while the others read their run
+        counts, the resort sample and, for ``"hlbvh_sah"``, the cluster count on the host.
         """
         self._require_built()
         sources = self._frame_sources(vertices, bounds)

@@ -31,7 +31,8 @@ class Bvh:
     ==============  ===================================================================
 
     ``prim_order[k]`` is the input index of the k-th primitive in tree order. The arrays have the
-    arena's capacity (2N - 1); ``num_nodes`` entries are used, a count kept on the device and read
+    arena's capacity (2N - 1, or more for a spatial-split tree, whose leaves may reference a
+    triangle several times); ``num_nodes`` entries are used, a count kept on the device and read
     only when asked for.
 
     A spatial-split tree (``method="sbvh"``) references a triangle from every leaf that holds a

@@ -58,7 +58,8 @@ class BuildConfig:
             The paper's clusters hold 33-66 triangles (1M triangles in 15k-30k clusters at
             m = 6); on a small mesh m = 6 leaves a few triangles per cluster and the cluster tree
             becomes a full SAH build over a large share of the primitives. 0 keeps the m-bit
-            voxels. The default is measured in the README (quality table).
+            voxels. The default is measured in the README (the knob sweep and the
+            ``hlbvh_sah`` notes under "Build time against tree quality").
         emission: how the hierarchy emission is scheduled; both give the same tree, up to node
             numbering. ``"treelets"`` is the paper's: passes of p bit planes over every open
             segment at once, each pass a foreach over primitives, a scan of split counts and a

@@ -388,7 +388,9 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
     """How many primitives' boxes overlap each query box (closed boxes: touching counts), and
     with ``return_pairs`` which ones.
 
-    Works on every BVH, built from a mesh (triangle boxes) or from bare boxes.
+    Works on every object-split BVH, built from a mesh (triangle boxes) or from bare boxes; a
+    spatial-split (``sbvh``) tree is refused with a ``ValueError``, since its leaves bound parts
+    of triangles, not whole boxes.
 
     Args:
         lowers, uppers: ``(Q, 3)`` query boxes. A box with lowers > uppers on an axis is empty

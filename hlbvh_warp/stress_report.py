@@ -1,7 +1,7 @@
-"""``python -m hlbvh_warp.stress_report``: every builder on adversarial scenes, checked in float64.
+"""``python -m hlbvh_warp stress``: every builder on adversarial scenes, checked in float64.
 
 Each scene family (identical triangles, duplicates, zero-area triangles, coordinates near 1e18
-and 1e-18, mixed scales, a flat scene, slivers, one and two triangles, a random soup) is built
+and 1e-18, mixed scales, a flat scene, slivers, one and two triangles, a random soup, a closed mesh) is built
 with every builder in ``api.BUILDERS`` and shot with random, axis-aligned, vertex- and
 edge-aimed rays and rays starting on the surface. Closest hits are compared with a float64
 brute-force reference; one fixed-format row per (family, builder) gives the tree's depth and
