@@ -57,7 +57,12 @@ def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scr
         visits = wp.empty(capacity, dtype=wp.int32, device=device)
         costs = wp.zeros(capacity, dtype=wp.float64, device=device)
     else:
+        if not isinstance(scratch, (tuple, list)) or len(scratch) != 2:
+            raise ValueError("node_costs scratch must be a (visits, costs) pair of arrays")
         visits, costs = scratch
+        # The kernels write every node's entry: a shorter array is written past its end.
+        _check_scratch("node_costs scratch visits", visits, wp.int32, capacity, device)
+        _check_scratch("node_costs scratch costs", costs, wp.float64, capacity, device)
     wp.launch(kernels.reset_visits_kernel, dim=capacity, inputs=[visits], device=device)
     wp.launch(
         kernels.sah_cost_kernel,
@@ -94,9 +99,10 @@ def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scrat
     device = bvh.device
     chunk = CPU_SAH_CHUNK if device.is_cpu else CUDA_SAH_CHUNK
     size = sah_scratch_size(bvh.node_left.shape[0], device)
-    partial = wp.empty(size, dtype=wp.float64, device=device) if scratch is None else scratch
-    if partial.shape[0] < size or partial.dtype != wp.float64:
-        raise ValueError(f"sah_cost scratch must be float64 with at least {size} entries")
+    if scratch is None:
+        partial = wp.empty(size, dtype=wp.float64, device=device)
+    else:
+        partial = _check_scratch("sah_cost scratch", scratch, wp.float64, size, device)
     count = bvh.num_nodes
     if count == 0:
         return 0.0
@@ -105,6 +111,18 @@ def sah_cost(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scrat
               inputs=[bvh.node_count, bvh.node_left, bvh.node_begin, bvh.node_end, bvh.node_lowers, bvh.node_uppers,
                       wp.float64(t_traversal), wp.float64(t_intersect), chunk, partial], device=device)
     return cost_from_sum(bvh, float(partial[:threads].numpy().sum()), count, t_traversal, t_intersect)
+
+
+def _check_scratch(name: str, array, dtype, size: int, device) -> wp.array:
+    """``array`` when it is a one-dimensional Warp array of ``dtype`` on ``device`` with at least
+    ``size`` entries, else a ValueError naming it."""
+    if not (isinstance(array, wp.array) and array.dtype == dtype and array.ndim == 1 and array.device == device
+            and array.shape[0] >= size):
+        got = (f"{wp.types.type_repr(array.dtype)} of shape {array.shape} on {array.device}"
+               if isinstance(array, wp.array) else type(array).__name__)
+        raise ValueError(f"{name} must be a one-dimensional Warp array of {wp.types.type_repr(dtype)} on {device} "
+                         f"with at least {size} entries, got {got}")
+    return array
 
 
 def cost_from_sum(bvh: Bvh, total: float, count: int, t_traversal: float, t_intersect: float) -> float:

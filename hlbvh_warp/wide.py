@@ -222,8 +222,11 @@ def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, h
     outputs (``wp.launch(kernel, dim=len(origins), inputs=inputs)``): ``kernels.wide``'s
     ``wide_closest_hit_kernel`` for one limit, ``wide_closest_hit_limits_kernel`` for one per
     ray. ``t_max``: one number, or one per ray as `intersect` takes it (a float32 Warp array on
-    the tree's device of 1 or ``len(origins)`` entries is used as it is)."""
-    n = origins.shape[0]
+    the tree's device of 1 or ``len(origins)`` entries is used as it is).
+
+    Every array is checked against what the kernel reads (type, length, device), since a launch
+    past an array's end reads or writes memory it does not own."""
+    n = _check_launch_arrays(wide, origins, directions, hit_t, hit_prim, counts)
     if isinstance(t_max, wp.array):
         if t_max.dtype != wp.float32 or t_max.ndim != 1 or t_max.shape[0] not in (1, n) or \
                 t_max.device != wide.device:
@@ -234,6 +237,33 @@ def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, h
     from .query import _t_max_values
 
     return _launch_for(wide, origins, directions, _t_max_values(t_max, n), hit_t, hit_prim, counts)
+
+
+def _check_launch_arrays(wide, origins, directions, hit_t, hit_prim, counts) -> int:
+    """The ray count, once the arrays `launch_args` hands to a user's launch fit it: ``origins`` and
+    ``directions`` ``vec3`` of one length N, ``hit_t`` float32 and ``hit_prim`` int32 of N entries,
+    ``counts`` ``vec3i`` of 0 or N, all one-dimensional on the tree's device."""
+    if not isinstance(wide, WideBvh):
+        raise ValueError(f"launch_args() takes a WideBvh, got {type(wide).__name__}")
+    if wide.bvh.vertices is None or wide.bvh.faces is None:
+        raise ValueError("launch_args() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
+    wanted = (("origins", origins, wp.vec3, None), ("directions", directions, wp.vec3, None),
+              ("hit_t", hit_t, wp.float32, None), ("hit_prim", hit_prim, wp.int32, None),
+              ("counts", counts, wp.vec3i, 0))
+    n = None
+    for name, array, dtype, or_length in wanted:
+        if not isinstance(array, wp.array):
+            raise ValueError(f"launch_args(): {name} must be a Warp array, got {type(array).__name__}")
+        if array.dtype != dtype or array.ndim != 1 or array.device != wide.device:
+            raise ValueError(f"launch_args(): {name} must be a one-dimensional {wp.types.type_repr(dtype)} array "
+                             f"on {wide.device}, got {wp.types.type_repr(array.dtype)} of shape {array.shape} "
+                             f"on {array.device}")
+        if n is None:
+            n = array.shape[0]
+        elif array.shape[0] != n and array.shape[0] != or_length:
+            lengths = f"{n}" if or_length is None else f"{or_length} or {n}"
+            raise ValueError(f"launch_args(): {name} has {array.shape[0]} entries where the {n} rays need {lengths}")
+    return n
 
 
 def _launch_for(wide: WideBvh, origins, directions, limits: np.ndarray, hit_t, hit_prim, counts) -> tuple:

@@ -148,6 +148,33 @@ def test_one_pass_cost_takes_scratch_and_rejects_a_short_one(device, rng):
         sah_cost(bvh, scratch=wp.empty(size - 1, dtype=wp.float64, device=device))
 
 
+
+def test_node_costs_checks_its_scratch(device, rng):
+    """`node_costs` writes every node's entry of its scratch pair: short arrays were written past
+    their end (the process crashed), other types failed inside Warp. Each is refused by name, and
+    the right pair gives the costs of a call without scratch, returned in ``costs``."""
+    import warp as wp
+
+    from hlbvh_warp.metrics import node_costs
+
+    v, f = random_soup(rng, 40)
+    bvh = hw.build(v, f, device=device)
+    capacity = bvh.node_left.shape[0]
+    visits = wp.empty(capacity, dtype=wp.int32, device=device)
+    costs = wp.empty(capacity, dtype=wp.float64, device=device)
+    for bad, name in (((wp.empty(1, dtype=wp.int32, device=device), costs), "visits"),
+                      ((visits, wp.empty(capacity - 1, dtype=wp.float64, device=device)), "costs"),
+                      ((visits, wp.empty(capacity, dtype=wp.float32, device=device)), "costs"),
+                      ((visits.numpy(), costs), "visits"), ((visits,), "pair")):
+        with pytest.raises(ValueError, match=name):
+            node_costs(bvh, scratch=bad)
+    with pytest.raises(ValueError, match="sah_cost scratch"):
+        sah_cost(bvh, scratch=np.zeros(capacity))
+    used = bvh.num_nodes
+    returned = node_costs(bvh, scratch=(visits, costs))
+    assert returned is costs
+    assert np.array_equal(costs.numpy()[:used], node_costs(bvh).numpy()[:used])
+
 def test_the_cpu_refit_sweep_prices_the_tree_and_only_the_sweep_can(rng):
     import warp as wp
 

@@ -233,6 +233,40 @@ def test_launch_args_check_their_limits(device):
         wide.launch_inputs(w, o, d, limits, out_t, out_prim, no_counts)
 
 
+def test_launch_args_check_every_array_the_kernel_reads(device):
+    """A user launches what `launch_args` returns over ``len(origins)`` threads: an array shorter
+    than that was read or written past its end (outputs and counts crashed the process), so each
+    is refused, as are arrays of another type or device and lists; the right arrays still hit."""
+    sphere = hw.build(trimesh_icosphere(), device=device)
+    w = wide.collapse(sphere, 4)
+    n = 8
+    o = wp.zeros(n, dtype=wp.vec3, device=device)
+    d = wp.array(np.tile([0.0, 0.0, 1.0], (n, 1)), dtype=wp.vec3, device=device)
+    good = {"origins": o, "directions": d, "hit_t": wp.empty(n, dtype=float, device=device),
+            "hit_prim": wp.empty(n, dtype=wp.int32, device=device), "counts": wp.empty(n, dtype=wp.vec3i, device=device)}
+    bad = {"directions": [wp.array(np.array([[0.0, 0.0, 1.0]]), dtype=wp.vec3, device=device),
+                          wp.zeros(n, dtype=wp.vec3d, device=device)],
+           "hit_t": [wp.empty(1, dtype=float, device=device), wp.empty(n, dtype=wp.float64, device=device)],
+           "hit_prim": [wp.empty(n - 1, dtype=wp.int32, device=device), wp.empty(n + 1, dtype=wp.int32, device=device)],
+           "counts": [wp.empty(1, dtype=wp.vec3i, device=device), wp.empty(n, dtype=wp.vec3f, device=device)],
+           "origins": [o.numpy()]}
+    if device != "cpu":
+        bad["hit_t"].append(wp.empty(n, dtype=float, device="cpu"))
+    for name, arrays in bad.items():
+        for array in arrays:
+            given = dict(good, **{name: array})
+            with pytest.raises(ValueError, match=name):
+                wide.launch_args(w, given["origins"], given["directions"], 2.0, given["hit_t"], given["hit_prim"],
+                                 given["counts"])
+    with pytest.raises(ValueError, match="WideBvh"):
+        wide.launch_args(sphere, o, d, 2.0, good["hit_t"], good["hit_prim"], good["counts"])
+    kernel, args = wide.launch_args(w, o, d, 2.0, good["hit_t"], good["hit_prim"], good["counts"])
+    wp.launch(kernel, dim=n, device=device, inputs=args)
+    t, prim = wide.intersect(w, o.numpy(), d.numpy(), 2.0)
+    assert (prim >= 0).all() and np.array_equal(good["hit_prim"].numpy(), prim)
+    assert np.array_equal(good["hit_t"].numpy(), t) and (good["counts"].numpy()[:, 2] > 0).all()
+
+
 def trimesh_icosphere():
     import trimesh
 
