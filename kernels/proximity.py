@@ -9,7 +9,8 @@
 - Traversal: nearest child first, the farther one deferred on the stack with its box distance
   (the squared distance from the point to the box); a deferred node is dropped when popped if its
   box lies farther than the closest triangle found since, and a box is entered only when it is
-  not farther than that. A spatial-split leaf bounds part of a triangle, and the part holding the
+  not farther than that. Box distances are float32, measured again in float64 where float32
+  cannot tell a box from the best triangle (a point far from the mesh, a mesh beyond 1e19). A spatial-split leaf bounds part of a triangle, and the part holding the
   closest point lies in some leaf whose box is no farther: so spatial-split trees answer correctly
   as well, testing the whole triangle at each of its leaves.
 - Equal distances go to the lowest primitive id, whatever the tree, so every builder gives the same
@@ -30,13 +31,15 @@ from .traversal import (
     PackedTriangle,
     prefetch_child,
     query_limit,
-    vec64f,
     vec64i,
 )
 
 wp.set_module_options({"enable_backward": False})
 
 NAN = wp.constant(float("nan"))
+
+#: The deferred nodes' lower bounds on their squared box distance.
+vec64d = wp.types.vector(length=STACK_SIZE, dtype=wp.float64)
 
 
 @wp.struct
@@ -234,18 +237,38 @@ def point_is_valid(p: wp.vec3, max_dist: float):
     return valid
 
 
-# A box is entered unless it is clearly farther than the best triangle: its float32 squared
-# distance may be a few ulps off, so a box within that margin of the best distance is still
-# opened. Below 1.2e-38 the squares are subnormal and their ulp is absolute (2^-149 = 1.4e-45):
-# there the margin is seven of those.
+@wp.func
+def box_distance_sq64(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """`box_distance_sq` in float64: the differences of float32 coordinates are exact there, so
+    the result is within a few 1e-16 of the true squared distance at any scale."""
+    total = wp.float64(0.0)
+    for i in range(3):
+        x = wp.float64(p[i])
+        gap = wp.max(wp.max(wp.float64(lower[i]) - x, x - wp.float64(upper[i])), wp.float64(0.0))
+        total += gap * gap
+    return total
+
+
+# A box is entered unless it is certainly farther than the best triangle. Its float32 squared
+# distance d is within a few ulps of the true one, so d (1 - 1e-6) is a lower bound; below 1.2e-38
+# the squares are subnormal and their ulp is absolute (2^-149 = 1.4e-45), which PRUNE_SLACK, seven
+# of those, covers. Where that bound and d (1 + 1e-6) straddle the best distance, float32 cannot
+# decide and the box distance is computed again in float64. A point far from the mesh needs that:
+# at 1e6 mesh sizes every box lies within float32's margin of the best triangle, and a search that
+# entered them all tested every triangle (3000x wp.Mesh's time at 1e9).
 PRUNE_MARGIN = wp.constant(1.0 - 1.0e-6)
+PRUNE_HIGH = wp.constant(1.0 + 1.0e-6)
 PRUNE_SLACK = wp.constant(1.0e-44)
+PRUNE_LOW64 = wp.constant(wp.float64(1.0 - 1.0e-6))
+PRUNE_SLACK64 = wp.constant(wp.float64(1.0e-44))
+EXACT_LOW = wp.constant(wp.float64(1.0 - 1.0e-12))
+INF64 = wp.constant(wp.float64(float("inf")))
 
 
 @wp.struct
 class PointSearch:
     """The best triangle so far: its squared distance in float64 (the comparisons) and in float32
-    (the box tests), and its primitive id."""
+    (the box tests float32 can decide), and its primitive id."""
 
     best: TrianglePoint
     d2: wp.float64
@@ -261,6 +284,19 @@ def start_search(max_dist: float):
     s.box_d2 = max_dist * max_dist
     s.prim = -1
     return s
+
+
+@wp.func
+def box_bound(p: wp.vec3, lower: wp.vec3, upper: wp.vec3, d: float, best: float):
+    """A lower bound on the squared distance from p to the box whose float32 squared distance is
+    d, to compare with the search's float64 best (``best`` is its float32 copy, ``box_d2``): inf
+    where d is clearly farther than the best triangle, d's own bound where it is clearly nearer
+    (both float32 tests, the common case), else `box_distance_sq64`'s."""
+    if d * PRUNE_MARGIN > best + PRUNE_SLACK:
+        return INF64
+    if d * PRUNE_HIGH + PRUNE_SLACK < best:
+        return wp.float64(d) * PRUNE_LOW64 - PRUNE_SLACK64
+    return box_distance_sq64(p, lower, upper) * EXACT_LOW
 
 
 @wp.func
@@ -314,13 +350,13 @@ def packed_point_query(
     tested = int(0)
     stack = vec64i()
     stack_begin = vec64i()
-    stack_d = vec64f()
+    stack_d = vec64d()
     top = int(0)
     node = int(0)
     begin = int(0)
     active = int(0)
     if point_is_valid(p, max_dist) == 1:
-        if box_distance_sq(p, root_lower, root_upper) * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
+        if box_bound(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2) <= s.d2:
             active = 1
             node = root
             begin = root_begin
@@ -341,7 +377,7 @@ def packed_point_query(
             # Pop the nearest deferred node not farther than the best triangle so far.
             while top > 0 and active == 0:
                 top -= 1
-                if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
+                if stack_d[top] <= s.d2:
                     node = stack[top]
                     begin = stack_begin[top]
                     active = 1
@@ -352,19 +388,21 @@ def packed_point_query(
             prefetch_child(nodes, triangles, n.child_b, begin_b)
             da = box_distance_sq(p, n.lower_a, n.upper_a)
             db = box_distance_sq(p, n.lower_b, n.upper_b)
-            open_a = da * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
-            open_b = db * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
+            la = box_bound(p, n.lower_a, n.upper_a, da, s.box_d2)
+            lb = box_bound(p, n.lower_b, n.upper_b, db, s.box_d2)
+            open_a = la <= s.d2
+            open_b = lb <= s.d2
             if open_a and open_b:
                 # Visit the nearer child next, defer the farther one.
                 if da <= db:
                     stack[top] = n.child_b
                     stack_begin[top] = begin_b
-                    stack_d[top] = db
+                    stack_d[top] = lb
                     node = n.child_a
                 else:
                     stack[top] = n.child_a
                     stack_begin[top] = begin
-                    stack_d[top] = da
+                    stack_d[top] = la
                     node = n.child_b
                     begin = begin_b
                 top += 1
@@ -377,7 +415,7 @@ def packed_point_query(
                 active = int(0)
                 while top > 0 and active == 0:
                     top -= 1
-                    if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
+                    if stack_d[top] <= s.d2:
                         node = stack[top]
                         begin = stack_begin[top]
                         active = 1
@@ -392,12 +430,14 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     visited = int(0)
     tested = int(0)
     stack = vec64i()
-    stack_d = vec64f()
+    stack_d = vec64d()
     top = int(0)
     node = int(-1)
     # A view of a box BVH has no triangles (its faces are empty): nothing to find.
     if bvh.faces.shape[0] > 0 and point_is_valid(p, max_dist) == 1:
-        if box_distance_sq(p, bvh.node_lowers[0], bvh.node_uppers[0]) * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
+        root_lower = bvh.node_lowers[0]
+        root_upper = bvh.node_uppers[0]
+        if box_bound(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2) <= s.d2:
             node = 0
     while node >= 0:
         visited += 1
@@ -413,28 +453,32 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
             node = int(-1)
         else:
             right = bvh.node_right[node]
-            dl = box_distance_sq(p, bvh.node_lowers[left], bvh.node_uppers[left])
-            dr = box_distance_sq(p, bvh.node_lowers[right], bvh.node_uppers[right])
-            open_l = dl * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
-            open_r = dr * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK
+            left_lower = bvh.node_lowers[left]
+            left_upper = bvh.node_uppers[left]
+            right_lower = bvh.node_lowers[right]
+            right_upper = bvh.node_uppers[right]
+            dl = box_distance_sq(p, left_lower, left_upper)
+            dr = box_distance_sq(p, right_lower, right_upper)
+            ll = box_bound(p, left_lower, left_upper, dl, s.box_d2)
+            lr = box_bound(p, right_lower, right_upper, dr, s.box_d2)
             node = int(-1)
-            if open_l and open_r:
+            if ll <= s.d2 and lr <= s.d2:
                 if dl <= dr:
                     node = left
                     stack[top] = right
-                    stack_d[top] = dr
+                    stack_d[top] = lr
                 else:
                     node = right
                     stack[top] = left
-                    stack_d[top] = dl
+                    stack_d[top] = ll
                 top += 1
-            elif open_l:
+            elif ll <= s.d2:
                 node = left
-            elif open_r:
+            elif lr <= s.d2:
                 node = right
         while node < 0 and top > 0:
             top -= 1
-            if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
+            if stack_d[top] <= s.d2:
                 node = stack[top]
     return finish(p, s, visited, tested)
 
