@@ -5,7 +5,8 @@ Same methods, arguments and return conventions as trimesh 5.2 (``intersects_id``
 ``intersects_location``, ``intersects_first``, ``intersects_any``, ``contains_points``), with two
 documented differences that follow from the watertight test (Woop et al. 2013) instead of
 trimesh's tolerance-based one: a hit needs t > 0 (trimesh also accepts hits up to 1e-6 behind the
-origin), and rays lying in a triangle's plane or hitting zero-area triangles do not hit them.
+origin), and zero-area triangles are never hit. A ray lying in a triangle's plane misses it where
+the plane is axis-aligned; in a tilted plane the float32 shear decides, and it may hit.
 
 `ProximityQuery` answers ``on_surface`` and ``signed_distance`` as trimesh 5.2 does, without
 trimesh's r-tree dependency (``rtree``, which trimesh needs for them and this package does not),

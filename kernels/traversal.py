@@ -135,6 +135,53 @@ class RayHit:
     prims_tested: int
 
 
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+# Below this fraction of |ab|^2 |ac|^2, |ab x ac|^2 in float64 may be rounding alone (the edges'
+# own rounding included, at most about 2^-48 |ab| |ac| on each component): the area is decided exactly.
+AREA_RECHECK = wp.constant(wp.float64(1.0e-24))
+
+
+@wp.func
+def cross_component_is_zero(ay: float, az: float, by: float, bz: float, cy: float, cz: float):
+    """1 when this component of (b - a) x (c - a) = a x b + b x c + c x a is exactly zero. The six
+    products of float32 coordinates are exact in float64 (24 + 24 bits); they are summed into a
+    nonoverlapping expansion by exact two-sums (Shewchuk, "Adaptive Precision Floating-Point
+    Arithmetic and Fast Robust Geometric Predicates", 1997, Grow-Expansion), which is zero exactly
+    when every one of its terms is."""
+    terms = vec6d(wp.float64(ay) * wp.float64(bz), -wp.float64(az) * wp.float64(by),
+                  wp.float64(by) * wp.float64(cz), -wp.float64(bz) * wp.float64(cy),
+                  wp.float64(cy) * wp.float64(az), -wp.float64(cz) * wp.float64(ay))
+    expansion = vec6d()
+    for m in range(6):
+        q = terms[m]
+        for i in range(m):
+            # Knuth's TwoSum: s + err == q + expansion[i] exactly.
+            s = q + expansion[i]
+            z = s - q
+            expansion[i] = (q - (s - z)) + (expansion[i] - z)
+            q = s
+        expansion[m] = q
+    zero = int(1)
+    for i in range(6):
+        if expansion[i] != wp.float64(0.0):
+            zero = 0
+    return zero
+
+
+@wp.func
+def triangle_has_no_area(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """1 when the float32 vertices are exactly collinear (or coincide): the float64 cross product
+    decides every triangle but those within its rounding of zero, which are decided exactly."""
+    ab = wp.vec3d(b) - wp.vec3d(a)
+    ac = wp.vec3d(c) - wp.vec3d(a)
+    n = wp.cross(ab, ac)
+    if wp.dot(n, n) > AREA_RECHECK * wp.dot(ab, ab) * wp.dot(ac, ac):
+        return 0
+    return (cross_component_is_zero(a[1], a[2], b[1], b[2], c[1], c[2])
+            * cross_component_is_zero(a[2], a[0], b[2], b[0], c[2], c[0])
+            * cross_component_is_zero(a[0], a[1], b[0], b[1], c[0], c[1]))
+
+
 @wp.func
 def intersect_triangle_watertight(
     origin: wp.vec3, direction: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, t_max: float
@@ -246,6 +293,11 @@ def intersect_triangle_watertight(
         bary_c = w * inv_det
         t = bary_a * az + bary_b * bz + bary_c * cz
     if not (t > 0.0 and t < t_max):
+        return result
+    # A triangle of three distinct collinear vertices sheared in float32 can keep three tiny edge
+    # functions of one sign, which read as a hit with meaningless weights: a zero-area triangle has
+    # no surface to hit. Checked only for hits, which are few.
+    if triangle_has_no_area(a, b, c) == 1:
         return result
     result.t = t
     # u weighs a, v weighs b, w weighs c: report (beta, gamma) of b and c.

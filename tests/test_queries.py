@@ -14,7 +14,7 @@ from conftest import REPO_ROOT
 from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, random_rays, random_soup
 
 import hlbvh_warp
-from hlbvh_warp import query
+from hlbvh_warp import query, wide
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.kernels import traversal
@@ -757,3 +757,35 @@ def test_an_empty_batch_of_the_wrong_width_is_a_shape_error(device, scene):
             query.closest_point(bvh, bad)
         with pytest.raises(ValueError, match=r"lowers must have shape \(n, 3\)"):
             query.query_aabb(bvh, bad, bad)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "sweep_sah", "sbvh"])
+def test_rays_through_collinear_triangles_miss_them(device, rng, method):
+    """Three distinct, exactly collinear vertices make a triangle of zero area, which has no
+    surface for a ray to hit (the float64 oracle's determinant is exactly zero). Sheared in
+    float32, their edge functions could stay tiny and of one sign, and rays aimed at the segment
+    reported a hit with meaningless weights (every ray of this test, before the exact area check).
+    A proper triangle beside them is still hit where the oracle hits it, by every ray query."""
+    steps = rng.integers(1, 64, size=(40, 3)).astype(np.float32)
+    starts = rng.integers(-64, 64, size=(40, 3)).astype(np.float32)
+    # a, a + s, a + 3s: integers, so exactly collinear in float32.
+    verts = np.concatenate([starts, starts + steps, starts + 3 * steps,
+                            np.float32([[-200, -200, 300], [200, -200, 300], [0, 200, 300]])])
+    n = len(starts)
+    faces = np.concatenate([np.stack([np.arange(n), np.arange(n) + n, np.arange(n) + 2 * n], axis=1),
+                            [[3 * n, 3 * n + 1, 3 * n + 2]]]).astype(np.int32)
+    targets = starts + steps * rng.uniform(0.2, 2.8, size=(n, 1)).astype(np.float32)
+    origins = (targets + rng.normal(scale=50.0, size=(n, 3))).astype(np.float32)
+    directions = targets - origins
+    # Half the rays go on to the proper triangle at z = 300 (those aimed upwards meet it).
+    bvh = hlbvh_warp.build(verts, faces, method=method, device=device)
+    t, prim = query.intersect(bvh, origins, directions)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, origins, directions)
+    assert set(prim_ref.tolist()) <= {-1, n}  # the oracle hits no collinear triangle
+    assert_hits_match(t, prim, t_ref, prim_ref)
+    assert np.array_equal(query.occluded(bvh, origins, directions), prim_ref >= 0)
+    rays, hit_prims = query.intersect_all(bvh, origins, directions)[:2]
+    assert set(hit_prims.tolist()) <= {n}
+    assert sorted(rays[hit_prims == n].tolist()) == np.flatnonzero(prim_ref == n).tolist()
+    w = wide.collapse(bvh, 4)
+    assert np.array_equal(wide.intersect(w, origins, directions)[1], prim)
