@@ -543,3 +543,45 @@ def test_the_npz_fallback_only_for_a_name_with_nothing_at_it(device, tmp_path):
     os.replace(tmp_path / "link.npz", tmp_path / "t.npz.npz")
     with pytest.raises(FileNotFoundError):
         hb.load_bvh(tmp_path / "t.npz", device=device)
+
+
+# ----------------------------------------------------------------- pinned by the robustness review
+def _read_fifo_in_thread(path):
+    """Start a thread that reads the FIFO at ``path`` to its end; returns (thread, received)."""
+    import threading
+
+    received = []
+
+    def read():
+        with open(path, "rb") as fifo:
+            received.append(fifo.read())
+
+    thread = threading.Thread(target=read, daemon=True)  # left blocked, not waited for, if no writer comes
+    thread.start()
+    return thread, received
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
+def test_save_into_a_pipe_writes_into_it(device, tmp_path):
+    # A temporary file renamed over the path replaced the pipe by a plain file (and the reader
+    # got nothing); through a link to a device node it would replace the device node.
+    import io
+    import stat
+
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    pipe = tmp_path / "pipe.npz"
+    os.mkfifo(pipe)
+    link = tmp_path / "link.npz"
+    link.symlink_to(pipe)
+    for path in (pipe, link):
+        thread, received = _read_fifo_in_thread(pipe)
+        hb.save_bvh(bvh, path)
+        thread.join(timeout=30)
+        assert stat.S_ISFIFO(os.lstat(pipe).st_mode), f"saving to {path.name} replaced the pipe"
+        assert link.is_symlink()
+        assert received, f"the reader of {path.name} received nothing"
+        loaded = hb.load_bvh(io.BytesIO(received[0]), device=device)
+        for name in NODE_FIELDS + ("prim_order",):
+            np.testing.assert_array_equal(loaded.to_numpy()[name], bvh.to_numpy()[name], err_msg=name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.npz", "pipe.npz"]
