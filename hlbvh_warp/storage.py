@@ -150,6 +150,8 @@ def load(path, device=None) -> Bvh:
             path.startswith(b"PK\x03\x04") or b"\0" in path)):
         raise ValueError(f"load() reads a path or an open binary file, got {len(path)} bytes of data: "
                          "wrap them in io.BytesIO")
+    elif not isinstance(path, (str, bytes, os.PathLike)):
+        raise ValueError(f"load() reads a path or an open binary file, got {type(path).__name__}")
     else:
         name = os.fsdecode(path)
         if not name.endswith(".npz") and not os.path.lexists(name) and os.path.isfile(name + ".npz"):
@@ -192,6 +194,14 @@ def _meta(arrays: dict) -> dict:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError as error:
         raise ValueError(f"the meta record is not JSON ({error})") from None
+    except RecursionError:
+        # json's parser recurses once per level of nesting; no meta record is nested that deep.
+        raise ValueError("the meta record is not one (JSON nested too deeply to read)") from None
+    except ValueError:
+        # Python converts no integer literal longer than its limit (sys.set_int_max_str_digits),
+        # and its message would suggest raising the limit; no count or setting is that long.
+        raise ValueError(f"the meta record holds an integer of more than {sys.get_int_max_str_digits()} "
+                         "digits") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError("not a saved BVH (the meta record names another format)")
     # Values from the file are shown shortened (reprlib): a message need not quote a long one whole.
@@ -210,7 +220,11 @@ def _meta(arrays: dict) -> dict:
     unknown = sorted(set(config) - known)
     if unknown:
         raise ValueError(f"unknown BuildConfig fields {unknown}")
-    meta["config"] = BuildConfig(**config)  # its own checks name a bad value
+    try:
+        meta["config"] = BuildConfig(**config)  # its own checks name a bad value
+    except OverflowError as error:
+        # An integer past float's range (10**400) for a float setting overflows in float().
+        raise ValueError(f"the config holds a number too large for a float ({error})") from None
     return meta
 
 
@@ -348,10 +362,10 @@ def _from_arrays(arrays: dict, device) -> Bvh:
     # Ids past int32 would wrap when narrowed below, and uint64 ones past int64 already when
     # widened to it (2**64 - 1 became -1, a leaf's mark): range-check them as Python ints first.
     for name in _INT_FIELDS + ("prim_order",):
-        a = tree[name].astype(np.int64)
-        if a.size and (a.min() < -(1 << 31) or a.max() >= 1 << 31):
+        a = tree[name]
+        if a.size and (int(a.min()) < -(1 << 31) or int(a.max()) >= 1 << 31):
             raise ValueError(f"{name} holds an id outside int32")
-        tree[name] = a
+        tree[name] = a.astype(np.int64)
     for name in _BOX_FIELDS + ("prim_lowers", "prim_uppers"):
         tree[name] = np.ascontiguousarray(tree[name], dtype=np.float32)
     check_tree(tree, num_prims, duplicates=tree["prim_order"].shape[0] != num_prims, triangles=tri)
