@@ -120,7 +120,14 @@ class Bvh:
         return self._cache["depth"]
 
     def to_numpy(self) -> dict:
-        """The used part of every array as NumPy, keyed by the attribute names above."""
+        """The used part of every array as NumPy, keyed by the attribute names above.
+
+        One host copy serves every call until `invalidate` (and `depth`, `num_leaves` and
+        `hlbvh_warp.save_bvh` read it too), so its arrays are read-only: an edit in place
+        (``tree["prim_order"].sort()``, ``tree["node_lowers"] *= 2``) raises NumPy's ValueError
+        that the array is read-only. Copy to edit (``tree["prim_order"].copy()``). The dict itself
+        is new on each call.
+        """
         key = "numpy"
         with held(self):
             if key not in self._cache:
@@ -129,8 +136,12 @@ class Bvh:
                 out["prim_order"] = self.prim_order.numpy().copy()
                 out["prim_lowers"] = self.prim_lowers.numpy().copy()
                 out["prim_uppers"] = self.prim_uppers.numpy().copy()
+                for array in out.values():
+                    array.flags.writeable = False
                 self._cache[key] = out
-            return self._cache[key]
+            # Views of the read-only copies: a view's flag cannot be set back to writeable while
+            # its base is read-only, where the copy's own could.
+            return {name: array.view() for name, array in self._cache[key].items()}
 
     def hold(self):
         """A context in which the `Builder` that rebuilds this tree in place waits: ``with
