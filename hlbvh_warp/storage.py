@@ -378,7 +378,8 @@ def _from_arrays(arrays: dict, device) -> Bvh:
     def vecs(a):
         return wp.array(a, dtype=wp.vec3, device=device)
 
-    return Bvh(
+    # Checked above, as a whole; Bvh() would read the arrays back to check them again.
+    return Bvh._trusted(
         method=meta["method"], config=config, device=device,
         prim_lowers=vecs(tree["prim_lowers"]), prim_uppers=vecs(tree["prim_uppers"]),
         prim_order=ints(tree["prim_order"]),
