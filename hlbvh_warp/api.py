@@ -57,7 +57,7 @@ def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict) -> Bvh:
     """A `Bvh` over a finished pipeline's output arrays, without copying them (the pipeline renews
     its outputs before it builds again)."""
     n = pipe.num_prims
-    return Bvh(
+    return Bvh._trusted(
         method=method,
         config=pipe.config,
         device=pipe.device,

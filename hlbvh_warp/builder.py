@@ -440,11 +440,13 @@ class Builder:
             wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
         pipe = self.pipeline
         if self.bvh is None:
-            self.bvh = Bvh(method=self.method, config=self.config, device=self.device, prim_lowers=self.prim_lowers,
-                           prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,
-                           node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
-                           node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
-                           node_count=pipe.node_count, vertices=vertices, faces=faces)
+            # Unchecked: made before the first build fills its arrays.
+            self.bvh = Bvh._trusted(
+                method=self.method, config=self.config, device=self.device, prim_lowers=self.prim_lowers,
+                prim_uppers=self.prim_uppers, prim_order=self.prim_order, node_lowers=pipe.node_lowers,
+                node_uppers=pipe.node_uppers, node_left=pipe.node_left, node_right=pipe.node_right,
+                node_parent=pipe.node_parent, node_begin=pipe.node_begin, node_end=pipe.node_end,
+                node_count=pipe.node_count, vertices=vertices, faces=faces)
             self.bvh._lock = self._lock
         else:
             # One Bvh for the builder's life: its node arrays are the pipeline's, overwritten by

@@ -315,7 +315,7 @@ class _Arena:
 
     def to_bvh(self, method, config, prim_lowers, prim_uppers, timings) -> Bvh:
         """A `Bvh` over these arrays (no copy) and the given primitive boxes."""
-        return Bvh(
+        return Bvh._trusted(
             method=method,
             config=config,
             device=self.prim_order.device,
@@ -586,7 +586,7 @@ def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
     n = prim_lowers.shape[0]
     pipe = HlbvhSahPipeline.one_shot(n, config, device, prim_lowers, prim_uppers)
     timings = pipe.build_sah(timer)
-    bvh = Bvh(
+    bvh = Bvh._trusted(
         method="hlbvh_sah",
         config=config,
         device=pipe.device,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import inspect
 import random
 import time
 
@@ -41,7 +42,35 @@ class Bvh:
     (``num_refs == num_prims``).
     """
 
-    def __init__(
+    def __init__(self, **arrays):  # _setup's keywords, shown as __init__'s signature (end of the class)
+        """A tree over arrays made by the caller: ``method`` (a name), ``config`` (a `BuildConfig`),
+        ``device``, the arrays of the layout above (``vec3`` boxes, ``int32`` ids, all 1-D),
+        ``node_count`` (one ``int32``: the nodes in use), optionally ``vertices`` (``vec3``) with
+        ``faces`` (``int32``, shape ``(num_prims, 3)``) for a tree over a mesh, ``timings`` and
+        ``num_prims`` (default: the length of ``prim_order``; less for a spatial-split tree).
+
+        The arrays are checked as a loaded file is (`hlbvh_warp.load_bvh`), since the traversal
+        kernels index with their contents: types, devices and lengths, then, read back to the
+        host, the node count, the tree's structure, its boxes and the face indices. The library's
+        builders make their trees through `_trusted`, unchecked.
+
+        Raises:
+            ValueError: an argument of the wrong type, dtype, device or length, or arrays that are
+                not a valid tree (the first problem named).
+        """
+        self._setup(**arrays)
+        _check_arrays(self)
+        _check_contents(self)
+
+    @classmethod
+    def _trusted(cls, **arrays) -> Bvh:
+        """A tree over arrays a builder of this library made, unchecked: they are a valid tree by
+        construction, and the check would read the whole tree back to the host on every build."""
+        bvh = cls.__new__(cls)
+        bvh._setup(**arrays)
+        return bvh
+
+    def _setup(
         self,
         *,
         method: str,
@@ -120,7 +149,14 @@ class Bvh:
         return self._cache["depth"]
 
     def to_numpy(self) -> dict:
-        """The used part of every array as NumPy, keyed by the attribute names above."""
+        """The used part of every array as NumPy, keyed by the attribute names above.
+
+        One host copy serves every call until `invalidate` (and `depth`, `num_leaves` and
+        `hlbvh_warp.save_bvh` read it too), so its arrays are read-only: an edit in place
+        (``tree["prim_order"].sort()``, ``tree["node_lowers"] *= 2``) raises NumPy's ValueError
+        that the array is read-only. Copy to edit (``tree["prim_order"].copy()``). The dict itself
+        is new on each call.
+        """
         key = "numpy"
         with held(self):
             if key not in self._cache:
@@ -129,8 +165,12 @@ class Bvh:
                 out["prim_order"] = self.prim_order.numpy().copy()
                 out["prim_lowers"] = self.prim_lowers.numpy().copy()
                 out["prim_uppers"] = self.prim_uppers.numpy().copy()
+                for array in out.values():
+                    array.flags.writeable = False
                 self._cache[key] = out
-            return self._cache[key]
+            # Views of the read-only copies: a view's flag cannot be set back to writeable while
+            # its base is read-only, where the copy's own could.
+            return {name: array.view() for name, array in self._cache[key].items()}
 
     def hold(self):
         """A context in which the `Builder` that rebuilds this tree in place waits: ``with
@@ -162,6 +202,9 @@ class Bvh:
     def __repr__(self) -> str:
         return (f"Bvh(method={self.method!r}, num_prims={self.num_prims}, num_nodes={self.num_nodes}, "
                 f"device={self.device})")
+
+    # help() and editors show the keywords __init__ hands on to _setup.
+    __init__.__signature__ = inspect.signature(_setup)
 
 
 @contextlib.contextmanager
@@ -215,6 +258,82 @@ def holding_tree(fn):
 
 
 NODE_FIELDS = ("node_lowers", "node_uppers", "node_left", "node_right", "node_parent", "node_begin", "node_end")
+_VEC3_FIELDS = ("prim_lowers", "prim_uppers", "node_lowers", "node_uppers")
+_INT32_FIELDS = ("prim_order", "node_left", "node_right", "node_parent", "node_begin", "node_end", "node_count")
+
+
+def _check_arrays(bvh: Bvh) -> None:
+    """Raise a ValueError naming the first argument of a caller-made tree (`Bvh.__init__`) of the
+    wrong type, dtype, device or length: what can be seen without reading the device."""
+    from .inputs import MAX_PRIMS
+
+    if not isinstance(bvh.method, str):
+        raise ValueError(f"Bvh: method must be a string, got {type(bvh.method).__name__}")
+    if not isinstance(bvh.config, BuildConfig):
+        raise ValueError(f"Bvh: config must be a BuildConfig, got {type(bvh.config).__name__}")
+    if not isinstance(bvh.timings, dict):
+        raise ValueError(f"Bvh: timings must be a dict or None, got {type(bvh.timings).__name__}")
+    if (bvh.vertices is None) != (bvh.faces is None):
+        raise ValueError("Bvh: vertices and faces come together (a tree over a mesh) or not at all (over boxes)")
+    fields = [(name, wp.vec3, 1) for name in _VEC3_FIELDS] + [(name, wp.int32, 1) for name in _INT32_FIELDS]
+    if bvh.vertices is not None:
+        fields += [("vertices", wp.vec3, 1), ("faces", wp.int32, 2)]
+    for name, dtype, ndim in fields:
+        array = getattr(bvh, name)
+        if not isinstance(array, wp.array):
+            raise ValueError(f"Bvh: {name} must be a warp array, got {type(array).__name__}")
+        if array.dtype != dtype or array.ndim != ndim:
+            raise ValueError(f"Bvh: {name} must be a {ndim}-D array of {wp.types.type_repr(dtype)}, got a "
+                             f"{array.ndim}-D array of {wp.types.type_repr(array.dtype)}")
+        if array.device != bvh.device:
+            raise ValueError(f"Bvh: {name} is on {array.device}, the tree on {bvh.device}")
+    num_prims = bvh._num_prims
+    if num_prims is not None:
+        if isinstance(num_prims, bool) or not isinstance(num_prims, (int, np.integer)):
+            raise ValueError(f"Bvh: num_prims must be an integer or None, got {type(num_prims).__name__}")
+        bvh._num_prims = num_prims = int(num_prims)
+    num_prims, num_refs = bvh.num_prims, bvh.num_refs
+    if not 1 <= num_prims < MAX_PRIMS:
+        raise ValueError(f"Bvh: num_prims must be in [1, {MAX_PRIMS}), got {num_prims}")
+    if num_refs < num_prims:
+        raise ValueError(f"Bvh: prim_order has {num_refs} entries for num_prims {num_prims}")
+    for name in ("prim_lowers", "prim_uppers"):
+        if getattr(bvh, name).shape[0] != num_prims:
+            raise ValueError(f"Bvh: {name} has {getattr(bvh, name).shape[0]} entries for num_prims {num_prims} "
+                             "(a spatial-split tree passes num_prims)")
+    lengths = [getattr(bvh, name).shape[0] for name in NODE_FIELDS]
+    if min(lengths) == 0 or len(set(lengths)) > 1:
+        raise ValueError(f"Bvh: the node arrays must share one length of at least 1, got "
+                         f"{dict(zip(NODE_FIELDS, lengths))}")
+    if bvh.node_count.shape[0] != 1:
+        raise ValueError(f"Bvh: node_count must hold one entry (the nodes in use), got {bvh.node_count.shape[0]}")
+    if bvh.faces is not None and bvh.faces.shape != (num_prims, 3):
+        raise ValueError(f"Bvh: faces must have shape ({num_prims}, 3), got {bvh.faces.shape}")
+
+
+def _check_contents(bvh: Bvh) -> None:
+    """Raise a ValueError naming the first way a caller-made tree's contents, read back to the
+    host, would send a query wrong or out of bounds: the node count past the arrays, a face
+    index past the vertices, or what a loaded file is refused for (`storage.check_tree`)."""
+    from .storage import check_tree  # deferred: storage imports this module
+
+    capacity = bvh.node_left.shape[0]
+    count = int(bvh.node_count.numpy()[0])
+    if not 1 <= count <= capacity:
+        raise ValueError(f"Bvh: node_count says {count} nodes are in use; the node arrays hold {capacity}")
+    triangles = None
+    if bvh.vertices is not None:
+        vertices, faces = bvh.vertices.numpy(), bvh.faces.numpy()
+        if faces.min() < 0 or faces.max() >= vertices.shape[0]:
+            raise ValueError(f"Bvh: faces hold a vertex index outside [0, {vertices.shape[0]})")
+        if bvh.has_duplicates:  # only a spatial-split tree's leaves are checked against the triangles
+            triangles = vertices[faces]
+    tree = {name: getattr(bvh, name).numpy()[:count] for name in NODE_FIELDS}
+    tree.update({name: getattr(bvh, name).numpy() for name in ("prim_order", "prim_lowers", "prim_uppers")})
+    try:
+        check_tree(tree, bvh.num_prims, duplicates=bvh.has_duplicates, triangles=triangles)
+    except ValueError as error:
+        raise ValueError(f"Bvh: {error}") from None
 
 
 def node_depths(tree: dict) -> np.ndarray:
@@ -261,7 +380,7 @@ def bvh_from_numpy(
     def dev(a, dtype=wp.int32):
         return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)
 
-    bvh = Bvh(
+    bvh = Bvh._trusted(
         method=method,
         config=config,
         device=device,

@@ -173,7 +173,7 @@ def build_sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
     def ints(a):
         return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=device)
 
-    return Bvh(
+    return Bvh._trusted(
         method="sbvh",
         config=config,
         device=device,

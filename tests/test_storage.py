@@ -543,3 +543,88 @@ def test_the_npz_fallback_only_for_a_name_with_nothing_at_it(device, tmp_path):
     os.replace(tmp_path / "link.npz", tmp_path / "t.npz.npz")
     with pytest.raises(FileNotFoundError):
         hb.load_bvh(tmp_path / "t.npz", device=device)
+
+
+# ----------------------------------------------------------------- pinned by the robustness review
+def _read_fifo_in_thread(path):
+    """Start a thread that reads the FIFO at ``path`` to its end; returns (thread, received)."""
+    import threading
+
+    received = []
+
+    def read():
+        with open(path, "rb") as fifo:
+            received.append(fifo.read())
+
+    thread = threading.Thread(target=read, daemon=True)  # left blocked, not waited for, if no writer comes
+    thread.start()
+    return thread, received
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
+def test_save_into_a_pipe_writes_into_it(device, tmp_path):
+    # A temporary file renamed over the path replaced the pipe by a plain file (and the reader
+    # got nothing); through a link to a device node it would replace the device node.
+    import io
+    import stat
+
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    pipe = tmp_path / "pipe.npz"
+    os.mkfifo(pipe)
+    link = tmp_path / "link.npz"
+    link.symlink_to(pipe)
+    for path in (pipe, link):
+        thread, received = _read_fifo_in_thread(pipe)
+        hb.save_bvh(bvh, path)
+        thread.join(timeout=30)
+        assert stat.S_ISFIFO(os.lstat(pipe).st_mode), f"saving to {path.name} replaced the pipe"
+        assert link.is_symlink()
+        assert received, f"the reader of {path.name} received nothing"
+        loaded = hb.load_bvh(io.BytesIO(received[0]), device=device)
+        for name in NODE_FIELDS + ("prim_order",):
+            np.testing.assert_array_equal(loaded.to_numpy()[name], bvh.to_numpy()[name], err_msg=name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.npz", "pipe.npz"]
+
+
+def _meta_text(arrays, text):
+    return {**arrays, "meta": np.array(text)}
+
+
+def _uint64_leaf_marks(arrays):
+    # A leaf's -1 written as uint64 is 2**64 - 1, which became -1 again when widened to int64.
+    return {**arrays, "node_left": arrays["node_left"].astype(np.uint64),
+            "node_right": arrays["node_right"].astype(np.uint64)}
+
+
+_LOAD_ERRORS = {
+    "meta nested too deeply": (lambda a: _meta_text(a, "[" * 100000 + "]" * 100000), "nested too deeply"),
+    "an integer of 5000 digits": (
+        lambda a: _meta_text(a, str(a["meta"]).replace('"num_prims": ', '"num_prims": ' + "9" * 5000)),
+        "an integer of more than"),
+    "uint64 leaf marks": (_uint64_leaf_marks, "node_left holds an id outside int32"),
+    "a float setting past float's range": (
+        lambda a: {**a, "meta": _meta(a, config={"sah_traversal_cost": 10**400})}, "too large for a float"),
+}
+
+
+@pytest.mark.parametrize("what", sorted(_LOAD_ERRORS))
+def test_more_corrupted_files_are_refused_by_name(device, tmp_path, what):
+    # A RecursionError, Python's message on long integer literals (advising to raise its limit),
+    # uint64 ids that wrapped to -1 so the file loaded, and an OverflowError from the config.
+    arrays = _saved(tmp_path, device)
+    edit, words = _LOAD_ERRORS[what]
+    bad = edit(arrays)
+    assert set(bad) == set(arrays) and any(not np.array_equal(bad[k], arrays[k]) for k in arrays)
+    path = _write(tmp_path, bad)
+    with pytest.raises(ValueError, match=words) as error:
+        hb.load_bvh(path, device=device)
+    assert str(error.value).startswith(f"{path}: ")
+
+
+@pytest.mark.parametrize("source", [3, None, 1.5, ["tree.npz"]])
+def test_load_takes_a_path_or_a_file_and_names_anything_else(source):
+    # A TypeError from os.fsdecode, where save_bvh names the same mistake in a ValueError.
+    words = rf"load\(\) reads a path or an open binary file, got {type(source).__name__}$"
+    with pytest.raises(ValueError, match=words):
+        hb.load_bvh(source)
