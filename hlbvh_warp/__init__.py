@@ -11,6 +11,7 @@ if not _os.path.isdir(_os.path.join(_os.path.dirname(__file__), "kernels")) and 
 ):
     __path__.append(_checkout)  # noqa: F821 (package __path__)
 
+from . import memory, metrics, wide  # noqa: E402  (hb.wide.collapse, hb.metrics.sah_cost: no second import)
 from .api import build, build_from_bounds  # noqa: E402
 from .builder import Builder  # noqa: E402
 from .bvh import Bvh  # noqa: E402

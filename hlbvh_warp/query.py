@@ -160,6 +160,9 @@ def _per_query_values(value, count: int, name: str) -> np.ndarray:
         # What float() takes: a Python int past int64 (an object array), "inf", a Fraction, a bool.
         try:
             values = np.asarray(float(value))
+        except OverflowError:
+            # An integer or fraction past float64's range: as far as any float is, an infinity.
+            values = np.asarray(np.inf if value > 0 else -np.inf)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{name} must be a number, got {type(value).__name__} {value!r}") from exc
     if values.dtype.kind not in "fiu":
@@ -173,10 +176,9 @@ def _per_query_values(value, count: int, name: str) -> np.ndarray:
 
 def _t_max_values(t_max, num_rays: int) -> np.ndarray:
     """``t_max`` as float32: ``(1,)`` for one number (or a one-element array), ``(num_rays,)`` for
-    one per ray. Rounded to nearest: hits count for t < t_max, an open bound either way."""
-    values = _per_query_values(t_max, num_rays, "t_max")
-    with np.errstate(over="ignore"):
-        return values.astype(np.float32)
+    one per ray. Each is rounded up: a float32 t is below t_max exactly when it is below the
+    float32 at or above it, where rounding to nearest dropped a hit at t = 1 under t_max = 1 + 1e-12."""
+    return _round_up_to_float32_array(_per_query_values(t_max, num_rays, "t_max"))
 
 
 def _max_dist_values(max_dist, num_points: int):
@@ -196,6 +198,11 @@ def _max_dist_values(max_dist, num_points: int):
         raise ValueError(f"max_dist must be >= 0, got {values[bad[0]]}{where}")
     if values.shape[0] == 1:
         return _round_up_to_float32(float(values[0]))
+    return _round_up_to_float32_array(values)
+
+
+def _round_up_to_float32_array(values: np.ndarray) -> np.ndarray:
+    """Each float64 value as the float32 at or above it (inf past float32's range; NaN stays)."""
     with np.errstate(over="ignore"):
         bounds = values.astype(np.float32)
     low = bounds.astype(np.float64) < values

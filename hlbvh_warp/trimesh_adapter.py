@@ -29,6 +29,16 @@ def _check_mesh(mesh, caller: str):
         raise ValueError(f"{caller} takes a trimesh.Trimesh, got {type(mesh).__name__}")
 
 
+
+def _real_float64(values, name: str) -> np.ndarray:
+    """``values`` as float64, once they are known to hold real numbers, as the library's queries
+    require: cast first, a complex point lost its imaginary part, a bool one read as 0 and 1 and
+    an object one holding None as NaN, all without a word."""
+    array = inputs._to_numpy(values, name)
+    if array.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must hold real numbers, got dtype {array.dtype}")
+    return array.astype(np.float64, copy=False)
+
 class RayMeshIntersector:
     """Ray queries on a ``trimesh.Trimesh`` through a BVH built once on ``device``.
 
@@ -87,8 +97,8 @@ class RayMeshIntersector:
 
         # A single (3,) ray is one row, as `intersects_first` answers it: indexed as it came, it
         # broke the hit locations with a NumPy broadcast error.
-        ray_origins = np.asanyarray(ray_origins, dtype=np.float64)
-        ray_directions = np.asanyarray(ray_directions, dtype=np.float64)
+        ray_origins = _real_float64(ray_origins, "origins")
+        ray_directions = _real_float64(ray_directions, "directions")
         # An empty list is no rays, as the other calls take it, not one ray of no coordinates.
         if ray_origins.ndim == 1:
             ray_origins = ray_origins.reshape((0, 3) if ray_origins.size == 0 else (1, -1))
@@ -123,21 +133,21 @@ class RayMeshIntersector:
 
     def intersects_first(self, ray_origins, ray_directions, **kwargs):
         """Index of the first triangle each ray hits, -1 on a miss: ``(n,) int64``."""
-        _, prim = query.intersect(self.bvh, np.asanyarray(ray_origins, dtype=np.float64),
-                                  np.asanyarray(ray_directions, dtype=np.float64))
+        _, prim = query.intersect(self.bvh, _real_float64(ray_origins, "origins"),
+                                  _real_float64(ray_directions, "directions"))
         return prim.astype(np.int64)
 
     def intersects_any(self, ray_origins, ray_directions, **kwargs):
         """Whether each ray hits any triangle: ``(n,) bool`` (an any-hit traversal, stopping early)."""
-        return query.occluded(self.bvh, np.asanyarray(ray_origins, dtype=np.float64),
-                              np.asanyarray(ray_directions, dtype=np.float64))
+        return query.occluded(self.bvh, _real_float64(ray_origins, "origins"),
+                              _real_float64(ray_directions, "directions"))
 
     def contains_points(self, points):
         """Whether each point is inside the (watertight) mesh, by trimesh's ray-parity test."""
         from trimesh.ray.ray_util import contains_points
 
         self.bvh  # an empty mesh raises our ValueError here, not a TypeError inside trimesh
-        return contains_points(self, points)
+        return contains_points(self, _real_float64(points, "points"))
 
 
 class ProximityQuery:
@@ -169,7 +179,7 @@ class ProximityQuery:
             distances go to the lowest triangle id; a point with a NaN or Inf coordinate gets NaN,
             inf and -1 (trimesh has no answer for one).
         """
-        closest, distance, prim = query.closest_point(self.bvh, np.asanyarray(points, dtype=np.float64))
+        closest, distance, prim = query.closest_point(self.bvh, _real_float64(points, "points"))
         return closest.astype(np.float64), distance.astype(np.float64), prim.astype(np.int64)
 
     def signed_distance(self, points):
@@ -199,7 +209,7 @@ class ProximityQuery:
         closest, distance, triangle_id = self.on_surface(points)
         # on_surface checked the shape; a single (3,) point is one row, as its answers are (the
         # (3,) array broadcast against the (1, 3) closest point gave a sign from the wrong axis).
-        points = np.asanyarray(points, dtype=np.float64).reshape(-1, 3)
+        points = _real_float64(points, "points").reshape(-1, 3)
         distance[triangle_id < 0] = np.nan
         far = np.nonzero((triangle_id >= 0) & (distance > tol.merge))[0]
         if len(far) == 0:

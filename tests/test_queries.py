@@ -789,3 +789,24 @@ def test_rays_through_collinear_triangles_miss_them(device, rng, method):
     assert sorted(rays[hit_prims == n].tolist()) == np.flatnonzero(prim_ref == n).tolist()
     w = wide.collapse(bvh, 4)
     assert np.array_equal(wide.intersect(w, origins, directions)[1], prim)
+
+
+def test_t_max_just_above_a_hit_keeps_it(device):
+    """Hits count for t < t_max. A float32 t is below t_max exactly when it is below the float32
+    at or above t_max: rounded to nearest, t_max = 1 + 1e-12 became 1.0 and dropped the hit at
+    t = 1 from every ray query. A t_max of exactly 1 still excludes it (an open bound), and an
+    integer past float64's range is unbounded, not an OverflowError."""
+    verts = np.float32([[-1, -1, 1], [1, -1, 1], [0, 1, 1]])
+    bvh = hlbvh_warp.build(verts, np.int32([[0, 1, 2]]), device=device)
+    w = wide.collapse(bvh, 4)
+    o, d = np.float32([[0, 0, 0]]), np.float32([[0, 0, 1]])
+    assert query.intersect(bvh, o, d)[0].tolist() == [1.0]
+    for t_max, hit in ((1.0 + 1e-12, True), (np.array([1.0 + 1e-12]), True), (1.0, False),
+                       (np.nextafter(1.0, 0.0), False), (10**400, True), (-10**400, False)):
+        assert (query.intersect(bvh, o, d, t_max=t_max)[1][0] >= 0) == hit, t_max
+        assert query.occluded(bvh, o, d, t_max=t_max)[0] == hit, t_max
+        assert len(query.intersect_all(bvh, o, d, t_max=t_max)[0]) == int(hit), t_max
+        assert (wide.intersect(w, o, d, t_max=t_max)[1][0] >= 0) == hit, t_max
+    with pytest.raises(ValueError, match="max_dist must be >= 0"):
+        query.closest_point(bvh, o, max_dist=-10**400)
+    assert query.closest_point(bvh, o, max_dist=10**400)[2].tolist() == [0]

@@ -396,3 +396,26 @@ def test_a_row_against_rows_of_another_width_names_the_directions(device):
     for call in (ours.intersects_id, ours.intersects_location):
         with pytest.raises(ValueError, match=r"directions must have shape \(n, 3\), got \(5, 2\)"):
             call(np.zeros((1, 3)), np.ones((5, 2)))
+
+
+def test_every_call_refuses_rows_that_are_not_real_numbers(device):
+    """The drop-ins cast their rows to float64 before the library's checks ran: a complex origin
+    lost its imaginary part, bool points read as 0 and 1 (`contains_points` answered), and an
+    object row holding None became NaN ("found nothing"). Each is refused as the library's own
+    queries refuse it, naming the argument, while float, integer and list rows still work."""
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    rays, near = RayMeshIntersector(mesh, device=device), ProximityQuery(mesh, device=device)
+    good = np.float64([[0.0, 0.0, -5.0]])
+    up = np.float64([[0.0, 0.0, 1.0]])
+    bad_rows = (np.array([[0, 0, -5 + 3j]]), np.zeros((1, 3), bool), np.array([[None, 1, 2]], dtype=object))
+    for bad in bad_rows:
+        for call in (lambda x: rays.intersects_first(x, up), lambda x: rays.intersects_any(x, up),
+                     lambda x: rays.intersects_id(x, up), lambda x: rays.intersects_location(good, x)):
+            with pytest.raises(ValueError, match="(origins|directions) must hold real numbers"):
+                call(bad)
+        for call in (rays.contains_points, near.on_surface, near.signed_distance):
+            with pytest.raises(ValueError, match="points must hold real numbers"):
+                call(bad)
+    assert rays.intersects_first(good, up).tolist() == rays.intersects_first([[0, 0, -5]], [[0, 0, 1]]).tolist()
+    assert rays.intersects_first(good, up)[0] >= 0
+    assert rays.contains_points(np.int64([[0, 0, 0], [0, 0, 5]])).tolist() == [True, False]
