@@ -50,6 +50,13 @@ from .launches import RecordedLaunches
 from .kernels import compress, dynamic, morton
 
 POLICIES = ("rebuild", "refit", "auto")
+
+
+def _check_policy(policy):
+    if not isinstance(policy, str) or policy not in POLICIES:
+        raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+
+
 # After chaotic motion `auto` waits max_refits frames before trying a refit again, twice as long
 # after each retry that fails on its first frame, up to this many times max_refits.
 MAX_CHAOTIC_BACKOFF = 8
@@ -131,8 +138,7 @@ class Builder:
             raise ValueError(f"config must be a BuildConfig, got {type(config).__name__}")
         if method not in PIPELINE_METHODS:
             raise ValueError(f"Builder method must be one of {PIPELINE_METHODS}, got {method!r}")
-        if policy not in POLICIES:
-            raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+        _check_policy(policy)
         if not sah_growth_limit >= 0.0:
             raise ValueError(f"sah_growth_limit must be >= 0, got {sah_growth_limit}")
         if not large_motion > 0.0:
@@ -475,6 +481,18 @@ class Builder:
             self.sah_reference = _finite_or_none(self.sah_cost())
         self._report("rebuild", "first build", start, stages)
         return self.bvh
+
+    @property
+    def policy(self) -> str:
+        """``"rebuild"``, ``"refit"`` or ``"auto"``: what `update` does; may be switched between
+        frames (a switch to ``"auto"`` rebuilds first when no tree has been priced)."""
+        return self._policy
+
+    @policy.setter
+    def policy(self, policy: str):
+        # Checked here too: `update` reads any other value as "auto".
+        _check_policy(policy)
+        self._policy = policy
 
     def _require_built(self):
         if self.bvh is None:

@@ -94,7 +94,8 @@ class BuildConfig:
             on the device (sync-free CUDA).
         cpu_threads: on the CPU device, how many threads run the independent subtrees of the
             depth-first stages side by side (``hlbvh_warp.threads``); 0 (default) uses every core
-            the process may run on, 1 runs them one after another. The tree does not depend on it.
+            the process may run on, 1 runs them one after another; more than four per usable core
+            count as four per core. The tree does not depend on it.
     """
 
     bits_per_axis: int = 10

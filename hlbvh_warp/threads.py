@@ -35,12 +35,19 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+#: Work parts per usable core at the most: parts beyond the pool's workers only queue, and each
+#: costs a launch and a share of the scratch (2^31 asked for had a Builder allocate 8.6 GB).
+MAX_THREADS_PER_CORE = 4
+
+
 def resolved_threads(config, device) -> int:
-    """Threads for the serial stages of a build on `device` (always 1 off the CPU)."""
+    """Threads for the serial stages of a build on `device` (always 1 off the CPU): the config's
+    count, or every usable core for 0, at most `MAX_THREADS_PER_CORE` per core."""
     if not device.is_cpu:
         return 1
+    cores = usable_cores()
     requested = config.cpu_threads
-    return max(1, requested if requested > 0 else usable_cores())
+    return max(1, min(requested, MAX_THREADS_PER_CORE * cores) if requested > 0 else cores)
 
 
 def _pool() -> ThreadPoolExecutor:

@@ -902,3 +902,21 @@ def test_a_float64_frame_from_another_device_is_checked_on_the_host(small_scene)
         with pytest.raises(ValueError, match=message):
             builder.update(wp.array(frame, dtype=wp.vec3d, device="cpu"))
     np.testing.assert_array_equal(builder.vertices.numpy(), v)
+
+
+def test_a_policy_set_after_construction_is_checked(small_scene, rng):
+    """`update` reads any policy but "rebuild" and "refit" as "auto": a typo assigned to
+    ``builder.policy`` silently ran the adaptive policy. The attribute is checked as the
+    constructor's argument is, and a valid switch takes effect on the next frame."""
+    vertices, faces = small_scene
+    builder = Builder(len(faces), device="cpu", policy="rebuild")
+    builder.build(vertices, faces)
+    for bad in ("refitt", "Auto", None, 1):
+        with pytest.raises(ValueError, match="policy must be one of"):
+            builder.policy = bad
+    assert builder.policy == "rebuild"
+    moved = vertices + np.float32(1e-4) * rng.standard_normal(vertices.shape).astype(np.float32)
+    assert builder.update(moved)["decision"] == "rebuild"
+    builder.policy = "refit"
+    assert builder.update(moved * np.float32(1.0001))["decision"] == "refit"
+    check_rays(builder.bvh, moved * np.float32(1.0001), faces, rng)

@@ -374,3 +374,24 @@ def test_a_pair_query_inside_another_trees_hold_does_not_deadlock(device):
     assert len(results) == 2, "deadlocked"
     for pairs in results:
         np.testing.assert_array_equal(pairs, expected)
+
+
+def test_a_huge_thread_count_is_capped_per_core(device):
+    """Each thread of a build gets its work part and a share of the scratch: 2^31 - 1 threads
+    asked for had a `Builder` allocate 8.6 GB and fail inside Warp, and 100,000 slowed a small
+    one-shot build from under a second to 20 s. Past four per usable core the count is capped;
+    off the CPU it is always one, and 0 still means every core."""
+    import warp as wp
+
+    from hlbvh_warp.builder import Builder
+    from hlbvh_warp.threads import MAX_THREADS_PER_CORE, resolved_threads, usable_cores
+
+    dev = wp.get_device(device)
+    cap = MAX_THREADS_PER_CORE * usable_cores()
+    for asked, cpu_threads in ((2**31 - 1, cap), (cap + 1, cap), (2, min(2, cap)), (0, usable_cores())):
+        got = resolved_threads(hw.BuildConfig(cpu_threads=asked), dev)
+        assert got == (cpu_threads if dev.is_cpu else 1), (asked, got)
+    v, f = random_soup(np.random.default_rng(3), 300)
+    builder = Builder(300, hw.BuildConfig(cpu_threads=2**31 - 1), device=device)
+    tree = builder.build(v, f).to_numpy()
+    check_tree_invariants(tree, 300, 1, exact_node_count=599)
