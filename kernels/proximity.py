@@ -123,6 +123,9 @@ def exact_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3):
 # vertices differ by more than 2^29 in magnitude) could tilt the normal by more than 1e-9: the
 # normal is then computed exactly instead.
 NORMAL_RECHECK = wp.constant(1.3e-11)
+# (height above the plane / longest edge)^2 past which the face's closest point is taken from its
+# weights rather than the projection (see `closest_point_on_triangle`).
+FAR_FROM_PLANE = wp.constant(wp.float64(1.0e12))
 
 
 @wp.func
@@ -181,7 +184,15 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
             v = s_c / nn
     if face == 1:
         # The projection itself, not a + u ab + v ac: exact up to rounding however thin the triangle.
-        q = p64 - n * (wp.dot(n, ap) / nn)
+        height = wp.dot(n, ap)
+        q = p64 - n * (height / nn)
+        if height * height > FAR_FROM_PLANE * nn * wp.max(wp.dot(ab, ab), wp.dot(ac, ac)):
+            # p is a million triangle sizes off the plane: the projection subtracts two nearly equal
+            # large vectors, and its rounding (2^-53 |p|) had put the point of a mesh's triangle
+            # 6.5e22 off it for p near 3e38. The weights, clamped, keep the point on the triangle.
+            u = wp.clamp(u, zero, one)
+            v = wp.clamp(v, zero, one - u)
+            q = a64 + ab * u + ac * v
         result.point = wp.vec3(q)
         result.d2 = wp.length_sq(p64 - q)
     else:

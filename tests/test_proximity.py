@@ -1122,3 +1122,28 @@ def test_far_points_prune_with_float64_box_distances(device, rng, where):
     # A near search of this sphere visits tens of nodes; every node is 2N - 1 = 2559.
     assert stats.nodes_visited.mean() < 0.2 * bvh.num_nodes, stats.nodes_visited.mean()
     assert stats.prims_tested.mean() < 0.1 * len(faces), stats.prims_tested.mean()
+
+
+@pytest.mark.parametrize("height", [1e7, 1e30, 3.0e38])
+def test_a_point_far_above_a_face_gets_a_point_on_the_triangle(device, height):
+    """The face's closest point is the projection p - n (n . ap) / |n|^2, which subtracts two
+    nearly equal vectors when p lies far above the plane: at 3e38 its rounding put the returned
+    point 6.5e22 off the triangle (a face whose normal points at p, as on an icosphere). Far off
+    the plane the point comes from the weights instead, clamped onto the triangle."""
+    tri = np.float32([[1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    bvh = hlbvh_warp.build(tri, faces=np.int32([[0, 1, 2]]), device=device)
+    point = np.full((1, 3), height, np.float32)
+    closest, distance, prim, u, v = hlbvh_warp.closest_point(bvh, point, return_barycentrics=True)
+    assert prim.tolist() == [0]
+    q = closest[0].astype(np.float64)
+    # On the triangle: in its plane x + y + z = 1, with weights in [0, 1] that give the point.
+    assert abs(q.sum() - 1.0) < 1e-6 and (q >= -1e-7).all(), q
+    assert u[0] >= 0 and v[0] >= 0 and u[0] + v[0] <= 1 + 1e-7
+    assert np.allclose(q, [1.0 - u[0] - v[0], u[0], v[0]], atol=1e-6)
+    if height < 1e10:
+        # The float32 point lies exactly on the normal through the face's centre, its foot. Far
+        # beyond, every point of the triangle is as near in float64, and any is a right answer.
+        assert np.allclose(q, 1.0 / 3.0, atol=1e-6), q
+    with np.errstate(over="ignore"):  # inf past float32's range, as the query reports it
+        expected = np.float32(np.sqrt(3.0) * (float(point[0, 0]) - 1.0 / 3.0))
+    assert distance[0] == expected or np.isclose(distance[0], expected, rtol=1e-6)
