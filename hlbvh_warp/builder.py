@@ -612,8 +612,9 @@ class Builder:
         timer.stage("sah")
         return self.sah_cost()
 
-    def _finish(self, timer: StageTimer) -> dict:
-        self.bvh.invalidate()
+    def _finish(self, timer: StageTimer, changed: bool = True) -> dict:
+        if changed:  # a frame in which nothing moved leaves the tree, and trees made from it, as they are
+            self.bvh.invalidate()
         timings = timer.finish()
         return dict(timings)
 
@@ -791,7 +792,7 @@ class Builder:
                 extra["sah"] = self.sah_reference
         elif decision == "refit":
             extra["sah"] = extra["sah_refit"]
-        stages = self._finish(timer)
+        stages = self._finish(timer, changed=decision != "none")
         stages["skipped"] = list(stages.get("skipped", [])) + skipped
         self._report(decision, reason, start, stages, **extra)
 

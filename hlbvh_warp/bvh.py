@@ -111,6 +111,9 @@ class Bvh:
         self.faces = faces
         #: Milliseconds per stage, filled when the build was asked to time itself.
         self.timings = timings if timings is not None else {}
+        #: How many times `invalidate` has run: the trees derived from this one (`wide.collapse`)
+        #: record it, and refuse host calls once the tree has changed under them.
+        self.generation = 0
         self._cache = {}
         #: The lock of the `Builder` that rebuilds this tree in place (None: nothing does). Host
         #: queries hold it, so that one never reads a tree another thread is rewriting.
@@ -192,6 +195,7 @@ class Bvh:
         vertices: it is rewritten in place (launches only), so views handed out earlier stay valid.
         """
         with held(self):  # a query on another thread reads the layout: not while it is rewritten
+            self.generation += 1
             layout = self._cache.get("traversal_layout")
             # A new dict, the layout already in it: emptied first, a `view` made in between (from
             # another thread) made a layout of its own that no later refit refreshed.

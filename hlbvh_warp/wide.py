@@ -55,12 +55,17 @@ class WideBvh:
     ``slot_*`` arrays have ``num_nodes * width`` entries; ``wide_begin`` / ``wide_end`` are each
     node's range of the binary tree's ``prim_order``. ``bvh`` is the binary tree it came from.
     ``slots`` (the same fields as one `WideSlot` record per slot) and ``triangles`` (the binary
-    tree's packed triangles) are what the ray traversal reads. The wide tree is a snapshot of the
-    binary one: after a refit or rebuild of that tree, collapse it again.
+    tree's packed triangles) are what the ray traversal reads. The wide tree's boxes are copied at
+    the collapse, but it reads the binary tree's ``prim_order`` and triangles: after a refit or
+    rebuild of that tree, collapse it again. Its host calls (`intersect`, `view`, `launch_args`,
+    `sah_cost`, `to_numpy`) refuse it once the binary tree has changed (`Bvh.generation`); a view
+    already handed to a kernel cannot tell.
     """
 
     def __init__(self, bvh: Bvh, width: int, num_nodes: int, arrays: dict, levels: int):
         self.bvh = bvh
+        #: The binary tree's `Bvh.generation` at the collapse.
+        self.generation = bvh.generation
         self.width = width
         self.num_nodes = num_nodes
         #: Levels of wide nodes (the root's is 1).
@@ -81,10 +86,20 @@ class WideBvh:
     def to_numpy(self) -> dict:
         """The slot and per-node range arrays, and the binary tree's ``prim_order``, as NumPy, keyed by
         attribute name."""
+        _require_current(self, "to_numpy")
         names = ("slot_lowers", "slot_uppers", "slot_child", "slot_begin", "slot_end", "wide_begin", "wide_end")
-        out = {name: getattr(self, name).numpy() for name in names}
-        out["prim_order"] = self.bvh.prim_order.numpy()
+        # Copies: on the CPU `numpy()` shares the device memory, and an edit would change the trees
+        # (``prim_order`` is the binary tree's own).
+        out = {name: getattr(self, name).numpy().copy() for name in names}
+        out["prim_order"] = self.bvh.prim_order.numpy().copy()
         return out
+
+
+def _require_current(wide: WideBvh, name: str):
+    """Raise unless the binary tree is the one `wide` was collapsed from (no refit or rebuild since)."""
+    if wide.generation != wide.bvh.generation:
+        raise ValueError(f"{name}(): the binary tree was refit or rebuilt since this wide tree was collapsed from "
+                         "it, and the wide tree reads its primitive order and triangles: collapse it again")
 
 
 @holding_tree
@@ -169,6 +184,7 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
     `metrics.sah_cost` of the binary tree."""
     if not isinstance(wide, WideBvh):
         raise ValueError(f"sah_cost() takes a WideBvh (wide.collapse), got {type(wide).__name__}")
+    _require_current(wide, "sah_cost")
     t_traversal, t_intersect = metrics.check_costs(t_traversal, t_intersect)
     bvh = wide.bvh
     if int(bvh.node_left[0:1].numpy()[0]) < 0:
@@ -189,8 +205,9 @@ def view(wide: WideBvh) -> kernels.WideView:
     """The `WideView` struct of ``wide`` for user kernels, which call
     ``hlbvh_warp.wide.bvh_wide_closest_hit(view, origin, direction, t_max)``.
 
-    Like the wide tree, a snapshot of the binary tree it was collapsed from: after a refit or
-    rebuild of that tree, collapse it again and take a new view.
+    It reads the wide tree's slots and the binary tree's primitive order and triangles: after a
+    refit or rebuild of the binary tree, collapse it again and take a new view (this call refuses
+    a wide tree whose binary tree has changed; a view already in a kernel cannot tell).
 
     Raises:
         ValueError: not a `WideBvh`, or one collapsed from a BVH over bare boxes (no triangles to hit).
@@ -200,6 +217,7 @@ def view(wide: WideBvh) -> kernels.WideView:
     bvh = wide.bvh
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError("view() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
+    _require_current(wide, "view")
     if wide._view is not None:
         return wide._view
     v = kernels.WideView()
@@ -247,6 +265,7 @@ def _check_launch_arrays(wide, origins, directions, hit_t, hit_prim, counts) -> 
         raise ValueError(f"launch_args() takes a WideBvh, got {type(wide).__name__}")
     if wide.bvh.vertices is None or wide.bvh.faces is None:
         raise ValueError("launch_args() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
+    _require_current(wide, "launch_args")
     wanted = (("origins", origins, wp.vec3, None), ("directions", directions, wp.vec3, None),
               ("hit_t", hit_t, wp.float32, None), ("hit_prim", hit_prim, wp.int32, None),
               ("counts", counts, wp.vec3i, 0))
@@ -297,6 +316,7 @@ def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: boo
     bvh = wide.bvh
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError("intersect() needs a wide BVH collapsed from a mesh BVH, not from bare boxes")
+    _require_current(wide, "intersect")
     o, d = inputs.ray_arrays(origins, directions)
     device = wide.device
     n = o.shape[0]

@@ -273,18 +273,37 @@ def trimesh_icosphere():
     return trimesh.creation.icosphere(subdivisions=2)
 
 
-def test_a_wide_view_is_the_snapshot_of_its_collapse(device):
-    """The view is made with the collapse: its root box is the one the slots were cut from, even
-    when the binary tree is refit before the first view is asked for."""
+def test_a_wide_tree_refuses_host_calls_once_its_binary_tree_changed(device):
+    """The view is made with the collapse, its root box the one the slots were cut from. The wide
+    tree reads the binary tree's primitive order and triangles, so after a refit or rebuild of that
+    tree (a frame that answered 39% of rays like the current frame) every host call refuses it and
+    says to collapse again; a frame in which nothing moved leaves it usable."""
     mesh = trimesh_icosphere()
-    builder = hw.Builder(len(mesh.faces), device=device, policy="refit")
+    builder = hw.Builder(len(mesh.faces), device=device, policy="auto")
     builder.build(mesh.vertices, mesh.faces)
     w = wide.collapse(builder.bvh, 4)
+    made = w._view
     root_slots_upper = w.slot_uppers.numpy()[:4][w.slot_child.numpy()[:4] != kernels_empty()].max(axis=0)
+    assert np.array_equal(np.array(made.root_upper), root_slots_upper)
+    o, d = np.float32([[0.11, 0.13, -5.0]]), np.float32([[0.0, 0.0, 1.0]])  # off every edge
+    builder.update(np.asarray(mesh.vertices))  # nothing moved: the tree is as it was
+    assert builder.last_report["decision"] == "none"
+    assert w.view() is made and wide.intersect(w, o, d)[1][0] >= 0
     builder.update(np.asarray(mesh.vertices) * 2.0)  # the binary root box doubles
+    assert builder.last_report["decision"] == "rebuild"
     assert np.allclose(builder.bvh.node_uppers.numpy()[0], 2.0 * root_slots_upper, rtol=1e-6)
-    assert np.array_equal(np.array(w.view().root_upper), root_slots_upper)
-    assert w.view() is wide.view(w)
+    n = 1
+    outputs = (wp.empty(n, dtype=float, device=device), wp.empty(n, dtype=wp.int32, device=device),
+               wp.empty(0, dtype=wp.vec3i, device=device))
+    calls = (lambda: w.view(), lambda: wide.intersect(w, o, d), lambda: wide.sah_cost(w), lambda: w.to_numpy(),
+             lambda: wide.launch_args(w, wp.array(o, dtype=wp.vec3, device=device),
+                                      wp.array(d, dtype=wp.vec3, device=device), 10.0, *outputs))
+    for call in calls:
+        with pytest.raises(ValueError, match="collapse it again"):
+            call()
+    fresh = wide.collapse(builder.bvh, 4)
+    assert np.allclose(np.array(fresh.view().root_upper), 2.0 * root_slots_upper, rtol=1e-6)
+    assert np.array_equal(wide.intersect(fresh, o, d)[1], hw.intersect(builder.bvh, o, d)[1])
 
 
 def kernels_empty():
