@@ -174,7 +174,7 @@ def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
         arrays["triangles"] = wp.empty(0, dtype=PackedTriangle, device=device)
     wide = WideBvh(bvh, width, total, arrays, len(level_arrays))
     if bvh.vertices is not None and bvh.faces is not None:
-        view(wide)  # the root box read now, with the slots: one snapshot even if the tree is refit later
+        view(wide)  # the root box read now, with the slots it was cut from
     return wide
 
 
