@@ -31,6 +31,7 @@ from .traversal import (
     PackedTriangle,
     prefetch_child,
     query_limit,
+    vec64f,
     vec64i,
 )
 
@@ -38,8 +39,6 @@ wp.set_module_options({"enable_backward": False})
 
 NAN = wp.constant(float("nan"))
 
-#: The deferred nodes' lower bounds on their squared box distance.
-vec64d = wp.types.vector(length=STACK_SIZE, dtype=wp.float64)
 
 
 @wp.struct
@@ -266,14 +265,14 @@ def box_distance_sq64(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
 # of those, covers. Where that bound and d (1 + 1e-6) straddle the best distance, float32 cannot
 # decide and the box distance is computed again in float64. A point far from the mesh needs that:
 # at 1e6 mesh sizes every box lies within float32's margin of the best triangle, and a search that
-# entered them all tested every triangle (3000x wp.Mesh's time at 1e9).
+# entered them all tested every triangle (3000x wp.Mesh's time at 1e9). A deferred node is popped
+# by its float32 distance alone (the stack keeps no box): such a node is entered, and its children
+# are measured again. Kept off the common path: a float64 stack and bound for every child cost
+# 5-15% of a near query.
 PRUNE_MARGIN = wp.constant(1.0 - 1.0e-6)
 PRUNE_HIGH = wp.constant(1.0 + 1.0e-6)
 PRUNE_SLACK = wp.constant(1.0e-44)
-PRUNE_LOW64 = wp.constant(wp.float64(1.0 - 1.0e-6))
-PRUNE_SLACK64 = wp.constant(wp.float64(1.0e-44))
 EXACT_LOW = wp.constant(wp.float64(1.0 - 1.0e-12))
-INF64 = wp.constant(wp.float64(float("inf")))
 
 
 @wp.struct
@@ -298,16 +297,15 @@ def start_search(max_dist: float):
 
 
 @wp.func
-def box_bound(p: wp.vec3, lower: wp.vec3, upper: wp.vec3, d: float, best: float):
-    """A lower bound on the squared distance from p to the box whose float32 squared distance is
-    d, to compare with the search's float64 best (``best`` is its float32 copy, ``box_d2``): inf
-    where d is clearly farther than the best triangle, d's own bound where it is clearly nearer
-    (both float32 tests, the common case), else `box_distance_sq64`'s."""
-    if d * PRUNE_MARGIN > best + PRUNE_SLACK:
-        return INF64
-    if d * PRUNE_HIGH + PRUNE_SLACK < best:
-        return wp.float64(d) * PRUNE_LOW64 - PRUNE_SLACK64
-    return box_distance_sq64(p, lower, upper) * EXACT_LOW
+def box_may_hold(p: wp.vec3, lower: wp.vec3, upper: wp.vec3, d: float, best32: float, best: wp.float64):
+    """1 unless the box, whose float32 squared distance from p is d, is certainly farther than the
+    best triangle, at squared distance ``best`` (``best32`` in float32: a `PointSearch`'s ``d2``
+    and ``box_d2``): d decides where it can (the common case), else `box_distance_sq64`."""
+    if d * PRUNE_MARGIN > best32 + PRUNE_SLACK:
+        return 0
+    if d * PRUNE_HIGH + PRUNE_SLACK < best32:
+        return 1
+    return int(box_distance_sq64(p, lower, upper) * EXACT_LOW <= best)
 
 
 @wp.func
@@ -361,13 +359,13 @@ def packed_point_query(
     tested = int(0)
     stack = vec64i()
     stack_begin = vec64i()
-    stack_d = vec64d()
+    stack_d = vec64f()
     top = int(0)
     node = int(0)
     begin = int(0)
     active = int(0)
     if point_is_valid(p, max_dist) == 1:
-        if box_bound(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2) <= s.d2:
+        if box_may_hold(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2, s.d2) == 1:
             active = 1
             node = root
             begin = root_begin
@@ -388,7 +386,7 @@ def packed_point_query(
             # Pop the nearest deferred node not farther than the best triangle so far.
             while top > 0 and active == 0:
                 top -= 1
-                if stack_d[top] <= s.d2:
+                if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
                     node = stack[top]
                     begin = stack_begin[top]
                     active = 1
@@ -399,21 +397,19 @@ def packed_point_query(
             prefetch_child(nodes, triangles, n.child_b, begin_b)
             da = box_distance_sq(p, n.lower_a, n.upper_a)
             db = box_distance_sq(p, n.lower_b, n.upper_b)
-            la = box_bound(p, n.lower_a, n.upper_a, da, s.box_d2)
-            lb = box_bound(p, n.lower_b, n.upper_b, db, s.box_d2)
-            open_a = la <= s.d2
-            open_b = lb <= s.d2
+            open_a = box_may_hold(p, n.lower_a, n.upper_a, da, s.box_d2, s.d2) == 1
+            open_b = box_may_hold(p, n.lower_b, n.upper_b, db, s.box_d2, s.d2) == 1
             if open_a and open_b:
                 # Visit the nearer child next, defer the farther one.
                 if da <= db:
                     stack[top] = n.child_b
                     stack_begin[top] = begin_b
-                    stack_d[top] = lb
+                    stack_d[top] = db
                     node = n.child_a
                 else:
                     stack[top] = n.child_a
                     stack_begin[top] = begin
-                    stack_d[top] = la
+                    stack_d[top] = da
                     node = n.child_b
                     begin = begin_b
                 top += 1
@@ -426,7 +422,7 @@ def packed_point_query(
                 active = int(0)
                 while top > 0 and active == 0:
                     top -= 1
-                    if stack_d[top] <= s.d2:
+                    if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
                         node = stack[top]
                         begin = stack_begin[top]
                         active = 1
@@ -441,14 +437,14 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     visited = int(0)
     tested = int(0)
     stack = vec64i()
-    stack_d = vec64d()
+    stack_d = vec64f()
     top = int(0)
     node = int(-1)
     # A view of a box BVH has no triangles (its faces are empty): nothing to find.
     if bvh.faces.shape[0] > 0 and point_is_valid(p, max_dist) == 1:
         root_lower = bvh.node_lowers[0]
         root_upper = bvh.node_uppers[0]
-        if box_bound(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2) <= s.d2:
+        if box_may_hold(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2, s.d2) == 1:
             node = 0
     while node >= 0:
         visited += 1
@@ -470,26 +466,26 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
             right_upper = bvh.node_uppers[right]
             dl = box_distance_sq(p, left_lower, left_upper)
             dr = box_distance_sq(p, right_lower, right_upper)
-            ll = box_bound(p, left_lower, left_upper, dl, s.box_d2)
-            lr = box_bound(p, right_lower, right_upper, dr, s.box_d2)
+            open_l = box_may_hold(p, left_lower, left_upper, dl, s.box_d2, s.d2) == 1
+            open_r = box_may_hold(p, right_lower, right_upper, dr, s.box_d2, s.d2) == 1
             node = int(-1)
-            if ll <= s.d2 and lr <= s.d2:
+            if open_l and open_r:
                 if dl <= dr:
                     node = left
                     stack[top] = right
-                    stack_d[top] = lr
+                    stack_d[top] = dr
                 else:
                     node = right
                     stack[top] = left
-                    stack_d[top] = ll
+                    stack_d[top] = dl
                 top += 1
-            elif ll <= s.d2:
+            elif open_l:
                 node = left
-            elif lr <= s.d2:
+            elif open_r:
                 node = right
         while node < 0 and top > 0:
             top -= 1
-            if stack_d[top] <= s.d2:
+            if stack_d[top] * PRUNE_MARGIN <= s.box_d2 + PRUNE_SLACK:
                 node = stack[top]
     return finish(p, s, visited, tested)
 
