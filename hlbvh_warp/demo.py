@@ -12,8 +12,14 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import check_out_folder, device_name, mesh_file, non_negative_int, positive_int, quiet_warp
+from .cli import (check_out_folder, device_name, image_side, mesh_file, positive_int, query_count_or_zero, quiet_warp,
+                  tris_count)
 from .reference import brute_force_closest_hit
+
+#: Pixels of all the animation's frames together: every frame is kept for the GIF, and the save
+#: holds about 7 bytes a pixel (the RGB frames, Pillow's copies, the palette images), under 1 GB
+#: here; 2047 frames of the default 256^2, or 7 of 4096^2.
+MAX_ANIMATION_PIXELS = 1 << 27
 
 
 def check_rays(bvh, vertices, faces, origins, directions, reference, rtol=1e-4) -> int:
@@ -44,16 +50,22 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp demo", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default).")
-    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Triangles of the generated scene.")
+    parser.add_argument("--num-tris", type=tris_count, default=60000, help="Triangles of the generated scene.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
-    parser.add_argument("--rays", type=non_negative_int, default=256,
+    parser.add_argument("--rays", type=query_count_or_zero, default=256,
                         help="Rays checked against the float64 brute force.")
     parser.add_argument("--num-frames", type=positive_int, default=12, help="Frames of the exploding-mesh animation.")
-    parser.add_argument("--image-size", type=positive_int, default=256,
+    parser.add_argument("--image-size", type=image_side, default=256,
                         help="Rendered frames are this many pixels square.")
     parser.add_argument("--methods", type=str, default=None, help="Comma-separated subset of the build methods.")
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
     args = parser.parse_args(argv)
+    # The first frame is rendered before the animation steps: num_frames + 1 images.
+    pixels = (args.num_frames + 1) * args.image_size ** 2
+    if pixels > MAX_ANIMATION_PIXELS:
+        parser.error(f"--num-frames {args.num_frames} at --image-size {args.image_size} keeps {pixels} pixels of "
+                     f"frames for the GIF, more than {MAX_ANIMATION_PIXELS} (about 7 bytes each in memory); choose "
+                     "fewer frames or a smaller image")
 
     quiet_warp()
     wp.init()

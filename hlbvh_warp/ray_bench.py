@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, positive_int, quiet_warp
+from .cli import device_name, leaf_size, positive_int, query_count, quiet_warp
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -147,13 +147,13 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
     parser.add_argument("--mesh", action="append", type=pathlib.Path,
                         help="a mesh file (repeatable); default: bunny and armadillo from ../shared/meshes")
     if count_option is not None:
-        parser.add_argument(count_option, type=positive_int, default=count_default, help=count_help)
+        parser.add_argument(count_option, type=query_count, default=count_default, help=count_help)
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
     parser.add_argument("--repeats", type=positive_int, default=3,
                         help="launches timed per kernel; the best is kept (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the queries (default: %(default)s)")
-    parser.add_argument("--max-leaf-size", type=positive_int, default=1,
+    parser.add_argument("--max-leaf-size", type=leaf_size, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
     return parser
 
