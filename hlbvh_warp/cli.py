@@ -230,6 +230,12 @@ def main(argv=None) -> int:
         # an empty scene): one line, not a traceback. Anything else is a bug and keeps its trace.
         print(f"hlbvh_warp {argv[0]}: error: {error}", file=sys.stderr)
         return 2
+    except MemoryError as error:
+        # The bounds on sizes keep a run to what the library and a few GB hold, not to what this
+        # machine has: a run that still does not fit is one line naming it, not a traceback.
+        detail = f" ({error})" if str(error) else ""
+        print(f"hlbvh_warp {argv[0]}: error: out of memory{detail}; choose smaller sizes", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -149,6 +149,23 @@ def test_a_commands_input_errors_end_in_one_line(error, capsys, monkeypatch):
     assert err.strip() == f"hlbvh_warp quality: error: {error}", err
 
 
+@pytest.mark.parametrize("error,message", [
+    (MemoryError("Unable to allocate 7.28 TiB for an array with shape (1000000, 1000000) and data type float64"),
+     "out of memory (Unable to allocate 7.28 TiB for an array with shape (1000000, 1000000) and data type float64); "
+     "choose smaller sizes"),
+    (MemoryError(), "out of memory; choose smaller sizes"),
+])
+def test_a_run_that_does_not_fit_in_memory_ends_in_one_line(error, message, capsys, monkeypatch):
+    # Sizes within their bounds can still be more than a machine holds: NumPy's MemoryError was a
+    # traceback.
+    def failing(argv):
+        raise error
+
+    monkeypatch.setattr(quality, "main", failing)
+    err = error_of(["quality"], capsys)
+    assert err.strip() == f"hlbvh_warp quality: error: {message}", err
+
+
 def test_a_commands_bug_keeps_its_traceback(monkeypatch):
     def failing(argv):
         raise RuntimeError("a bug")
