@@ -463,7 +463,7 @@ def parse_args(argv):
     parser.add_argument("--sweep", action="store_true", help="also sweep m, p, n, bins and leaf size")
     parser.add_argument("--json", default="out/bench.json", help="where to write the rows (default: %(default)s)")
     parser.add_argument("--plot", default=None, help="PNG of time vs SAH ratio (default: beside the JSON)")
-    parser.add_argument("--seed", type=int, default=1,
+    parser.add_argument("--seed", type=non_negative_int, default=1,
                         help="seed of the generated scene and the checked rays (default: %(default)s)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads of our builders (0: every core; 1: one thread, like wp.Bvh; "

@@ -86,7 +86,8 @@ def positive_int(text: str) -> int:
 
 
 def non_negative_int(text: str) -> int:
-    """argparse type: an integer >= 0 (warm-up runs, thread counts)."""
+    """argparse type: an integer >= 0 (warm-up runs, thread counts, seeds: NumPy's generators take
+    no negative seed, and said so without naming the option)."""
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")

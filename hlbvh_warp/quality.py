@@ -184,7 +184,8 @@ def parse_args(argv):
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads (0: every core; default: %(default)s)")
     parser.add_argument("--json", default="out/quality.json", help="where to write the rows (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the diffuse rays (default: %(default)s)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="seed of the diffuse rays (default: %(default)s)")
     args = parser.parse_args(argv)
     check_ray_count(parser, args.views, args.side)
     listed = args.builders

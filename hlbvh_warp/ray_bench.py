@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, leaf_size, positive_int, query_count, quiet_warp
+from .cli import device_name, leaf_size, non_negative_int, positive_int, query_count, quiet_warp
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -152,7 +152,7 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
     parser.add_argument("--repeats", type=positive_int, default=3,
                         help="launches timed per kernel; the best is kept (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the queries (default: %(default)s)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the queries (default: %(default)s)")
     parser.add_argument("--max-leaf-size", type=leaf_size, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
     return parser

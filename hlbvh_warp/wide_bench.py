@@ -145,7 +145,8 @@ def parse_args(argv):
                         help="BuildConfig.cpu_threads (0: every core; default: %(default)s)")
     parser.add_argument("--json", default="out/bench_wide.json",
                         help="where to write the rows (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the diffuse rays (default: %(default)s)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="seed of the diffuse rays (default: %(default)s)")
     args = parser.parse_args(argv)
     check_ray_count(parser, args.views, args.side)
     try:

@@ -290,3 +290,14 @@ def test_demo_bounds_the_pixels_it_keeps_for_the_gif(tmp_path, monkeypatch, caps
     assert ("--num-frames 2048 at --image-size 256 keeps 134283264 pixels of frames for the GIF, more than "
             "134217728") in err, err
     assert passes_the_argument_checks(["demo", "--num-frames", "2047", "--out", out])
+
+
+@pytest.mark.parametrize("command", ["bench", "quality", "bench-wide", "bench-rays", "bench-points", "bench-pairs",
+                                     "stress"])
+def test_a_negative_seed_is_an_argument_error(command, tmp_path, capsys, no_builds):
+    # NumPy's generators take no negative seed: "--seed -1" printed its "expected non-negative
+    # integer", which named no option.
+    mesh = small_mesh(tmp_path, 1)
+    extra = ["--mesh", str(mesh)] if command != "stress" else []
+    err = error_of([command, *extra, "--seed", "-1"], capsys)
+    assert f"python -m hlbvh_warp {command}: error: argument --seed: must be at least 0, got -1" in err, err
