@@ -33,7 +33,7 @@ import warp as wp
 
 from . import api, inputs, reference, scenes
 from .cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_file, device_name, int_in_range, mesh_file,
-                  non_negative_int, positive_int, query_count_or_zero, quiet_warp, tris_count)
+                  non_negative_int, positive_int, query_count_or_zero, quiet_warp, read_meshes, tris_count)
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -424,14 +424,15 @@ def plot(rows: list[dict], path: pathlib.Path):
 
 def subdivided_meshes(paths, times: int) -> list:
     """``(name, vertices, faces)`` of every mesh file, each triangle split into four ``times``
-    times. Every file is read and its size after the split checked before the first is split: a
-    split past what a tree holds ran out of memory (21 GB at ``--subdivide 30``) before the build
-    could refuse it.
+    times. Every file is read and checked (`read_meshes`), and its size after the split checked,
+    before the first is split: a split past what a tree holds ran out of memory (21 GB at
+    ``--subdivide 30``) before the build could refuse it.
 
     Raises:
-        ValueError: a file is no mesh, or the split would make more than `MAX_TRIS` triangles.
+        ValueError: a file is no valid mesh, or the split would make more than `MAX_TRIS`
+            triangles; the file is named.
     """
-    read = [(pathlib.Path(p).stem, *scenes.load_mesh(p)) for p in paths]
+    read = read_meshes(paths)
     for (name, _, faces), path in zip(read, paths):
         count = faces.shape[0] * 4 ** times
         if count > MAX_TRIS:

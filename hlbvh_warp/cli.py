@@ -214,6 +214,16 @@ def read_mesh(path: str):
         raise ValueError(f"{path}: {error}") from None
 
 
+def read_meshes(paths) -> list:
+    """``(name, vertices, faces)`` of every mesh file, named by its stem and checked by
+    `read_mesh`: the measuring commands read all their ``--mesh`` files this way before any work,
+    so a NaN coordinate or a face index out of range is named with its file (the build's own
+    message named neither), and a bad second file is found before the first is measured."""
+    import pathlib
+
+    return [(pathlib.Path(p).stem, *read_mesh(p)) for p in paths]
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:

@@ -65,14 +65,13 @@ def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DI
     return int((~agree).sum())
 
 
-def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, device, seed: int = 0,
-        max_leaf_size: int = 1) -> list[dict]:
+def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, num_points: int, repeats: int,
+        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
+    """One row per point set on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`)."""
     from . import api, query
     from .config import BuildConfig
     from .kernels import proximity
-    from .scenes import load_mesh
 
-    vertices, faces = load_mesh(mesh_path)
     bvh = api.build(vertices, faces, method=method, device=device, config=BuildConfig(max_leaf_size=max_leaf_size))
     wmesh = wp.Mesh(
         points=wp.array(vertices, dtype=wp.vec3, device=device),

@@ -24,7 +24,7 @@ import warp as wp
 
 from .api import OFFLINE_BUILDERS
 from .cli import (argument_errors, check_out_file, check_ray_count, device_name, finite_float, image_side, mesh_file,
-                  non_negative_int, query_count, quiet_warp, tris_count)
+                  non_negative_int, query_count, quiet_warp, read_meshes, tris_count)
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -214,7 +214,7 @@ def main(argv=None) -> int:
     quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
-    meshes = scenes.named_meshes(args.mesh, args.scene_tris, args.scene)
+    meshes = read_meshes(args.mesh) or scenes.named_meshes([], args.scene_tris, args.scene)
     progress = scenes.progress
     print(f"device: {device}  c_t = {args.ct}  c_i = {args.ci}  rays: {args.views} views of {args.side}^2, "
           f"one diffuse bounce; ratios to {REFERENCE}")

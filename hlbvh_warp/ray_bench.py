@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, leaf_size, non_negative_int, positive_int, query_count, quiet_warp
+from .cli import device_name, leaf_size, non_negative_int, positive_int, query_count, quiet_warp, read_mesh
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -67,15 +67,13 @@ def best_times(fns, repeats: int, device) -> list[float]:
     return best
 
 
-def run(mesh_path: pathlib.Path, method: str, num_rays: int, repeats: int, device, seed: int = 0,
-        max_leaf_size: int = 1) -> list[dict]:
+def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, num_rays: int, repeats: int,
+        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
+    """One row per kind of ray on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`)."""
     from . import api, query
     from .config import BuildConfig
     from .kernels import traversal
-    from .scenes import load_mesh
 
-    # As every other command reads a mesh: a file of several objects is one mesh, an empty one an error.
-    vertices, faces = load_mesh(mesh_path)
     config = BuildConfig(max_leaf_size=max_leaf_size)
     bvh = api.build(vertices, faces, method=method, device=device, config=config)
     wmesh = wp.Mesh(
@@ -175,12 +173,17 @@ def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: s
     if unknown:
         parser.error(f"unknown method(s) {unknown} in --method; choose from {sorted(api.BUILDERS)}")
     device = wp.get_device(args.device)
+    # Every file read and checked before the first is measured, each error naming its file (the
+    # build's own "vertices has a NaN or Inf coordinate" named none). As every other command reads
+    # a mesh: a file of several objects is one mesh, an empty one an error.
+    meshes = [(path, *read_mesh(path)) for path in paths]
     print(header)
     total_disagree = 0
     with wp.ScopedDevice(device):
-        for path in paths:
+        for path, vertices, faces in meshes:
             for method in args.method or ["hlbvh"]:
-                for row in run_fn(path, method, count, args.repeats, device, args.seed, args.max_leaf_size):
+                for row in run_fn(path, vertices, faces, method, count, args.repeats, device, args.seed,
+                                  args.max_leaf_size):
                     total_disagree += row["disagree"]
                     print(format_fn(row), flush=True)
     print(f"{footer}; disagreements in total: {total_disagree}")

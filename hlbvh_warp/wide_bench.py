@@ -25,7 +25,7 @@ import numpy as np
 import warp as wp
 
 from .cli import (argument_errors, check_out_file, check_ray_count, device_name, image_side, mesh_file,
-                  non_negative_int, positive_int, query_count, quiet_warp, tris_count)
+                  non_negative_int, positive_int, query_count, quiet_warp, read_meshes, tris_count)
 
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
@@ -174,7 +174,7 @@ def main(argv=None) -> int:
     quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
-    meshes = scenes.named_meshes(args.mesh, args.scene_tris)
+    meshes = read_meshes(args.mesh) or scenes.named_meshes([], args.scene_tris)
     progress = scenes.progress
     print(f"device: {device}  rays: {args.views} views of {args.side}^2 and one diffuse bounce; best of "
           f"{args.repeats}; x k=2 = time at k = 2 / time (> 1: faster); bin = the library's binary traversal")

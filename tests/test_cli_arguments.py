@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 
 from hlbvh_warp import bench, cli, quality, wide_bench
@@ -301,3 +302,41 @@ def test_a_negative_seed_is_an_argument_error(command, tmp_path, capsys, no_buil
     extra = ["--mesh", str(mesh)] if command != "stress" else []
     err = error_of([command, *extra, "--seed", "-1"], capsys)
     assert f"python -m hlbvh_warp {command}: error: argument --seed: must be at least 0, got -1" in err, err
+
+
+# ----------------------------------------------------------------- invalid meshes name their file
+def ply(path, vertices: str, faces: str, num_vertices: int, num_faces: int):
+    path.write_text("ply\nformat ascii 1.0\n"
+                    f"element vertex {num_vertices}\nproperty float x\nproperty float y\nproperty float z\n"
+                    f"element face {num_faces}\nproperty list uchar int vertex_indices\nend_header\n"
+                    f"{vertices}{faces}")
+    return path
+
+
+@pytest.mark.parametrize("command", ["bench-rays", "bench-points", "bench-pairs", "bench", "quality", "bench-wide"])
+def test_an_invalid_mesh_is_named_before_any_work(command, tmp_path, capsys, no_builds):
+    # The build's own checks said "vertices has a NaN or Inf coordinate" or "face index 9 out of
+    # range", naming no file; bench-pairs blamed float32's range for a NaN ("the mesh is finite,
+    # but too near float32's limit", "shifted by nan"). Every file is now read and checked before
+    # the first is measured: the good first mesh is not built (no_builds).
+    good = small_mesh(tmp_path, 2)
+    nan = ply(tmp_path / "nan.ply", "0 0 0\n1 nan 0\n0 1 0\n", "3 0 1 2\n", 3, 1)
+    out_of_range = ply(tmp_path / "oob.ply", "0 0 0\n1 0 0\n0 1 0\n", "3 0 1 2\n3 0 1 9\n", 3, 2)
+    extra = ["--json", str(tmp_path / "x.json")] if command in ("bench", "quality", "bench-wide") else []
+    for path, problem in ((nan, "vertices has a NaN or Inf coordinate (first at row 1: [1.0, nan, 0.0])"),
+                          (out_of_range, "face index 9 out of range [0, 3) (first at face 1)")):
+        err = error_of([command, "--mesh", str(good), "--mesh", str(path), *extra], capsys)
+        assert err.strip().splitlines()[-1] == f"hlbvh_warp {command}: error: {path}: {problem}", err
+        assert "finite" not in err and "float32" not in err, err
+
+
+def test_the_moved_copy_names_a_nan_as_a_nan():
+    from hlbvh_warp.pair_bench import moved_copy
+
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, np.nan, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(ValueError) as error:
+        moved_copy(vertices)
+    assert str(error.value) == "the mesh has a NaN or Inf coordinate (first at vertex 1: [1.0, nan, 0.0])"
+    # A finite mesh whose copy leaves float32's range is still told apart from a NaN.
+    with pytest.raises(ValueError, match="the mesh is finite, but too near float32's limit"):
+        moved_copy(np.array([[-3.4e38, 0.0, 0.0], [3.4e38, 0.0, 0.0], [0.0, 3.4e38, 0.0]]))
