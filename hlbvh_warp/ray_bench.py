@@ -156,9 +156,17 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
     return parser
 
 
-def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str) -> int:
-    """Print one row per mesh, method and query kind; exit 1 when any row disagrees with wp.Mesh
-    (as bench-wide and quality do, so a script can rely on the status)."""
+def peer_verdict(rows: list[dict]) -> tuple[str, bool]:
+    """The summary line, and a failure when any row disagrees with wp.Mesh: the reference of
+    bench-rays and bench-pairs, which have no float64 brute force of their own."""
+    total = sum(row["disagree"] for row in rows)
+    return f"disagreements in total: {total}", total > 0
+
+
+def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str, verdict=peer_verdict) -> int:
+    """Print one row per mesh, method and query kind, then the footer and ``verdict(rows)``'s
+    summary; exit 1 when the verdict is a failure (as bench-wide and quality do, so a script can
+    rely on the status)."""
     quiet_warp()
     wp.init()
     paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]
@@ -178,16 +186,17 @@ def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: s
     # a mesh: a file of several objects is one mesh, an empty one an error.
     meshes = [(path, *read_mesh(path)) for path in paths]
     print(header)
-    total_disagree = 0
+    rows = []
     with wp.ScopedDevice(device):
         for path, vertices, faces in meshes:
             for method in args.method or ["hlbvh"]:
                 for row in run_fn(path, vertices, faces, method, count, args.repeats, device, args.seed,
                                   args.max_leaf_size):
-                    total_disagree += row["disagree"]
+                    rows.append(row)
                     print(format_fn(row), flush=True)
-    print(f"{footer}; disagreements in total: {total_disagree}")
-    return 1 if total_disagree else 0
+    summary, failed = verdict(rows)
+    print(f"{footer}; {summary}")
+    return 1 if failed else 0
 
 
 def main(argv=None) -> int:
