@@ -32,8 +32,8 @@ import numpy as np
 import warp as wp
 
 from . import api, inputs, reference, scenes
-from .cli import (argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int,
-                  quiet_warp)
+from .cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_file, device_name, int_in_range, mesh_file,
+                  non_negative_int, positive_int, query_count_or_zero, quiet_warp, read_meshes, tris_count)
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -52,6 +52,9 @@ ROW_FORMAT = "{mesh:>{mesh_width}s} {tris:>9d} {builder:>14s} {setting:>12s} {me
 HEADER_FORMAT = "{:>{w}s} {:>9s} {:>14s} {:>12s} {:>10s} {:>9s} {:>9s} {:>10s} {:>9s} {:>7s} {:>9s} {:>8s} {:>6s}"
 HEADER_FIELDS = ("mesh", "tris", "builder", "setting", "median ms", "min ms", "max ms", "rebuild ms", "SAH", "ratio",
                  "nodes", "B/tri", "rays")
+#: Most times --subdivide may split a triangle into four: 4^15 = 2^30 triangles of a single one
+#: would be more than a tree holds. A mesh's own face count lowers the bound (`subdivided_meshes`).
+MAX_SUBDIVIDE = (MAX_TRIS.bit_length() - 1) // 2
 #: The mesh column is at least this wide, and as wide as the longest mesh name (never cut).
 MESH_WIDTH = 12
 
@@ -419,14 +422,35 @@ def plot(rows: list[dict], path: pathlib.Path):
     plt.close(fig)
 
 
+def subdivided_meshes(paths, times: int) -> list:
+    """``(name, vertices, faces)`` of every mesh file, each triangle split into four ``times``
+    times. Every file is read and checked (`read_meshes`), and its size after the split checked,
+    before the first is split: a split past what a tree holds ran out of memory (21 GB at
+    ``--subdivide 30``) before the build could refuse it.
+
+    Raises:
+        ValueError: a file is no valid mesh, or the split would make more than `MAX_TRIS`
+            triangles; the file is named.
+    """
+    read = read_meshes(paths)
+    for (name, _, faces), path in zip(read, paths):
+        count = faces.shape[0] * 4 ** times
+        if count > MAX_TRIS:
+            raise ValueError(f"--subdivide {times}: {path} has {faces.shape[0]} triangles, {count} once split; "
+                             f"{TRIS_LIMIT}")
+    suffix = f"_sub{times}" if times else ""
+    return [(name + suffix, *scenes.subdivide(vertices, faces, times)) for name, vertices, faces in read]
+
+
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--subdivide", type=non_negative_int, default=0,
+    parser.add_argument("--subdivide", type=int_in_range(0, MAX_SUBDIVIDE, f"4^{MAX_SUBDIVIDE + 1} triangles of one "
+                                                          "would be more than a tree holds"), default=0,
                         help="split every triangle of each mesh into four this many times (the paper's sizes; "
                              "default: %(default)s)")
-    parser.add_argument("--scene-tris", type=positive_int, default=60000,
+    parser.add_argument("--scene-tris", type=tris_count, default=60000,
                         help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--builders", default=",".join(OUR_BUILDERS + PEERS),
                         help="comma-separated builders and peers (default: %(default)s; the offline recursive_sah and "
@@ -435,12 +459,12 @@ def parse_args(argv):
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per builder (default: %(default)s)")
     parser.add_argument("--warmup", type=non_negative_int, default=1,
                         help="untimed runs first (kernel compilation, caches; default: %(default)s)")
-    parser.add_argument("--rays", type=non_negative_int, default=128,
+    parser.add_argument("--rays", type=query_count_or_zero, default=128,
                         help="rays checked against the brute force (default: %(default)s)")
     parser.add_argument("--sweep", action="store_true", help="also sweep m, p, n, bins and leaf size")
     parser.add_argument("--json", default="out/bench.json", help="where to write the rows (default: %(default)s)")
     parser.add_argument("--plot", default=None, help="PNG of time vs SAH ratio (default: beside the JSON)")
-    parser.add_argument("--seed", type=int, default=1,
+    parser.add_argument("--seed", type=non_negative_int, default=1,
                         help="seed of the generated scene and the checked rays (default: %(default)s)")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads of our builders (0: every core; 1: one thread, like wp.Bvh; "
@@ -468,8 +492,7 @@ def main(argv=None) -> int:
     quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
-    meshes = [(pathlib.Path(p).stem + (f"_sub{args.subdivide}" if args.subdivide else ""),
-               *scenes.subdivide(*scenes.load_mesh(p), args.subdivide)) for p in args.mesh]
+    meshes = subdivided_meshes(args.mesh, args.subdivide)
     if not meshes:
         meshes = [("generated", *generated_scene(args.scene_tris, args.seed))]
 

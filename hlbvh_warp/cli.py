@@ -12,6 +12,8 @@ import math
 import os
 import sys
 
+from .inputs import MAX_PRIMS
+
 COMMANDS = {
     "demo": ("hlbvh_warp.demo", "build a generated scene with each method, check rays, print timings"),
     "bench": ("hlbvh_warp.bench", "build time against tree quality for every builder (JSON + plot)"),
@@ -24,6 +26,57 @@ COMMANDS = {
 }
 
 
+#: Triangles of a generated scene or a subdivided mesh: a tree holds fewer than `MAX_PRIMS`
+#: primitives (int32 node ids, 2N - 1 nodes), so a larger scene could only fail in the build.
+MAX_TRIS = MAX_PRIMS - 1
+#: Rays or points in one batch of a command: a bench-rays or bench-points set, the rays bench and
+#: demo check against the brute force, quality's and bench-wide's views x side^2 rays, demo's
+#: pixels per frame. Measured on the CPU, a bench-rays ray holds about 140 bytes of host memory at
+#: the peak and a bench-points point (three sets) about 280: 2.3 and 4.7 GB at this bound, which is
+#: 16 times bench-rays' default of 1M. Larger counts went on to allocate until the process died.
+MAX_QUERIES = 1 << 24
+#: Pixels per side of a square image: MAX_QUERIES pixels (4096 x 4096).
+MAX_IMAGE_SIDE = 1 << 12
+#: BuildConfig's own limit on max_leaf_size, checked here so that the error names the option.
+MAX_LEAF_SIZE = 1 << 16
+#: Why each bound is there, for the error message.
+TRIS_LIMIT = f"a tree holds fewer than 2^{MAX_PRIMS.bit_length() - 1} triangles"
+MEMORY_LIMIT = "a run's memory grows with it, to gigabytes at this bound"
+
+
+def int_in_range(minimum: int, maximum: int, why: str):
+    """argparse type: an integer in ``[minimum, maximum]``; ``why`` says in the error what the
+    upper bound protects. Sizes without an upper bound reached NumPy's allocator, which failed
+    with a MemoryError traceback or a message naming no option, or got the process killed."""
+
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        if value > maximum:
+            raise argparse.ArgumentTypeError(f"must be at most {maximum} ({why}), got {value}")
+        return value
+
+    parse.__name__ = "int"  # argparse's message for text that is no integer: "invalid int value"
+    return parse
+
+
+tris_count = int_in_range(1, MAX_TRIS, TRIS_LIMIT)
+query_count = int_in_range(1, MAX_QUERIES, MEMORY_LIMIT)
+query_count_or_zero = int_in_range(0, MAX_QUERIES, MEMORY_LIMIT)
+image_side = int_in_range(1, MAX_IMAGE_SIDE, MEMORY_LIMIT)
+leaf_size = int_in_range(1, MAX_LEAF_SIZE, "BuildConfig's limit")
+
+
+def check_ray_count(parser: argparse.ArgumentParser, views: int, side: int):
+    """End the program with an argparse error unless ``views`` images of ``side`` x ``side``
+    pixels (quality's and bench-wide's primary rays) are at most `MAX_QUERIES` rays."""
+    rays = views * side * side
+    if rays > MAX_QUERIES:
+        parser.error(f"--views {views} of --side {side} make {rays} primary rays, more than {MAX_QUERIES} "
+                     f"({MEMORY_LIMIT}); choose fewer views or a smaller side")
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1 (frames, triangles, pixels, repeats)."""
     value = int(text)
@@ -33,7 +86,8 @@ def positive_int(text: str) -> int:
 
 
 def non_negative_int(text: str) -> int:
-    """argparse type: an integer >= 0 (warm-up runs, thread counts, subdivisions)."""
+    """argparse type: an integer >= 0 (warm-up runs, thread counts, seeds: NumPy's generators take
+    no negative seed, and said so without naming the option)."""
     value = int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
@@ -160,6 +214,16 @@ def read_mesh(path: str):
         raise ValueError(f"{path}: {error}") from None
 
 
+def read_meshes(paths) -> list:
+    """``(name, vertices, faces)`` of every mesh file, named by its stem and checked by
+    `read_mesh`: the measuring commands read all their ``--mesh`` files this way before any work,
+    so a NaN coordinate or a face index out of range is named with its file (the build's own
+    message named neither), and a bad second file is found before the first is measured."""
+    import pathlib
+
+    return [(pathlib.Path(p).stem, *read_mesh(p)) for p in paths]
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
@@ -176,6 +240,12 @@ def main(argv=None) -> int:
         # Bad input the library names (a file that is not a mesh, an unknown builder or device,
         # an empty scene): one line, not a traceback. Anything else is a bug and keeps its trace.
         print(f"hlbvh_warp {argv[0]}: error: {error}", file=sys.stderr)
+        return 2
+    except MemoryError as error:
+        # The bounds on sizes keep a run to what the library and a few GB hold, not to what this
+        # machine has: a run that still does not fit is one line naming it, not a traceback.
+        detail = f" ({error})" if str(error) else ""
+        print(f"hlbvh_warp {argv[0]}: error: out of memory{detail}; choose smaller sizes", file=sys.stderr)
         return 2
 
 

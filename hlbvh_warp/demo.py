@@ -12,8 +12,20 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import check_out_folder, device_name, mesh_file, non_negative_int, positive_int, quiet_warp
+from .cli import (check_out_folder, device_name, image_side, mesh_file, positive_int, query_count_or_zero, quiet_warp,
+                  tris_count)
 from .reference import brute_force_closest_hit
+
+#: Pixels of all the animation's frames together: every frame is kept for the GIF, and the save
+#: holds about 7 bytes a pixel (the RGB frames, Pillow's copies, the palette images), under 1 GB
+#: here; 2047 frames of the default 256^2, or 7 of 4096^2.
+MAX_ANIMATION_PIXELS = 1 << 27
+#: The exploding mesh's speed, in box diagonals per unit of time (`ExplodingMesh`'s default), and
+#: the animation's frames per unit of time.
+EXPLOSION_SPEED = 0.5
+FRAMES_PER_TIME_UNIT = 24.0
+#: Largest finite float32: the animation moves the mesh in float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def check_rays(bvh, vertices, faces, origins, directions, reference, rtol=1e-4) -> int:
@@ -40,20 +52,42 @@ def rays_at(vertices, count: int, seed: int = 0):
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
+def animation_reach(vertices, num_frames: int) -> float:
+    """An upper bound on every value the exploding-mesh animation computes over ``num_frames``
+    frames, in float64: what must fit in float32 for its vertices to stay finite.
+
+    A corner at time t is its triangle's centroid + velocity x t + its offset from the centroid,
+    turned. Every centroid lies in the box (at most the largest coordinate), a velocity is at most
+    EXPLOSION_SPEED diagonals per unit of time (one unit where the mesh is a single point, as
+    `ExplodingMesh` takes it) and is itself stored in float32, and an offset is at most a diagonal,
+    whose turn by ``wp.quat_rotate`` sums terms of up to twice its length, 5 times in all.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    diagonal = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    speed = EXPLOSION_SPEED * (diagonal or 1.0)
+    return float(np.abs(v).max()) + 5.0 * diagonal + speed * (num_frames / FRAMES_PER_TIME_UNIT + 1.0)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp demo", description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default).")
-    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Triangles of the generated scene.")
+    parser.add_argument("--num-tris", type=tris_count, default=60000, help="Triangles of the generated scene.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
-    parser.add_argument("--rays", type=non_negative_int, default=256,
+    parser.add_argument("--rays", type=query_count_or_zero, default=256,
                         help="Rays checked against the float64 brute force.")
     parser.add_argument("--num-frames", type=positive_int, default=12, help="Frames of the exploding-mesh animation.")
-    parser.add_argument("--image-size", type=positive_int, default=256,
+    parser.add_argument("--image-size", type=image_side, default=256,
                         help="Rendered frames are this many pixels square.")
     parser.add_argument("--methods", type=str, default=None, help="Comma-separated subset of the build methods.")
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
     args = parser.parse_args(argv)
+    # The first frame is rendered before the animation steps: num_frames + 1 images.
+    pixels = (args.num_frames + 1) * args.image_size ** 2
+    if pixels > MAX_ANIMATION_PIXELS:
+        parser.error(f"--num-frames {args.num_frames} at --image-size {args.image_size} keeps {pixels} pixels of "
+                     f"frames for the GIF, more than {MAX_ANIMATION_PIXELS} (about 7 bytes each in memory); choose "
+                     "fewer frames or a smaller image")
 
     quiet_warp()
     wp.init()
@@ -90,6 +124,16 @@ def main(argv=None) -> int:
             vertices, faces = inputs.mesh_arrays(vertices, faces)
         except ValueError as error:
             raise ValueError(f"{args.mesh}: {error}" if args.mesh else str(error)) from None
+        # Before any work: a finite mesh near float32's limit (coordinates of 3e38) passed the
+        # builds, then its flying triangles overflowed to Inf and NaN, and the animation's builder
+        # blamed the vertices for a NaN the demo had made.
+        reach = animation_reach(vertices, args.num_frames)
+        if not reach <= FLOAT32_MAX:
+            largest = float(np.abs(vertices).max())
+            raise ValueError(f"{args.mesh or 'the scene'}: coordinates up to {largest:.3g} are too large for the "
+                             f"exploding-mesh animation: over --num-frames {args.num_frames} its float32 arithmetic "
+                             f"may reach {reach:.3g}, past float32's largest {FLOAT32_MAX:.3g}; scale the mesh down "
+                             f"by a factor of {reach / FLOAT32_MAX:.3g} or more")
         print(f"scene: {'generated torus knot' if not args.mesh else args.mesh}, {len(faces)} triangles, "
               f"device {device}")
         # Warp's own line per compiled module is off (quiet_warp): say why a first run waits.
@@ -113,10 +157,10 @@ def main(argv=None) -> int:
         # 2. The exploding mesh, rebuilt every frame (resorted where it pays), rendered with intersect().
         print(f"\nexploding mesh, {args.num_frames} frames, HLBVH rebuild every frame "
               "(resorted where a sample shows it pays):")
-        mesh = ExplodingMesh(vertices, faces, seed=0)
+        mesh = ExplodingMesh(vertices, faces, seed=0, speed=EXPLOSION_SPEED)
         builder = Builder(len(faces), method="hlbvh", policy="rebuild", resort=True)
-        animation = Animation(mesh, builder, lambda frame: frame / 24.0, Camera.framing(vertices, zoom=0.7),
-                              image_size=args.image_size)
+        animation = Animation(mesh, builder, lambda frame: frame / FRAMES_PER_TIME_UNIT,
+                              Camera.framing(vertices, zoom=0.7), image_size=args.image_size)
         animation.render()
         for _ in range(args.num_frames):
             animation.step()

@@ -42,10 +42,15 @@ def moved_copy(vertices: np.ndarray) -> np.ndarray:
     the NaN this made.
 
     Raises:
-        ValueError: the moved copy leaves float32's range (a mesh reaching near +-3.4e38, which
-            the turn's corners or the shift push past it); the mesh itself is not at fault.
+        ValueError: a vertex has a NaN or Inf coordinate, or the moved copy leaves float32's range
+            (a finite mesh reaching near +-3.4e38, which the turn's corners or the shift push past
+            it; the mesh itself is not at fault then).
     """
     v = np.asarray(vertices, dtype=np.float64)
+    if not np.isfinite(v).all():
+        # Checked first: a NaN made the shift NaN, and the message below blamed float32's range.
+        row = int(np.argwhere(~np.isfinite(v))[0][0])
+        raise ValueError(f"the mesh has a NaN or Inf coordinate (first at vertex {row}: {v[row].tolist()})")
     lo, hi = v.min(0), v.max(0)
     center = 0.5 * (lo + hi)
     angle = np.radians(30.0)
@@ -74,15 +79,14 @@ def count_disagreements(ours: np.ndarray, reference: np.ndarray, order: np.ndarr
     return int((by_face != reference).sum())
 
 
-def run(mesh_path: pathlib.Path, method: str, count: int, repeats: int, device, seed: int = 0,
-        max_leaf_size: int = 1) -> list[dict]:
-    """One row per scene; every triangle queries (``count`` and ``seed`` are unused: the scenes are fixed)."""
+def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, count: int, repeats: int,
+        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
+    """One row per scene on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`); every
+    triangle queries (``count`` and ``seed`` are unused: the scenes are fixed)."""
     from . import api
     from .config import BuildConfig
     from .kernels import collide
-    from .scenes import load_mesh
 
-    vertices, faces = load_mesh(mesh_path)
     # Before any build: a copy that cannot be moved within float32 is named before the work.
     try:
         moved = moved_copy(vertices)

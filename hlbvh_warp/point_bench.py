@@ -11,11 +11,19 @@ points in the same process:
 - ``near-bounded``: the same with ``max_dist`` = 5% of the diagonal, as a contact query bounds
   its search.
 
-Distances are compared first: a point disagrees when the two distances differ by more than 1e-5
-of the box diagonal (Warp computes in float32, which on thin triangles loses more than a few
-ulps; this package computes the distance in float64, see ``kernels/proximity.py``), or when one
-finds a triangle and the other does not. Then each kernel is timed as the best of ``--repeats``
-launches, interleaved, and one fixed-format row is printed per run.
+Answers are checked first. This package's are checked against a float64 brute force
+(`brute_force_closest`) on an even sample of each set and on every point where ``wp.Mesh``
+disagrees (up to `ORACLE_POINTS` of each): a point is wrong when it finds a triangle where none
+lies within ``max_dist`` or the reverse, or when its distance, or the distance to the triangle it
+names, is off the brute force's by more than `ORACLE_RTOL` of the coordinates involved. Wrong
+points are the exit status. ``wp.Mesh``'s answers are compared with this package's and reported,
+not judged: a point disagrees when the two distances differ by more than 1e-5 of the box diagonal
+(Warp computes in float32, which on thin triangles loses more than a few ulps; this package
+computes the distance in float64, see ``kernels/proximity.py``), or when one finds a triangle and
+the other does not. ``wp.Mesh`` finds nothing on some valid meshes (all triangles on one line,
+coordinates near float32's limit), where the brute force agrees with this package. Then each
+kernel is timed as the best of ``--repeats`` launches, interleaved, and one fixed-format row is
+printed per run.
 """
 
 from __future__ import annotations
@@ -25,9 +33,27 @@ import pathlib
 import numpy as np
 import warp as wp
 
+from .host_morton import morton_order
 from .ray_bench import best_times, mesh_method_parser, run_rows
 
+#: Disagreement with wp.Mesh: distances further apart than this fraction of the box diagonal.
 DISAGREE_RTOL = 1e-5
+#: Points of each set checked against the brute force: this many evenly spaced, and as many of
+#: the points where wp.Mesh disagrees.
+ORACLE_POINTS = 256
+#: Agreement with the brute force: within this fraction of the largest coordinate of the point
+#: and of the triangles compared. The kernel reads float32 coordinates, decides in float64 and
+#: rounds the distance to float32 once, about 6e-8 of it: this is 10 times that rounding, the
+#: tolerance of tests/test_proximity.py, and 5 or more orders of magnitude below the distances
+#: between a mesh's triangles.
+ORACLE_RTOL = 1e-6
+#: Triangles the brute force takes together, under one box: a group farther from a point than
+#: some triangle is never tested against it.
+ORACLE_GROUP_SIZE = 64
+#: Point-triangle pairs the brute force holds at once: 1.5 MB per temporary of float64 3-vectors.
+ORACLE_PAIR_BUDGET = 1 << 16
+#: Largest finite float32: the queries are float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def bench_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -50,6 +76,9 @@ def point_sets(rng, vertices: np.ndarray, num_points: int) -> dict:
     lo, hi, diag = bench_box(vertices)
     box = lo - 0.2 * (hi - lo) + rng.random((num_points, 3)) * 1.4 * (hi - lo)
     near = vertices[rng.integers(0, len(vertices), num_points)] + rng.normal(0.0, 0.01 * diag, (num_points, 3))
+    # Within float32's range: around a mesh near its limit the grown box and the offsets reach
+    # past it, and those points became Inf, queries that find nothing.
+    box, near = np.clip(box, -FLOAT32_MAX, FLOAT32_MAX), np.clip(near, -FLOAT32_MAX, FLOAT32_MAX)
     return {
         "box": (box.astype(np.float32), float("inf")),
         "near": (near.astype(np.float32), float("inf")),
@@ -57,22 +86,149 @@ def point_sets(rng, vertices: np.ndarray, num_points: int) -> dict:
     }
 
 
-def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> int:
+def disagreeing(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> np.ndarray:
+    """Mask of the points whose two answers disagree: one finds a triangle and the other does not,
+    or their distances differ by more than ``rtol * scale``."""
     found_a, found_b = prim_a >= 0, prim_b >= 0
     with np.errstate(invalid="ignore"):  # inf - inf where neither found anything
         close = np.abs(d_a.astype(np.float64) - d_b.astype(np.float64)) <= rtol * scale
-    agree = (~found_a & ~found_b) | (found_a & found_b & close)
-    return int((~agree).sum())
+    return ~((~found_a & ~found_b) | (found_a & found_b & close))
 
 
-def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, device, seed: int = 0,
-        max_leaf_size: int = 1) -> list[dict]:
+def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> int:
+    """How many points `disagreeing` marks."""
+    return int(disagreeing(d_a, prim_a, d_b, prim_b, scale, rtol).sum())
+
+
+def _dot(x, y):
+    return np.einsum("...k,...k->...", x, y)
+
+
+def point_triangle_d2(p, a, b, c) -> np.ndarray:
+    """Squared distance from points ``p`` to triangles ``abc`` (broadcast), float64.
+
+    The nearest of the three edges' clamped projections and, where the normal (Gram) equations of
+    min |a + s ab + t ac - p|^2 have their solution inside the triangle, that point: every candidate
+    is a point of the triangle and the nearest one is among them. A degenerate triangle (a segment
+    or a point: no solution) is its edges. The kernel instead decides by the signs of edge
+    functions; the two share no code.
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    with np.errstate(all="ignore"):  # a degenerate triangle divides by zero; np.where drops it
+        g00, g01, g11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
+        r0, r1 = _dot(ap, ab), _dot(ap, ac)
+        det = g00 * g11 - g01 * g01
+        s = (g11 * r0 - g01 * r1) / det
+        t = (g00 * r1 - g01 * r0) / det
+        inside = (det > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+        face = a + s[..., None] * ab + t[..., None] * ac - p
+        best = np.where(inside, _dot(face, face), np.inf)
+        for origin, edge in ((a, ab), (a, ac), (b, c - b)):
+            length2 = _dot(edge, edge)
+            w = np.where(length2 > 0, np.clip(_dot(p - origin, edge) / length2, 0.0, 1.0), 0.0)
+            off = origin + w[..., None] * edge - p
+            best = np.minimum(best, _dot(off, off))
+    return best
+
+
+def brute_force_closest(vertices, faces, points) -> tuple[np.ndarray, np.ndarray]:
+    """``(distance, prim)``: the float64 distance from every point to the mesh and the lowest id
+    of a triangle at that distance; ``(inf, -1)`` for a point with a NaN or Inf coordinate.
+
+    Exact, like testing every pair, but not as slow: the triangles are grouped
+    `ORACLE_GROUP_SIZE` at a time along a Morton curve of their centroids, and a group is tested
+    against a point only where its box is no farther than the farthest corner of the nearest
+    group's box, a distance that group's triangles all lie within. A group's box can only cost
+    time, never an answer: the grouping is a partition, nothing more.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    distance = np.full(len(pts), np.inf)
+    prim = np.full(len(pts), -1, dtype=np.int64)
+    order = morton_order(v[f].mean(axis=1))
+    num_groups = -(-len(f) // ORACLE_GROUP_SIZE)
+    # Whole groups, the last padded with its own last triangle: a duplicate changes no distance.
+    order = np.concatenate([order, np.full(num_groups * ORACLE_GROUP_SIZE - len(f), order[-1])])
+    ids = order.reshape(num_groups, ORACLE_GROUP_SIZE)
+    corners = v[f[ids]]  # (groups, size, 3 corners, 3)
+    g_lo, g_hi = corners.min(axis=(1, 2)), corners.max(axis=(1, 2))
+    finite = np.flatnonzero(np.isfinite(pts).all(axis=1))
+    chunk = max(1, ORACLE_PAIR_BUDGET // num_groups)
+    for begin in range(0, len(finite), chunk):
+        rows = finite[begin:begin + chunk]
+        p = pts[rows][:, None, :]
+        near = np.maximum(g_lo - p, 0.0) + np.maximum(p - g_hi, 0.0)
+        lower = np.sqrt(_dot(near, near))
+        far = np.maximum(np.abs(p - g_lo), np.abs(p - g_hi))
+        upper = np.sqrt(_dot(far, far)).min(axis=1)
+        # The nearest group's own bound always passes; the slack keeps rounding from dropping a
+        # group whose box lies exactly at the bound.
+        point_of, group_of = np.nonzero(lower <= upper[:, None] * (1.0 + 1e-12))
+        found_d2, found_id, found_row = [], [], []
+        step = max(1, ORACLE_PAIR_BUDGET // ORACLE_GROUP_SIZE)
+        for start in range(0, len(point_of), step):
+            pp, gg = point_of[start:start + step], group_of[start:start + step]
+            tri = corners[gg]
+            d2 = point_triangle_d2(pts[rows[pp]][:, None, :], tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
+            found_d2.append(d2.reshape(-1))
+            found_id.append(ids[gg].reshape(-1))
+            found_row.append(np.repeat(pp, ORACLE_GROUP_SIZE))
+        d2, tri_id, row = (np.concatenate(x) for x in (found_d2, found_id, found_row))
+        # Per point: the least distance, and of equal ones the lowest triangle id.
+        pick = np.lexsort((tri_id, d2, row))
+        first = pick[np.unique(row[pick], return_index=True)[1]]
+        distance[rows[row[first]]] = np.sqrt(d2[first])
+        prim[rows[row[first]]] = tri_id[first]
+    return distance, prim
+
+
+def count_wrong(vertices, faces, points, distance, prim, max_dist: float, reference) -> int:
+    """Points whose answer (``distance``, ``prim``) is wrong by the brute force's ``reference``
+    (``brute_force_closest``'s answer for the same points), within `ORACLE_RTOL` of the largest
+    coordinate of the point and of the triangles compared.
+
+    Wrong: a triangle found for a NaN or Inf point; found / not found other than the brute force
+    says (a point whose distance lies within the tolerance of ``max_dist`` may go either way); a
+    distance off the brute force's (one past float32's range reads inf); or a triangle that is not
+    at that distance, or not a triangle of the mesh.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    d_ref, prim_ref = reference
+    found = prim >= 0
+    valid = prim < len(f)
+    answerable = prim_ref >= 0  # a finite point: some triangle is nearest
+    mine = np.where(found & valid, prim, 0)
+    # The kernel takes the bound as the float32 at or above it.
+    bound = np.float32(max_dist)
+    if bound < max_dist:
+        bound = np.nextafter(bound, np.float32(np.inf))
+    with np.errstate(invalid="ignore", over="ignore"):
+        scale = np.maximum.reduce([np.abs(np.where(answerable[:, None], pts, 0.0)).max(axis=1),
+                                   np.abs(v[f[np.maximum(prim_ref, 0)]]).max(axis=(1, 2)),
+                                   np.abs(v[f[mine]]).max(axis=(1, 2))])
+        tol = ORACLE_RTOL * scale
+        decided = ~(np.abs(d_ref - float(bound)) <= tol)
+        should_find = answerable & (d_ref <= float(bound))
+        d = distance.astype(np.float64)
+        same_distance = (d == d_ref.astype(np.float32)) | (np.abs(d - d_ref) <= tol)
+        tri = v[f[mine]]
+        own = np.sqrt(point_triangle_d2(pts, tri[:, 0], tri[:, 1], tri[:, 2]))
+        nearest = np.abs(own - d_ref) <= tol
+    wrong = (found & ~answerable) | (decided & (found != should_find)) | (found & ~valid)
+    wrong |= found & valid & answerable & ~(same_distance & nearest)
+    return int(wrong.sum())
+
+
+def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, num_points: int, repeats: int,
+        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
+    """One row per point set on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`)."""
     from . import api, query
     from .config import BuildConfig
     from .kernels import proximity
-    from .scenes import load_mesh
 
-    vertices, faces = load_mesh(mesh_path)
     bvh = api.build(vertices, faces, method=method, device=device, config=BuildConfig(max_leaf_size=max_leaf_size))
     wmesh = wp.Mesh(
         points=wp.array(vertices, dtype=wp.vec3, device=device),
@@ -105,7 +261,13 @@ def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, dev
         reference()
         d_ours, p_ours = ours_out[1].numpy(), ours_out[2].numpy()
         d_ref, p_ref = ref_out[1].numpy(), ref_out[2].numpy()
-        disagree = count_disagreements(d_ours, p_ours, d_ref, p_ref, scale)
+        differ = disagreeing(d_ours, p_ours, d_ref, p_ref, scale)
+        # Ours against the brute force: an even sample, and where wp.Mesh disagrees, since either
+        # answer may be the wrong one there.
+        checked = np.union1d(np.linspace(0, n - 1, min(ORACLE_POINTS, n)).astype(np.int64),
+                             np.flatnonzero(differ)[:ORACLE_POINTS])
+        wrong = count_wrong(vertices, faces, points[checked], d_ours[checked], p_ours[checked], max_dist,
+                            brute_force_closest(vertices, faces, points[checked]))
         both = (p_ours >= 0) & (p_ref >= 0)
         max_diff = float(np.abs(d_ours[both].astype(np.float64) - d_ref[both]).max()) / scale if both.any() else 0.0
         _, _, _, stats = query.closest_point(bvh, points, max_dist=max_dist, stats=True)
@@ -118,7 +280,9 @@ def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, dev
                 "points": kind,
                 "num_points": n,
                 "found": int((p_ours >= 0).sum()),
-                "disagree": disagree,
+                "checked": int(len(checked)),
+                "wrong": wrong,
+                "disagree": int(differ.sum()),
                 "max_diff": max_diff,
                 "mpts_ours": n / t_ours / 1e6,
                 "mpts_wp_mesh": n / t_ref / 1e6,
@@ -131,17 +295,26 @@ def run(mesh_path: pathlib.Path, method: str, num_points: int, repeats: int, dev
 
 
 HEADER = (
-    f"{'mesh':10s} {'tris':>8s} {'method':8s} {'points':12s} {'num':>8s} {'found':>8s} {'disagree':>8s} "
-    f"{'max diff':>9s} {'Mpts/s':>7s} {'wp.Mesh':>7s} {'ratio':>6s} {'n_s':>7s} {'n_t':>6s}"
+    f"{'mesh':10s} {'tris':>8s} {'method':8s} {'points':12s} {'num':>8s} {'found':>8s} {'checked':>7s} {'wrong':>5s} "
+    f"{'wp differ':>9s} {'max diff':>9s} {'Mpts/s':>7s} {'wp.Mesh':>7s} {'ratio':>6s} {'n_s':>7s} {'n_t':>6s}"
 )
 
 
 def format_row(r: dict) -> str:
     return (
         f"{r['mesh']:10s} {r['tris']:8d} {r['method']:8s} {r['points']:12s} {r['num_points']:8d} {r['found']:8d} "
-        f"{r['disagree']:8d} {r['max_diff']:9.1e} {r['mpts_ours']:7.3f} {r['mpts_wp_mesh']:7.3f} {r['ratio']:6.2f} "
-        f"{r['n_s']:7.1f} {r['n_t']:6.2f}"
+        f"{r['checked']:7d} {r['wrong']:5d} {r['disagree']:9d} {r['max_diff']:9.1e} {r['mpts_ours']:7.3f} "
+        f"{r['mpts_wp_mesh']:7.3f} {r['ratio']:6.2f} {r['n_s']:7.1f} {r['n_t']:6.2f}"
     )
+
+
+def verdict(rows: list[dict]) -> tuple[str, bool]:
+    """The summary line and whether the run failed: on this package's answers against the brute
+    force alone. wp.Mesh's disagreements are reported beside them, as wp.Mesh's."""
+    wrong, checked = sum(r["wrong"] for r in rows), sum(r["checked"] for r in rows)
+    differ = sum(r["disagree"] for r in rows)
+    return (f"ours against the float64 brute force: {wrong} wrong of {checked} points checked; wp.Mesh differs from "
+            f"ours on {differ} points (reported, not the exit status)"), wrong > 0
 
 
 def main(argv=None) -> int:
@@ -149,5 +322,7 @@ def main(argv=None) -> int:
                                 "points per set (default 200k)")
     args = parser.parse_args(argv)
     return run_rows(parser, args, args.points, run, HEADER, format_row,
-                    "ratio = wp.mesh_query_point_no_sign time / ours (> 1: ours is faster); max diff = largest "
-                    "distance difference over the box diagonal")
+                    "checked: points checked against the float64 brute force (an even sample and where wp.Mesh "
+                    "differs), wrong: ours wrong among them; wp differ: points where wp.Mesh's answer differs from "
+                    "ours; ratio = wp.mesh_query_point_no_sign time / ours (> 1: ours is faster); max diff = largest "
+                    "distance difference over the box diagonal", verdict)

@@ -23,8 +23,8 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
-from .cli import (argument_errors, check_out_file, device_name, finite_float, mesh_file, non_negative_int,
-                  positive_int, quiet_warp)
+from .cli import (argument_errors, check_out_file, check_ray_count, device_name, finite_float, image_side, mesh_file,
+                  non_negative_int, query_count, quiet_warp, read_meshes, tris_count)
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -167,15 +167,15 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp quality", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=positive_int, default=20000,
+    parser.add_argument("--scene-tris", type=tris_count, default=20000,
                         help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--scene", default="knot", choices=["knot", "knot+large"],
                         help="the generated scene: the torus knot, or with 8 large triangles across it "
                              "(default: %(default)s)")
     parser.add_argument("--builders", default=",".join(BUILDERS),
                         help="comma-separated builders (default: all but the offline recursive_sah and sbvh)")
-    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit (default: %(default)s)")
-    parser.add_argument("--side", type=positive_int, default=64, help="pixels per image side (default: %(default)s)")
+    parser.add_argument("--views", type=query_count, default=8, help="cameras on the orbit (default: %(default)s)")
+    parser.add_argument("--side", type=image_side, default=64, help="pixels per image side (default: %(default)s)")
     parser.add_argument("--ct", type=finite_float, default=1.2,
                         help="traversal cost c_t, as Wodniok & Goesele (default: %(default)s)")
     parser.add_argument("--ci", type=finite_float, default=1.0,
@@ -184,8 +184,10 @@ def parse_args(argv):
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads (0: every core; default: %(default)s)")
     parser.add_argument("--json", default="out/quality.json", help="where to write the rows (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the diffuse rays (default: %(default)s)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="seed of the diffuse rays (default: %(default)s)")
     args = parser.parse_args(argv)
+    check_ray_count(parser, args.views, args.side)
     listed = args.builders
     args.builders = [b.strip() for b in args.builders.split(",") if b.strip()]
     if not args.builders:
@@ -212,7 +214,7 @@ def main(argv=None) -> int:
     quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
-    meshes = scenes.named_meshes(args.mesh, args.scene_tris, args.scene)
+    meshes = read_meshes(args.mesh) or scenes.named_meshes([], args.scene_tris, args.scene)
     progress = scenes.progress
     print(f"device: {device}  c_t = {args.ct}  c_i = {args.ci}  rays: {args.views} views of {args.side}^2, "
           f"one diffuse bounce; ratios to {REFERENCE}")

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import device_name, positive_int, quiet_warp
+from .cli import device_name, leaf_size, non_negative_int, positive_int, query_count, quiet_warp, read_mesh
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
@@ -67,15 +67,13 @@ def best_times(fns, repeats: int, device) -> list[float]:
     return best
 
 
-def run(mesh_path: pathlib.Path, method: str, num_rays: int, repeats: int, device, seed: int = 0,
-        max_leaf_size: int = 1) -> list[dict]:
+def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, num_rays: int, repeats: int,
+        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
+    """One row per kind of ray on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`)."""
     from . import api, query
     from .config import BuildConfig
     from .kernels import traversal
-    from .scenes import load_mesh
 
-    # As every other command reads a mesh: a file of several objects is one mesh, an empty one an error.
-    vertices, faces = load_mesh(mesh_path)
     config = BuildConfig(max_leaf_size=max_leaf_size)
     bvh = api.build(vertices, faces, method=method, device=device, config=config)
     wmesh = wp.Mesh(
@@ -147,20 +145,28 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
     parser.add_argument("--mesh", action="append", type=pathlib.Path,
                         help="a mesh file (repeatable); default: bunny and armadillo from ../shared/meshes")
     if count_option is not None:
-        parser.add_argument(count_option, type=positive_int, default=count_default, help=count_help)
+        parser.add_argument(count_option, type=query_count, default=count_default, help=count_help)
     parser.add_argument("--method", action="append", help="builder (repeatable); default hlbvh")
     parser.add_argument("--repeats", type=positive_int, default=3,
                         help="launches timed per kernel; the best is kept (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default="cpu", help="Warp device (default cpu)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the queries (default: %(default)s)")
-    parser.add_argument("--max-leaf-size", type=positive_int, default=1,
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the queries (default: %(default)s)")
+    parser.add_argument("--max-leaf-size", type=leaf_size, default=1,
                         help="BuildConfig.max_leaf_size of the trees (default 1)")
     return parser
 
 
-def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str) -> int:
-    """Print one row per mesh, method and query kind; exit 1 when any row disagrees with wp.Mesh
-    (as bench-wide and quality do, so a script can rely on the status)."""
+def peer_verdict(rows: list[dict]) -> tuple[str, bool]:
+    """The summary line, and a failure when any row disagrees with wp.Mesh: the reference of
+    bench-rays and bench-pairs, which have no float64 brute force of their own."""
+    total = sum(row["disagree"] for row in rows)
+    return f"disagreements in total: {total}", total > 0
+
+
+def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str, verdict=peer_verdict) -> int:
+    """Print one row per mesh, method and query kind, then the footer and ``verdict(rows)``'s
+    summary; exit 1 when the verdict is a failure (as bench-wide and quality do, so a script can
+    rely on the status)."""
     quiet_warp()
     wp.init()
     paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]
@@ -175,16 +181,22 @@ def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: s
     if unknown:
         parser.error(f"unknown method(s) {unknown} in --method; choose from {sorted(api.BUILDERS)}")
     device = wp.get_device(args.device)
+    # Every file read and checked before the first is measured, each error naming its file (the
+    # build's own "vertices has a NaN or Inf coordinate" named none). As every other command reads
+    # a mesh: a file of several objects is one mesh, an empty one an error.
+    meshes = [(path, *read_mesh(path)) for path in paths]
     print(header)
-    total_disagree = 0
+    rows = []
     with wp.ScopedDevice(device):
-        for path in paths:
+        for path, vertices, faces in meshes:
             for method in args.method or ["hlbvh"]:
-                for row in run_fn(path, method, count, args.repeats, device, args.seed, args.max_leaf_size):
-                    total_disagree += row["disagree"]
+                for row in run_fn(path, vertices, faces, method, count, args.repeats, device, args.seed,
+                                  args.max_leaf_size):
+                    rows.append(row)
                     print(format_fn(row), flush=True)
-    print(f"{footer}; disagreements in total: {total_disagree}")
-    return 1 if total_disagree else 0
+    summary, failed = verdict(rows)
+    print(f"{footer}; {summary}")
+    return 1 if failed else 0
 
 
 def main(argv=None) -> int:

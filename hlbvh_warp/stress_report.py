@@ -26,7 +26,7 @@ import argparse
 
 import numpy as np
 
-from .cli import device_name, quiet_warp
+from .cli import device_name, non_negative_int, quiet_warp
 from .reference import brute_force_closest_hit
 
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
@@ -299,7 +299,7 @@ def main(argv=None) -> int:
                         help="Warp device (repeatable); default: every device")
     parser.add_argument("--family", action="append", choices=sorted(SCENE_FAMILIES), help="default: all")
     parser.add_argument("--method", action="append", help="default: every builder in api.BUILDERS")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     args = parser.parse_args(argv)
     quiet_warp()
     wp.init()

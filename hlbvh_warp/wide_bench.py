@@ -24,8 +24,8 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import (argument_errors, check_out_file, device_name, mesh_file, non_negative_int, positive_int,
-                  quiet_warp)
+from .cli import (argument_errors, check_out_file, check_ray_count, device_name, image_side, mesh_file,
+                  non_negative_int, positive_int, query_count, quiet_warp, read_meshes, tris_count)
 
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
@@ -130,14 +130,14 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-wide", description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=positive_int, default=20000,
+    parser.add_argument("--scene-tris", type=tris_count, default=20000,
                         help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--method", action="append", default=None,
                         help="binary builder to collapse (repeatable; default: hlbvh_sah)")
     parser.add_argument("--widths", default="2,4,8,16",
                         help="comma-separated branching factors, 2 to 16 (default: %(default)s)")
-    parser.add_argument("--views", type=positive_int, default=8, help="cameras on the orbit (default: %(default)s)")
-    parser.add_argument("--side", type=positive_int, default=128, help="pixels per image side (default: %(default)s)")
+    parser.add_argument("--views", type=query_count, default=8, help="cameras on the orbit (default: %(default)s)")
+    parser.add_argument("--side", type=image_side, default=128, help="pixels per image side (default: %(default)s)")
     parser.add_argument("--repeats", type=positive_int, default=5,
                         help="launches timed per traversal; the best is kept (default: %(default)s)")
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default device)")
@@ -145,8 +145,10 @@ def parse_args(argv):
                         help="BuildConfig.cpu_threads (0: every core; default: %(default)s)")
     parser.add_argument("--json", default="out/bench_wide.json",
                         help="where to write the rows (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the diffuse rays (default: %(default)s)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="seed of the diffuse rays (default: %(default)s)")
     args = parser.parse_args(argv)
+    check_ray_count(parser, args.views, args.side)
     try:
         args.widths = [int(k) for k in args.widths.split(",") if k.strip()]
     except ValueError:
@@ -172,7 +174,7 @@ def main(argv=None) -> int:
     quiet_warp()
     wp.init()
     device = wp.get_device(args.device)
-    meshes = scenes.named_meshes(args.mesh, args.scene_tris)
+    meshes = read_meshes(args.mesh) or scenes.named_meshes([], args.scene_tris)
     progress = scenes.progress
     print(f"device: {device}  rays: {args.views} views of {args.side}^2 and one diffuse bounce; best of "
           f"{args.repeats}; x k=2 = time at k = 2 / time (> 1: faster); bin = the library's binary traversal")

@@ -131,12 +131,18 @@ def test_bench_rays_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
     assert "disagreements in total: 0" not in capsys.readouterr().out
 
 
-def test_bench_points_checks_distances_and_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
-    """bench-points compares every distance with wp.Mesh's before timing, and exits 1 on a
-    disagreement, as bench-rays does."""
+def _point_rows(out: str, mesh: str) -> list[list[str]]:
+    """bench-points' rows of one mesh, split into columns: 3 the set, 5 found, 6 checked against
+    the brute force, 7 ours wrong among them, 8 points where wp.Mesh differs from ours."""
+    return [line.split() for line in out.splitlines() if line.startswith(f"{mesh} ")]
+
+
+def test_bench_points_fails_on_its_own_wrong_answers_not_on_wp_meshs(tmp_path, monkeypatch, capsys):
+    """bench-points checks its answers against the float64 brute force before timing and exits 1
+    when one is wrong; where wp.Mesh differs, it says so and the status stays 0."""
     import trimesh
 
-    from hlbvh_warp import cli, point_bench
+    from hlbvh_warp import api, cli, point_bench
 
     path = tmp_path / "ball.ply"
     trimesh.creation.icosphere(2).export(path)
@@ -144,14 +150,31 @@ def test_bench_points_checks_distances_and_fails_on_a_disagreement(tmp_path, mon
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
     # One row per point set, every point found (no bound, or 5% of the diagonal around vertices
-    # moved by about 1%: a miss there would be a 5-sigma offset, seed fixed).
-    rows = [line.split() for line in out.splitlines() if line.startswith("ball ")]
+    # moved by about 1%: a miss there would be a 5-sigma offset, seed fixed), all 64 checked
+    # (fewer than the even sample's 256).
+    rows = _point_rows(out, "ball")
     assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
-    assert all(r[5] == "64" and r[6] == "0" for r in rows), out
-    monkeypatch.setattr(point_bench, "count_disagreements", lambda *args, **kwargs: 2)
+    assert all(r[5] == "64" and r[6:9] == ["64", "0", "0"] for r in rows), out
+    assert "ours against the float64 brute force: 0 wrong of 192 points checked; wp.Mesh differs from ours on 0 " \
+           "points (reported, not the exit status)" in out, out
+
+    # wp.Mesh differing everywhere is reported, as wp.Mesh's, and does not fail the run.
+    monkeypatch.setattr(point_bench, "disagreeing", lambda d_a, *args, **kwargs: np.ones(len(d_a), bool))
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert all(r[6:9] == ["64", "0", "64"] for r in _point_rows(out, "ball")), out
+    assert "0 wrong of 192 points checked; wp.Mesh differs from ours on 192 points (reported" in out, out
+    monkeypatch.undo()
+
+    # Our answers for another mesh (the tree built over the ball moved by a tenth of its size):
+    # wrong by the brute force, and the run fails. wp.Mesh differs too: it answers for the ball.
+    real_build = api.build
+    monkeypatch.setattr(api, "build", lambda vertices, faces, **kwargs: real_build(vertices + 0.1, faces, **kwargs))
     assert cli.main(argv) == 1
-    # Two per point set, three sets.
-    assert "disagreements in total: 6" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    rows = _point_rows(out, "ball")
+    assert all(int(r[7]) > 32 and int(r[8]) > 32 for r in rows), out
+    assert "0 wrong of" not in out, out
 
 
 def test_bench_pairs_checks_counts_and_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
@@ -221,10 +244,10 @@ def test_bench_points_runs_on_a_mesh_whose_vertices_coincide(device, tmp_path, c
         path.write_text("".join(f"v {corner[0]} {corner[1]} {corner[2]}\n" for _ in range(3)) + "f 1 2 3\nf 1 2 3\n")
         rc = cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1", "--device", device])
         out = capsys.readouterr().out
-        rows = [line.split() for line in out.splitlines() if line.startswith("degenerate ")]
-        assert rc == 0 and "disagreements in total: 0" in out, out
+        rows = _point_rows(out, "degenerate")
+        assert rc == 0 and "0 wrong of 192 points checked; wp.Mesh differs from ours on 0 points" in out, out
         assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
-        assert all(r[5] == "64" and r[6] == "0" for r in rows), out
+        assert all(r[5] == "64" and r[6:9] == ["64", "0", "0"] for r in rows), out
         # The sets lie around the point, at distances of the cube's size (1 at the origin, else
         # the largest coordinate), not all on it.
         vertices = np.array([corner] * 3, np.float32)
@@ -273,3 +296,132 @@ def test_bench_pairs_moves_a_mesh_near_float32s_limit_without_overflow(device, t
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err and "NaN or Inf" not in err, err
     assert f"{over}: the benchmark's moved copy of the mesh" in err and "overflows float32" in err, err
+
+
+@pytest.mark.parametrize("exponent", [0, 120])
+def test_bench_points_passes_on_a_line_mesh_wp_mesh_finds_nothing_on(exponent, tmp_path, capsys):
+    # Five triangles on one line (zero area, valid input): wp.Mesh finds nothing for any point,
+    # and bench-points exited 1 on those "disagreements" although its own answers were right.
+    # The oracle here is the closed form: every triangle is the segment [0, 2 s] of the x axis.
+    from hlbvh_warp import api, cli, point_bench, query
+
+    s = 2.0 ** exponent
+    path = tmp_path / "line.obj"
+    path.write_text("".join(f"v {x!r} 0 0\n" for x in (0.0, s, 2.0 * s)) + "f 1 2 3\n" * 5)
+    assert cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    rows = _point_rows(out, "line")
+    assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
+    assert all(r[6:9] == ["64", "0", "64"] for r in rows), out  # 64 points where wp.Mesh found nothing
+    assert "0 wrong of 192 points checked; wp.Mesh differs from ours on 192 points (reported" in out, out
+
+    # Our answers on the very points of the run (seed 0), against the closed form.
+    vertices = np.array([[0.0, 0.0, 0.0], [s, 0.0, 0.0], [2.0 * s, 0.0, 0.0]], np.float32)
+    faces = np.array([[0, 1, 2]] * 5, np.int32)
+    bvh = api.build(vertices, faces, device="cpu")
+    for kind, (points, max_dist) in point_bench.point_sets(np.random.default_rng(0), vertices, 64).items():
+        p = points.astype(np.float64)
+        outside = np.maximum(np.maximum(-p[:, 0], p[:, 0] - 2.0 * s), 0.0)
+        exact = np.sqrt(outside ** 2 + p[:, 1] ** 2 + p[:, 2] ** 2)
+        _, distance, prim = query.closest_point(bvh, points, max_dist=max_dist)
+        assert (prim >= 0).all() and (exact <= max_dist).all(), kind
+        np.testing.assert_allclose(distance, exact, rtol=0, atol=1e-6 * np.abs(p).max())
+
+
+def test_bench_points_passes_on_a_mesh_near_float32s_limit(tmp_path, capsys):
+    # An icosphere scaled by 2^127 (coordinates up to 1.7e38): wp.Mesh finds nothing, and
+    # bench-points exited 1. The oracle: at scale 1 wp.Mesh agrees with every answer of ours, and a
+    # power of two scales float32 and float64 arithmetic exactly, so our answers at 2^127 must be
+    # the scale-1 answers times 2^127, bit for bit.
+    import trimesh
+
+    from hlbvh_warp import api, cli, point_bench, query
+
+    sphere = trimesh.creation.icosphere(1)
+    unit = np.asarray(sphere.vertices, np.float32)
+    faces = np.asarray(sphere.faces, np.int32)
+    big = unit * np.float32(2.0 ** 127)
+    outputs = {}
+    for name, vertices, differ in (("unit", unit, "0"), ("big", big, "64")):
+        path = tmp_path / f"{name}.ply"
+        trimesh.Trimesh(vertices, faces, process=False).export(path)
+        assert cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1"]) == 0
+        out = capsys.readouterr().out
+        assert all(r[6:9] == ["64", "0", differ] for r in _point_rows(out, name)), out
+        bvh = api.build(vertices, faces, device="cpu")
+        sets = point_bench.point_sets(np.random.default_rng(0), vertices, 64)
+        outputs[name] = [(points, *query.closest_point(bvh, points, max_dist=max_dist)[1:])
+                         for points, max_dist in sets.values()]
+    for (p_unit, d_unit, prim_unit), (p_big, d_big, prim_big) in zip(outputs["unit"], outputs["big"]):
+        np.testing.assert_array_equal(p_big, p_unit * np.float32(2.0 ** 127))
+        np.testing.assert_array_equal(prim_big, prim_unit)
+        np.testing.assert_array_equal(d_big, d_unit * np.float32(2.0 ** 127))
+
+
+def test_point_bench_brute_force_on_hand_worked_cases():
+    from hlbvh_warp.point_bench import brute_force_closest
+
+    # The right triangle (0,0,0) (1,0,0) (0,1,0), a segment-shaped one on the x axis from 3 to 5,
+    # and a point-shaped one at (0, 0, 10). Distances worked by hand.
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [3, 0, 0], [5, 0, 0], [4, 0, 0], [0, 0, 10]], np.float32)
+    faces = np.array([[0, 1, 2], [3, 4, 5], [6, 6, 6]])
+    cases = [((0.25, 0.25, 2.0), 2.0, 0),            # above the face
+             ((-1.0, -1.0, 0.0), np.sqrt(2.0), 0),   # beyond a vertex
+             ((0.5, -1.0, 1.0), np.sqrt(2.0), 0),    # beyond an edge
+             ((1.0, 1.0, 0.0), np.sqrt(0.5), 0),     # beyond the long edge, in the plane
+             ((4.5, 2.0, 0.0), 2.0, 1),              # beside the segment
+             ((6.0, 0.0, 0.0), 1.0, 1),              # beyond its end
+             ((0.0, 0.0, 12.0), 2.0, 2),             # above the point
+             ((2.0, 0.0, 0.0), 1.0, 0),              # as far from the face as from the segment: the lower id
+             ((np.nan, 0.0, 0.0), np.inf, -1), ((np.inf, 0.0, 0.0), np.inf, -1)]
+    points = np.array([c[0] for c in cases], np.float32)
+    distance, prim = brute_force_closest(vertices, faces, points)
+    np.testing.assert_allclose(distance, [c[1] for c in cases], rtol=1e-15)
+    assert prim.tolist() == [c[2] for c in cases]
+
+
+def test_point_bench_brute_force_groups_change_no_answer():
+    # Against every pair tested, on a soup of triangles of every size (a thousand, so the points
+    # prune most of its 16 groups) and points near and far.
+    from hlbvh_warp.point_bench import brute_force_closest, point_triangle_d2
+
+    rng = np.random.default_rng(5)
+    centers = rng.uniform(-10, 10, (1000, 1, 3))
+    vertices = (centers + rng.normal(0, 1, (1000, 3, 3)) * 10.0 ** rng.uniform(-3, 0.5, (1000, 1, 1))).reshape(-1, 3)
+    vertices = vertices.astype(np.float32)
+    faces = np.arange(3000).reshape(-1, 3)
+    points = np.concatenate([rng.uniform(-15, 15, (100, 3)), vertices[:300:3] + rng.normal(0, 0.01, (100, 3)),
+                             rng.uniform(-1e3, 1e3, (20, 3))]).astype(np.float32)
+    distance, prim = brute_force_closest(vertices, faces, points)
+    v = vertices.astype(np.float64)[faces]
+    every = point_triangle_d2(points.astype(np.float64)[:, None], v[None, :, 0], v[None, :, 1], v[None, :, 2])
+    np.testing.assert_array_equal(distance, np.sqrt(every.min(axis=1)))
+    np.testing.assert_array_equal(prim, every.argmin(axis=1))
+
+
+def test_point_bench_wrong_answers_are_counted():
+    from hlbvh_warp.point_bench import ORACLE_RTOL, brute_force_closest, count_wrong
+
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 5], [1, 0, 5], [0, 1, 5]], np.float32)
+    faces = np.array([[0, 1, 2], [3, 4, 5]])
+    points = np.array([[0.2, 0.2, 1.0], [0.2, 0.2, 2.0], [np.nan, 0, 0]], np.float32)
+    reference = brute_force_closest(vertices, faces, points)
+    assert reference[0].tolist() == [1.0, 2.0, np.inf] and reference[1].tolist() == [0, 0, -1]
+    tol = ORACLE_RTOL * 2.0  # the largest coordinate: the second point's z
+
+    def wrong(distance, prim, max_dist=np.inf):
+        return count_wrong(vertices, faces, points, np.array(distance, np.float32), np.array(prim, np.int32),
+                           max_dist, reference)
+
+    assert wrong([1.0, 2.0, np.inf], [0, 0, -1]) == 0
+    assert wrong([1.0, 2.0 + 0.5 * tol, np.inf], [0, 0, -1]) == 0   # within the tolerance
+    assert wrong([1.0, 2.0 + 2.0 * tol, np.inf], [0, 0, -1]) == 1   # past it
+    assert wrong([1.0, 3.0, np.inf], [0, 1, -1]) == 1               # the farther triangle, at its distance
+    assert wrong([1.0, 2.0, np.inf], [0, 1, -1]) == 1               # a triangle not at the distance given
+    assert wrong([1.0, 2.0, np.inf], [0, 2, -1]) == 1               # no triangle of the mesh
+    assert wrong([1.0, np.inf, np.inf], [0, -1, -1]) == 1           # nothing found, unbounded
+    assert wrong([1.0, 2.0, 0.0], [0, 0, 0]) == 1                   # something found for a NaN point
+    assert wrong([1.0, np.inf, np.inf], [0, -1, -1], max_dist=1.5) == 0  # the second lies past the bound
+    assert wrong([1.0, 2.0, np.inf], [0, 0, -1], max_dist=1.5) == 1
+    assert wrong([1.0, 2.0, np.inf], [0, 0, -1], max_dist=2.0 - 0.5 * tol) == 0  # at the bound: either way
+    assert wrong([1.0, np.inf, np.inf], [0, -1, -1], max_dist=2.0 + 0.5 * tol) == 0

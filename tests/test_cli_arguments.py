@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 
 from hlbvh_warp import bench, cli, quality, wide_bench
@@ -149,6 +150,23 @@ def test_a_commands_input_errors_end_in_one_line(error, capsys, monkeypatch):
     assert err.strip() == f"hlbvh_warp quality: error: {error}", err
 
 
+@pytest.mark.parametrize("error,message", [
+    (MemoryError("Unable to allocate 7.28 TiB for an array with shape (1000000, 1000000) and data type float64"),
+     "out of memory (Unable to allocate 7.28 TiB for an array with shape (1000000, 1000000) and data type float64); "
+     "choose smaller sizes"),
+    (MemoryError(), "out of memory; choose smaller sizes"),
+])
+def test_a_run_that_does_not_fit_in_memory_ends_in_one_line(error, message, capsys, monkeypatch):
+    # Sizes within their bounds can still be more than a machine holds: NumPy's MemoryError was a
+    # traceback.
+    def failing(argv):
+        raise error
+
+    monkeypatch.setattr(quality, "main", failing)
+    err = error_of(["quality"], capsys)
+    assert err.strip() == f"hlbvh_warp quality: error: {message}", err
+
+
 def test_a_commands_bug_keeps_its_traceback(monkeypatch):
     def failing(argv):
         raise RuntimeError("a bug")
@@ -156,3 +174,169 @@ def test_a_commands_bug_keeps_its_traceback(monkeypatch):
     monkeypatch.setattr(quality, "main", failing)
     with pytest.raises(RuntimeError, match="a bug"):
         cli.main(["quality"])
+
+
+# ----------------------------------------------------------------- upper bounds on sizes
+def passes_the_argument_checks(argv):
+    """True when ``python -m hlbvh_warp argv`` gets past its argument checks to the first build,
+    which `no_builds` turns into an AssertionError: the bounds accept their own limit."""
+    with pytest.raises(AssertionError, match="built before the arguments were checked"):
+        cli.main(argv)
+    return True
+
+
+def small_mesh(tmp_path, num_tris: int):
+    """An OBJ of ``num_tris`` separate triangles, written to tmp_path."""
+    path = tmp_path / f"tris{num_tris}.obj"
+    lines = [f"v {k} 0 0\nv {k} 1 0\nv {k} 0 1\n" for k in range(num_tris)]
+    lines += [f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}\n" for k in range(num_tris)]
+    path.write_text("".join(lines))
+    return path
+
+
+@pytest.mark.parametrize("command,option,limit,why", [
+    ("bench", "--scene-tris", (1 << 30) - 1, "a tree holds fewer than 2^30 triangles"),
+    ("bench", "--subdivide", 14, "4^15 triangles of one would be more than a tree holds"),
+    ("bench", "--rays", 1 << 24, "memory"),
+    ("demo", "--num-tris", (1 << 30) - 1, "a tree holds fewer than 2^30 triangles"),
+    ("demo", "--image-size", 4096, "memory"),
+    ("demo", "--rays", 1 << 24, "memory"),
+    ("quality", "--scene-tris", (1 << 30) - 1, "a tree holds fewer than 2^30 triangles"),
+    ("quality", "--side", 4096, "memory"),
+    ("quality", "--views", 1 << 24, "memory"),
+    ("bench-wide", "--scene-tris", (1 << 30) - 1, "a tree holds fewer than 2^30 triangles"),
+    ("bench-wide", "--side", 4096, "memory"),
+    ("bench-rays", "--rays", 1 << 24, "memory"),
+    ("bench-points", "--points", 1 << 24, "memory"),
+    ("bench-points", "--max-leaf-size", 1 << 16, "BuildConfig's limit"),
+])
+def test_sizes_past_their_bound_are_argument_errors(command, option, limit, why, capsys, no_builds):
+    # `bench --subdivide 30` was killed at 21 GB; `--image-size 1000000` and the like ended in a
+    # MemoryError traceback, `--points 99999999999999999999` in NumPy's "Maximum allowed dimension
+    # exceeded", naming no option. The limits: fewer than 2^30 triangles in a tree (the library's
+    # MAX_PRIMS, int32 node ids), 2^24 rays or points (gigabytes of memory), 4096^2 pixels.
+    for value in (limit + 1, 99999999999999999999):
+        last = error_of([command, option, str(value)], capsys).strip().splitlines()[-1]  # after argparse's usage
+        prefix = f"python -m hlbvh_warp {command}: error: argument {option}: must be at most {limit} ("
+        assert last.startswith(prefix), last
+        assert why in last and last.endswith(f"), got {value}"), last
+
+
+def test_the_bounds_are_the_librarys_limits():
+    from hlbvh_warp import inputs
+    from hlbvh_warp.config import BuildConfig
+
+    # A tree holds fewer than MAX_PRIMS primitives: the largest scene is one less.
+    assert cli.MAX_TRIS == inputs.MAX_PRIMS - 1 == (1 << 30) - 1
+    assert 4 ** bench.MAX_SUBDIVIDE <= cli.MAX_TRIS < 4 ** (bench.MAX_SUBDIVIDE + 1)
+    BuildConfig(max_leaf_size=cli.MAX_LEAF_SIZE)
+    with pytest.raises(ValueError, match="max_leaf_size"):
+        BuildConfig(max_leaf_size=cli.MAX_LEAF_SIZE + 1)
+
+
+def test_a_bound_accepts_its_own_limit(tmp_path, monkeypatch, no_builds):
+    from hlbvh_warp import scenes
+
+    onetri = small_mesh(tmp_path, 1)
+    # The scenes stay small whatever size is asked for: only the argument checks are under test.
+    monkeypatch.setattr(scenes, "subdivide", lambda vertices, faces, times: (vertices, faces))
+    monkeypatch.setattr(scenes, "default_scene", lambda num_tris: scenes.torus_knot(rings=3, sides=3))
+    monkeypatch.setitem(scenes.GENERATED, "knot", scenes.default_scene)
+    # (bench draws its --rays before the first build: the limit is taken by bench-points below.)
+    assert passes_the_argument_checks(["bench", "--mesh", str(onetri), "--subdivide", "14",
+                                       "--json", str(tmp_path / "b.json")])
+    assert passes_the_argument_checks(["demo", "--num-tris", str((1 << 30) - 1), "--image-size", "4096",
+                                       "--num-frames", "7", "--out", str(tmp_path / "d")])
+    assert passes_the_argument_checks(["quality", "--views", "1", "--side", "4096", "--scene-tris",
+                                       str((1 << 30) - 1), "--json", str(tmp_path / "q.json")])
+    assert passes_the_argument_checks(["bench-points", "--mesh", str(onetri), "--points", str(1 << 24),
+                                       "--max-leaf-size", str(1 << 16)])
+
+
+def test_subdivide_is_bounded_by_the_meshs_own_size(tmp_path, monkeypatch, capsys, no_builds):
+    # 4^k x faces must stay below 2^30, checked when the face count is known and before any split:
+    # the split itself ran out of memory first. Three triangles split 14 times are 3 x 2^28, fine;
+    # four are 2^30, one too many.
+    from hlbvh_warp import scenes
+
+    split = []
+    monkeypatch.setattr(scenes, "subdivide", lambda vertices, faces, times: split.append(len(faces)) or
+                        (vertices, faces))
+    three, four = small_mesh(tmp_path, 3), small_mesh(tmp_path, 4)
+    json_path = str(tmp_path / "b.json")
+    err = error_of(["bench", "--mesh", str(three), "--mesh", str(four), "--subdivide", "14", "--json", json_path],
+                   capsys)
+    assert err.strip() == (f"hlbvh_warp bench: error: --subdivide 14: {four} has 4 triangles, 1073741824 once "
+                           "split; a tree holds fewer than 2^30 triangles"), err
+    assert split == []  # not even the first mesh, which was small enough
+    assert passes_the_argument_checks(["bench", "--mesh", str(three), "--subdivide", "14", "--json", json_path])
+    assert split == [3]
+
+
+@pytest.mark.parametrize("command", ["quality", "bench-wide"])
+def test_views_times_pixels_are_bounded(command, tmp_path, capsys, no_builds):
+    # Each option within its own bound, the rays they make together past 2^24.
+    err = error_of([command, "--views", "2", "--side", "4096", "--json", str(tmp_path / "q.json")], capsys)
+    assert "--views 2 of --side 4096 make 33554432 primary rays, more than 16777216" in err, err
+
+
+def test_demo_bounds_the_pixels_it_keeps_for_the_gif(tmp_path, monkeypatch, capsys, no_builds):
+    # Every frame is kept for the GIF (the first one too: num_frames + 1 images), 7 bytes a pixel
+    # by the time it is saved: 2^27 pixels at most.
+    from hlbvh_warp import scenes
+
+    monkeypatch.setattr(scenes, "default_scene", lambda num_tris: scenes.torus_knot(rings=3, sides=3))
+    out = str(tmp_path / "d")
+    err = error_of(["demo", "--num-frames", "2048", "--out", out], capsys)
+    assert ("--num-frames 2048 at --image-size 256 keeps 134283264 pixels of frames for the GIF, more than "
+            "134217728") in err, err
+    assert passes_the_argument_checks(["demo", "--num-frames", "2047", "--out", out])
+
+
+@pytest.mark.parametrize("command", ["bench", "quality", "bench-wide", "bench-rays", "bench-points", "bench-pairs",
+                                     "stress"])
+def test_a_negative_seed_is_an_argument_error(command, tmp_path, capsys, no_builds):
+    # NumPy's generators take no negative seed: "--seed -1" printed its "expected non-negative
+    # integer", which named no option.
+    mesh = small_mesh(tmp_path, 1)
+    extra = ["--mesh", str(mesh)] if command != "stress" else []
+    err = error_of([command, *extra, "--seed", "-1"], capsys)
+    assert f"python -m hlbvh_warp {command}: error: argument --seed: must be at least 0, got -1" in err, err
+
+
+# ----------------------------------------------------------------- invalid meshes name their file
+def ply(path, vertices: str, faces: str, num_vertices: int, num_faces: int):
+    path.write_text("ply\nformat ascii 1.0\n"
+                    f"element vertex {num_vertices}\nproperty float x\nproperty float y\nproperty float z\n"
+                    f"element face {num_faces}\nproperty list uchar int vertex_indices\nend_header\n"
+                    f"{vertices}{faces}")
+    return path
+
+
+@pytest.mark.parametrize("command", ["bench-rays", "bench-points", "bench-pairs", "bench", "quality", "bench-wide"])
+def test_an_invalid_mesh_is_named_before_any_work(command, tmp_path, capsys, no_builds):
+    # The build's own checks said "vertices has a NaN or Inf coordinate" or "face index 9 out of
+    # range", naming no file; bench-pairs blamed float32's range for a NaN ("the mesh is finite,
+    # but too near float32's limit", "shifted by nan"). Every file is now read and checked before
+    # the first is measured: the good first mesh is not built (no_builds).
+    good = small_mesh(tmp_path, 2)
+    nan = ply(tmp_path / "nan.ply", "0 0 0\n1 nan 0\n0 1 0\n", "3 0 1 2\n", 3, 1)
+    out_of_range = ply(tmp_path / "oob.ply", "0 0 0\n1 0 0\n0 1 0\n", "3 0 1 2\n3 0 1 9\n", 3, 2)
+    extra = ["--json", str(tmp_path / "x.json")] if command in ("bench", "quality", "bench-wide") else []
+    for path, problem in ((nan, "vertices has a NaN or Inf coordinate (first at row 1: [1.0, nan, 0.0])"),
+                          (out_of_range, "face index 9 out of range [0, 3) (first at face 1)")):
+        err = error_of([command, "--mesh", str(good), "--mesh", str(path), *extra], capsys)
+        assert err.strip().splitlines()[-1] == f"hlbvh_warp {command}: error: {path}: {problem}", err
+        assert "finite" not in err and "float32" not in err, err
+
+
+def test_the_moved_copy_names_a_nan_as_a_nan():
+    from hlbvh_warp.pair_bench import moved_copy
+
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, np.nan, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(ValueError) as error:
+        moved_copy(vertices)
+    assert str(error.value) == "the mesh has a NaN or Inf coordinate (first at vertex 1: [1.0, nan, 0.0])"
+    # A finite mesh whose copy leaves float32's range is still told apart from a NaN.
+    with pytest.raises(ValueError, match="the mesh is finite, but too near float32's limit"):
+        moved_copy(np.array([[-3.4e38, 0.0, 0.0], [3.4e38, 0.0, 0.0], [0.0, 3.4e38, 0.0]]))

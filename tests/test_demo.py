@@ -74,7 +74,7 @@ def test_mesh_files_with_several_objects_or_none_read_alike_in_every_command(tmp
     assert rc == 0 and "disagreements in total: 0" in out, out
     rc = cli.main(["bench-points", "--mesh", str(two), "--points", "64", "--repeats", "1"])
     out = capsys.readouterr().out
-    assert rc == 0 and "disagreements in total: 0" in out, out
+    assert rc == 0 and "0 wrong of 192 points checked; wp.Mesh differs from ours on 0 points" in out, out
     rc = cli.main(["bench-pairs", "--mesh", str(two), "--repeats", "1"])
     out = capsys.readouterr().out
     assert rc == 0 and "disagreements in total: 0" in out, out
@@ -186,3 +186,66 @@ def test_demo_refuses_bad_arguments_before_any_work(tmp_path, monkeypatch, capsy
         err = capsys.readouterr().err
         assert rc == 2 and message in err and "Traceback" not in err, (argv, rc, err)
     assert a_file.is_file() and not (tmp_path / "out").exists()
+
+
+def _icosphere_scaled_to(largest: float):
+    """An icosphere (80 triangles) whose largest coordinate is ``largest``, as float32."""
+    import numpy as np
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    vertices = np.asarray(sphere.vertices, np.float64)
+    return (vertices * (largest / np.abs(vertices).max())).astype(np.float32), np.asarray(sphere.faces, np.int32)
+
+
+def test_demo_refuses_a_mesh_too_large_for_its_animation(tmp_path, monkeypatch, capsys):
+    # A finite mesh with coordinates of 3e38 passed the builds; its exploding triangles then
+    # overflowed float32 and the animation's builder said "vertices has a NaN or Inf coordinate",
+    # a NaN the demo had made, not the file. Refused before any work now, with the reason.
+    import trimesh
+
+    from hlbvh_warp import api
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("built before the mesh was checked")
+
+    monkeypatch.setattr(api, "build", no_build)
+    path = tmp_path / "huge.ply"
+    trimesh.Trimesh(*_icosphere_scaled_to(3e38), process=False).export(path)
+    rc = _exit_code(["demo", "--mesh", str(path), "--num-frames", "1", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and "NaN" not in err, err
+    assert err.startswith(f"hlbvh_warp demo: error: {path}: coordinates up to 3e+38 are too large for the "
+                          "exploding-mesh animation: over --num-frames 1 its float32 arithmetic may reach "), err
+    assert err.count("\n") == 1 and "scale the mesh down by a factor of" in err, err
+
+
+@pytest.mark.parametrize("num_frames", [1, 12, 100])
+def test_a_mesh_the_demo_accepts_animates_without_overflow(num_frames):
+    # The oracle is the animation itself, run as the demo runs it (ExplodingMesh, seed 0, in
+    # float32): a mesh scaled to just inside `animation_reach`'s bound stays finite on every frame,
+    # and its largest coordinate stays within the bound; a mesh whose animation does overflow is
+    # past the bound.
+    import numpy as np
+
+    from hlbvh_warp import demo
+    from hlbvh_warp.dynamic import ExplodingMesh
+
+    unit_vertices, faces = _icosphere_scaled_to(1.0)
+    scale = 0.999 * demo.FLOAT32_MAX / demo.animation_reach(unit_vertices, num_frames)
+    vertices, _ = _icosphere_scaled_to(scale)
+    assert demo.animation_reach(vertices, num_frames) <= demo.FLOAT32_MAX
+    mesh = ExplodingMesh(vertices, faces, device="cpu", seed=0, speed=demo.EXPLOSION_SPEED)
+    for frame in range(num_frames + 1):
+        moved = mesh.update(frame / demo.FRAMES_PER_TIME_UNIT).numpy()
+        assert np.isfinite(moved).all(), frame
+        assert np.abs(moved.astype(np.float64)).max() <= demo.animation_reach(vertices, num_frames)
+
+    # Coordinates of 3e38: the velocities alone (up to half the 1e39 diagonal per unit of time)
+    # overflow float32, and every frame has Inf or NaN.
+    big_vertices, _ = _icosphere_scaled_to(3e38)
+    with np.errstate(over="ignore"):
+        moved = ExplodingMesh(big_vertices, faces, device="cpu", seed=0, speed=demo.EXPLOSION_SPEED).update(
+            num_frames / demo.FRAMES_PER_TIME_UNIT).numpy()
+    assert not np.isfinite(moved).all()
+    assert demo.animation_reach(big_vertices, num_frames) > demo.FLOAT32_MAX
