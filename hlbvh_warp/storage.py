@@ -197,11 +197,14 @@ def _meta(arrays: dict) -> dict:
     except RecursionError:
         # json's parser recurses once per level of nesting; no meta record is nested that deep.
         raise ValueError("the meta record is not one (JSON nested too deeply to read)") from None
-    except ValueError:
-        # Python converts no integer literal longer than its limit (sys.set_int_max_str_digits),
-        # and its message would suggest raising the limit; no count or setting is that long.
-        raise ValueError(f"the meta record holds an integer of more than {sys.get_int_max_str_digits()} "
-                         "digits") from None
+    except ValueError as error:
+        if "digits" not in str(error):
+            raise ValueError(f"the meta record could not be read ({error})") from None
+        # Python converts no integer literal longer than its limit (sys.set_int_max_str_digits,
+        # Python 3.10.7 on), and its message would suggest raising the limit; no count or setting
+        # is that long.
+        limit = getattr(sys, "get_int_max_str_digits", lambda: 4300)()
+        raise ValueError(f"the meta record holds an integer of more than {limit} digits") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError("not a saved BVH (the meta record names another format)")
     # Values from the file are shown shortened (reprlib): a message need not quote a long one whole.
