@@ -41,6 +41,9 @@ from .storage import save as save_bvh  # noqa: E402
 from .trimesh_adapter import ProximityQuery, RayMeshIntersector  # noqa: E402
 
 __all__ = [
+    "memory",
+    "metrics",
+    "wide",
     "Builder",
     "Bvh",
     "BvhView",

@@ -10,9 +10,10 @@
   (the squared distance from the point to the box); a deferred node is dropped when popped if its
   box lies farther than the closest triangle found since, and a box is entered only when it is
   not farther than that. Box distances are float32, measured again in float64 where float32
-  cannot tell a box from the best triangle (a point far from the mesh, a mesh beyond 1e19). A spatial-split leaf bounds part of a triangle, and the part holding the
-  closest point lies in some leaf whose box is no farther: so spatial-split trees answer correctly
-  as well, testing the whole triangle at each of its leaves.
+  cannot tell a box from the best triangle (a point far from the mesh, a mesh beyond 1e19). A
+  spatial-split leaf bounds part of a triangle, and the part holding the closest point lies in
+  some leaf whose box is no farther: so spatial-split trees answer correctly as well, testing the
+  whole triangle at each of its leaves.
 - Equal distances go to the lowest primitive id, whatever the tree, so every builder gives the same
   answer where the float64 distances are equal.
 - Stack overflow is handled as in ``traversal.py``: a node met with a full stack is tested as one

@@ -243,7 +243,8 @@ def test_launch_args_check_every_array_the_kernel_reads(device):
     o = wp.zeros(n, dtype=wp.vec3, device=device)
     d = wp.array(np.tile([0.0, 0.0, 1.0], (n, 1)), dtype=wp.vec3, device=device)
     good = {"origins": o, "directions": d, "hit_t": wp.empty(n, dtype=float, device=device),
-            "hit_prim": wp.empty(n, dtype=wp.int32, device=device), "counts": wp.empty(n, dtype=wp.vec3i, device=device)}
+            "hit_prim": wp.empty(n, dtype=wp.int32, device=device),
+            "counts": wp.empty(n, dtype=wp.vec3i, device=device)}
     bad = {"directions": [wp.array(np.array([[0.0, 0.0, 1.0]]), dtype=wp.vec3, device=device),
                           wp.zeros(n, dtype=wp.vec3d, device=device)],
            "hit_t": [wp.empty(1, dtype=float, device=device), wp.empty(n, dtype=wp.float64, device=device)],
