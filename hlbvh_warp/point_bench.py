@@ -33,7 +33,7 @@ import pathlib
 import numpy as np
 import warp as wp
 
-from .host_morton import morton_order
+from .reference import brute_force_closest, point_triangle_d2
 from .ray_bench import best_times, mesh_method_parser, run_rows
 
 #: Disagreement with wp.Mesh: distances further apart than this fraction of the box diagonal.
@@ -47,11 +47,6 @@ ORACLE_POINTS = 256
 #: tolerance of tests/test_proximity.py, and 5 or more orders of magnitude below the distances
 #: between a mesh's triangles.
 ORACLE_RTOL = 1e-6
-#: Triangles the brute force takes together, under one box: a group farther from a point than
-#: some triangle is never tested against it.
-ORACLE_GROUP_SIZE = 64
-#: Point-triangle pairs the brute force holds at once: 1.5 MB per temporary of float64 3-vectors.
-ORACLE_PAIR_BUDGET = 1 << 16
 #: Largest finite float32: the queries are float32.
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
@@ -98,89 +93,6 @@ def disagreeing(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_R
 def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> int:
     """How many points `disagreeing` marks."""
     return int(disagreeing(d_a, prim_a, d_b, prim_b, scale, rtol).sum())
-
-
-def _dot(x, y):
-    return np.einsum("...k,...k->...", x, y)
-
-
-def point_triangle_d2(p, a, b, c) -> np.ndarray:
-    """Squared distance from points ``p`` to triangles ``abc`` (broadcast), float64.
-
-    The nearest of the three edges' clamped projections and, where the normal (Gram) equations of
-    min |a + s ab + t ac - p|^2 have their solution inside the triangle, that point: every candidate
-    is a point of the triangle and the nearest one is among them. A degenerate triangle (a segment
-    or a point: no solution) is its edges. The kernel instead decides by the signs of edge
-    functions; the two share no code.
-    """
-    ab, ac, ap = b - a, c - a, p - a
-    with np.errstate(all="ignore"):  # a degenerate triangle divides by zero; np.where drops it
-        g00, g01, g11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
-        r0, r1 = _dot(ap, ab), _dot(ap, ac)
-        det = g00 * g11 - g01 * g01
-        s = (g11 * r0 - g01 * r1) / det
-        t = (g00 * r1 - g01 * r0) / det
-        inside = (det > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
-        face = a + s[..., None] * ab + t[..., None] * ac - p
-        best = np.where(inside, _dot(face, face), np.inf)
-        for origin, edge in ((a, ab), (a, ac), (b, c - b)):
-            length2 = _dot(edge, edge)
-            w = np.where(length2 > 0, np.clip(_dot(p - origin, edge) / length2, 0.0, 1.0), 0.0)
-            off = origin + w[..., None] * edge - p
-            best = np.minimum(best, _dot(off, off))
-    return best
-
-
-def brute_force_closest(vertices, faces, points) -> tuple[np.ndarray, np.ndarray]:
-    """``(distance, prim)``: the float64 distance from every point to the mesh and the lowest id
-    of a triangle at that distance; ``(inf, -1)`` for a point with a NaN or Inf coordinate.
-
-    Exact, like testing every pair, but not as slow: the triangles are grouped
-    `ORACLE_GROUP_SIZE` at a time along a Morton curve of their centroids, and a group is tested
-    against a point only where its box is no farther than the farthest corner of the nearest
-    group's box, a distance that group's triangles all lie within. A group's box can only cost
-    time, never an answer: the grouping is a partition, nothing more.
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    distance = np.full(len(pts), np.inf)
-    prim = np.full(len(pts), -1, dtype=np.int64)
-    order = morton_order(v[f].mean(axis=1))
-    num_groups = -(-len(f) // ORACLE_GROUP_SIZE)
-    # Whole groups, the last padded with its own last triangle: a duplicate changes no distance.
-    order = np.concatenate([order, np.full(num_groups * ORACLE_GROUP_SIZE - len(f), order[-1])])
-    ids = order.reshape(num_groups, ORACLE_GROUP_SIZE)
-    corners = v[f[ids]]  # (groups, size, 3 corners, 3)
-    g_lo, g_hi = corners.min(axis=(1, 2)), corners.max(axis=(1, 2))
-    finite = np.flatnonzero(np.isfinite(pts).all(axis=1))
-    chunk = max(1, ORACLE_PAIR_BUDGET // num_groups)
-    for begin in range(0, len(finite), chunk):
-        rows = finite[begin:begin + chunk]
-        p = pts[rows][:, None, :]
-        near = np.maximum(g_lo - p, 0.0) + np.maximum(p - g_hi, 0.0)
-        lower = np.sqrt(_dot(near, near))
-        far = np.maximum(np.abs(p - g_lo), np.abs(p - g_hi))
-        upper = np.sqrt(_dot(far, far)).min(axis=1)
-        # The nearest group's own bound always passes; the slack keeps rounding from dropping a
-        # group whose box lies exactly at the bound.
-        point_of, group_of = np.nonzero(lower <= upper[:, None] * (1.0 + 1e-12))
-        found_d2, found_id, found_row = [], [], []
-        step = max(1, ORACLE_PAIR_BUDGET // ORACLE_GROUP_SIZE)
-        for start in range(0, len(point_of), step):
-            pp, gg = point_of[start:start + step], group_of[start:start + step]
-            tri = corners[gg]
-            d2 = point_triangle_d2(pts[rows[pp]][:, None, :], tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
-            found_d2.append(d2.reshape(-1))
-            found_id.append(ids[gg].reshape(-1))
-            found_row.append(np.repeat(pp, ORACLE_GROUP_SIZE))
-        d2, tri_id, row = (np.concatenate(x) for x in (found_d2, found_id, found_row))
-        # Per point: the least distance, and of equal ones the lowest triangle id.
-        pick = np.lexsort((tri_id, d2, row))
-        first = pick[np.unique(row[pick], return_index=True)[1]]
-        distance[rows[row[first]]] = np.sqrt(d2[first])
-        prim[rows[row[first]]] = tri_id[first]
-    return distance, prim
 
 
 def count_wrong(vertices, faces, points, distance, prim, max_dist: float, reference) -> int:

@@ -1,9 +1,10 @@
 """Brute-force references for checking builds from package code (benchmarks, demos, the stress
 report).
 
-Float64 NumPy and nothing of the BVH: a benchmark checks a batch of rays against this before it
-reports a time (the tests keep their own plain copy in tests/oracles.py, independent of the
-package, and check this one against it).
+Float64 NumPy and nothing of the BVH: a benchmark checks a batch of rays (or of closest-point
+queries, `brute_force_closest`) against this before it reports a time. The tests keep their own
+plain copies (tests/oracles.py, tests/test_proximity.py), independent of the package, and check
+these against them.
 """
 
 from __future__ import annotations
@@ -17,6 +18,27 @@ BARYCENTRIC_EPS = 1e-12
 
 #: Ray-group or ray-triangle pairs held at once: about 16 MB per float64 temporary.
 PAIR_BUDGET = 1 << 21
+
+
+#: Triangles the closest-point brute force takes together, under one box: a group farther from a
+#: point than some triangle is never tested against it.
+CLOSEST_GROUP_SIZE = 64
+#: Point-triangle pairs the closest-point brute force holds at once: 1.5 MB per temporary of
+#: float64 3-vectors.
+CLOSEST_PAIR_BUDGET = 1 << 16
+
+
+def morton_groups(corners: np.ndarray, group_size: int):
+    """The brute forces' partition of triangles ``corners`` (F, 3, 3): ``(ids, lowers, uppers)``,
+    ``ids`` (G, group_size) consecutive triangles along a Morton curve of their centroids, the last
+    group padded by repeating its last triangle, and each group's box. A box can only cost a brute
+    force time, never an answer: the grouping needs no care beyond being a partition."""
+    order = morton_order(corners.mean(axis=1))
+    num_groups = -(-len(corners) // group_size)
+    order = np.concatenate([order, np.full(num_groups * group_size - len(corners), order[-1])])
+    ids = order.reshape(num_groups, group_size)
+    grouped = corners[ids].reshape(num_groups, group_size * 3, 3)
+    return ids, grouped.min(axis=1), grouped.max(axis=1)
 
 
 def _boxes_met(lower, upper, origins, directions):
@@ -84,13 +106,10 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
     if group_size is None:
         group_size = int(np.clip(2.0 * num_faces ** (1.0 / 3.0), 16, 512))
     group_size = max(1, int(group_size))
-    corners = v[f]  # (F, 3, 3)
-    order = morton_order(corners.mean(axis=1))
-    num_groups = -(-num_faces // group_size)
-    # Pad to whole groups by repeating the last triangle: a duplicate changes no closest hit.
-    order = np.concatenate([order, np.full(num_groups * group_size - num_faces, order[-1])])
-    grouped = corners[order].reshape(num_groups, group_size * 3, 3)
-    g_lo, g_hi = grouped.min(axis=1), grouped.max(axis=1)
+    # A duplicate (the padding) changes no closest hit.
+    ids, g_lo, g_hi = morton_groups(v[f], group_size)
+    num_groups = len(ids)
+    order = ids.reshape(-1)
     # The accept test takes points up to ~eps * (edge lengths) outside a triangle; rounding, about
     # 1e-16 of the coordinates' magnitude. Grow every box well past both.
     scale = max(np.abs(v).max(), np.abs(o_all).max(), 1e-300)
@@ -148,3 +167,83 @@ def count_mismatches(t, prim, t_ref, prim_ref, rtol=1e-5) -> int:
     close = np.isclose(t, t_ref, rtol=rtol, atol=0.0)
     bad = (hit != hit_ref) | (hit & ~(same | close))
     return int(bad.sum())
+
+
+def _dot(x, y):
+    return np.einsum("...k,...k->...", x, y)
+
+
+def point_triangle_d2(p, a, b, c) -> np.ndarray:
+    """Squared distance from points ``p`` to triangles ``abc`` (broadcast), float64.
+
+    The nearest of the three edges' clamped projections and, where the normal (Gram) equations of
+    min |a + s ab + t ac - p|^2 have their solution inside the triangle, that point: every candidate
+    is a point of the triangle and the nearest one is among them. A degenerate triangle (a segment
+    or a point: no solution) is its edges. The kernel instead decides by the signs of edge
+    functions; the two share no code.
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    with np.errstate(all="ignore"):  # a degenerate triangle divides by zero; np.where drops it
+        g00, g01, g11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
+        r0, r1 = _dot(ap, ab), _dot(ap, ac)
+        det = g00 * g11 - g01 * g01
+        s = (g11 * r0 - g01 * r1) / det
+        t = (g00 * r1 - g01 * r0) / det
+        inside = (det > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+        face = a + s[..., None] * ab + t[..., None] * ac - p
+        best = np.where(inside, _dot(face, face), np.inf)
+        for origin, edge in ((a, ab), (a, ac), (b, c - b)):
+            length2 = _dot(edge, edge)
+            w = np.where(length2 > 0, np.clip(_dot(p - origin, edge) / length2, 0.0, 1.0), 0.0)
+            off = origin + w[..., None] * edge - p
+            best = np.minimum(best, _dot(off, off))
+    return best
+
+
+def brute_force_closest(vertices, faces, points) -> tuple[np.ndarray, np.ndarray]:
+    """``(distance, prim)``: the float64 distance from every point to the mesh and the lowest id
+    of a triangle at that distance; ``(inf, -1)`` for a point with a NaN or Inf coordinate.
+
+    Exact, like testing every pair, but not as slow: the triangles are grouped
+    `CLOSEST_GROUP_SIZE` at a time along a Morton curve of their centroids, and a group is tested
+    against a point only where its box is no farther than the farthest corner of the nearest
+    group's box, a distance that group's triangles all lie within. A group's box can only cost
+    time, never an answer: the grouping is a partition, nothing more.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    distance = np.full(len(pts), np.inf)
+    prim = np.full(len(pts), -1, dtype=np.int64)
+    # A duplicate (the padding) changes no distance.
+    ids, g_lo, g_hi = morton_groups(v[f], CLOSEST_GROUP_SIZE)
+    num_groups = len(ids)
+    corners = v[f[ids]]  # (groups, size, 3 corners, 3)
+    finite = np.flatnonzero(np.isfinite(pts).all(axis=1))
+    chunk = max(1, CLOSEST_PAIR_BUDGET // num_groups)
+    for begin in range(0, len(finite), chunk):
+        rows = finite[begin:begin + chunk]
+        p = pts[rows][:, None, :]
+        near = np.maximum(g_lo - p, 0.0) + np.maximum(p - g_hi, 0.0)
+        lower = np.sqrt(_dot(near, near))
+        far = np.maximum(np.abs(p - g_lo), np.abs(p - g_hi))
+        upper = np.sqrt(_dot(far, far)).min(axis=1)
+        # The nearest group's own bound always passes; the slack keeps rounding from dropping a
+        # group whose box lies exactly at the bound.
+        point_of, group_of = np.nonzero(lower <= upper[:, None] * (1.0 + 1e-12))
+        found_d2, found_id, found_row = [], [], []
+        step = max(1, CLOSEST_PAIR_BUDGET // CLOSEST_GROUP_SIZE)
+        for start in range(0, len(point_of), step):
+            pp, gg = point_of[start:start + step], group_of[start:start + step]
+            tri = corners[gg]
+            d2 = point_triangle_d2(pts[rows[pp]][:, None, :], tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
+            found_d2.append(d2.reshape(-1))
+            found_id.append(ids[gg].reshape(-1))
+            found_row.append(np.repeat(pp, CLOSEST_GROUP_SIZE))
+        d2, tri_id, row = (np.concatenate(x) for x in (found_d2, found_id, found_row))
+        # Per point: the least distance, and of equal ones the lowest triangle id.
+        pick = np.lexsort((tri_id, d2, row))
+        first = pick[np.unique(row[pick], return_index=True)[1]]
+        distance[rows[row[first]]] = np.sqrt(d2[first])
+        prim[rows[row[first]]] = tri_id[first]
+    return distance, prim

@@ -147,7 +147,8 @@ def cross_component_is_zero(ay: float, az: float, by: float, bz: float, cy: floa
     products of float32 coordinates are exact in float64 (24 + 24 bits); they are summed into a
     nonoverlapping expansion by exact two-sums (Shewchuk, "Adaptive Precision Floating-Point
     Arithmetic and Fast Robust Geometric Predicates", 1997, Grow-Expansion), which is zero exactly
-    when every one of its terms is."""
+    when every one of its terms is. (`proximity.exact_cross_component` forms the same products
+    and rounds their sum once, for a normal accurate to an ulp; a zero needs the whole expansion.)"""
     terms = vec6d(wp.float64(ay) * wp.float64(bz), -wp.float64(az) * wp.float64(by),
                   wp.float64(by) * wp.float64(cz), -wp.float64(bz) * wp.float64(cy),
                   wp.float64(cy) * wp.float64(az), -wp.float64(cz) * wp.float64(ay))
