@@ -181,6 +181,48 @@ def _t_max_values(t_max, num_rays: int) -> np.ndarray:
     return _round_up_to_float32_array(_per_query_values(t_max, num_rays, "t_max"))
 
 
+def _t_min_values(t_min, num_rays: int) -> np.ndarray:
+    """``t_min`` as float32, ``(1,)`` or ``(num_rays,)``: each at least 0 (NaN is an error), and
+    rounded down, as ``t_max`` is rounded up: a float32 t lies above t_min exactly when it lies
+    above the float32 at or below it. An infinite ``t_min`` leaves its ray nothing to hit."""
+    values = _per_query_values(t_min, num_rays, "t_min")
+    bad = np.flatnonzero(~(values >= 0.0))
+    if bad.size:
+        where = "" if values.shape[0] == 1 else f" (ray {bad[0]})"
+        raise ValueError(f"t_min must be >= 0, got {values[bad[0]]}{where}")
+    return _round_down_to_float32_array(values)
+
+
+def _ignore_prim_values(ignore_prim, num_rays: int, num_prims: int) -> np.ndarray:
+    """``ignore_prim`` as int32: empty for None (no ray ignores anything), else ``(1,)`` for one
+    triangle every ray ignores or ``(num_rays,)``, each -1 (none) or a triangle index."""
+    if ignore_prim is None:
+        return np.zeros(0, np.int32)
+    values = np.asarray(ignore_prim.numpy() if isinstance(ignore_prim, wp.array) else ignore_prim)
+    if values.dtype.kind not in "iu":
+        raise ValueError(f"ignore_prim must hold integer triangle indices (-1 for none), got dtype {values.dtype}")
+    if values.size == 1 and values.ndim <= 1:
+        values = values.reshape(1)
+    elif values.shape != (num_rays,):
+        raise ValueError(f"ignore_prim must be one index or have shape ({num_rays},), got {values.shape}")
+    bad = np.flatnonzero((values < -1) | (values >= num_prims))
+    if bad.size:
+        where = "" if values.shape[0] == 1 else f" (ray {bad[0]})"
+        raise ValueError(f"ignore_prim must be -1 (none) or a triangle index in [0, {num_prims}), "
+                         f"got {values[bad[0]]}{where}")
+    return values.astype(np.int32)
+
+
+def _ray_range(t_min, t_max, ignore_prim, num_rays: int, num_prims: int):
+    """The checked ``t_min``, ``t_max`` and ``ignore_prim`` of a ray call, and whether any of them
+    asks for more than the plain (0, t_max) of one limit for every ray."""
+    limits = _t_max_values(t_max, num_rays)
+    lows = _t_min_values(t_min, num_rays)
+    skips = _ignore_prim_values(ignore_prim, num_rays, num_prims)
+    plain = len(limits) == 1 and len(lows) == 1 and lows[0] == 0.0 and len(skips) == 0
+    return lows, limits, skips, plain
+
+
 def _max_dist_values(max_dist, num_points: int):
     """``max_dist`` as float32 bounds: a float for one number (or a one-element array), a
     ``(num_points,)`` float32 array for one per point. The kernel takes float32: each bound is
@@ -210,6 +252,16 @@ def _round_up_to_float32_array(values: np.ndarray) -> np.ndarray:
     return bounds
 
 
+def _round_down_to_float32_array(values: np.ndarray) -> np.ndarray:
+    """Each float64 value as the float32 at or below it (the largest finite float32 past its range;
+    inf and NaN stay)."""
+    with np.errstate(over="ignore"):
+        bounds = values.astype(np.float32)
+    high = bounds.astype(np.float64) > values
+    bounds[high] = np.nextafter(bounds[high], np.float32(-np.inf))
+    return bounds
+
+
 def _round_up_to_float32(value: float) -> float:
     """The float32 at or above ``value`` (inf past float32's range), as a Python float."""
     with np.errstate(over="ignore"):
@@ -232,7 +284,7 @@ def _optional_outputs(dtype, count: int, wanted: bool, device):
 
 @holding_tree
 def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return_barycentrics: bool = False,
-              stats: bool = False):
+              stats: bool = False, *, t_min: float = 0.0, ignore_prim=None):
     """Closest hit of every ray, watertight (Woop et al. 2013) over a padded traversal (Ize 2013).
 
     Args:
@@ -240,10 +292,15 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
         origins, directions: ``(R, 3)`` rays (NumPy or Warp, any real dtype; a single ``(3,)`` ray
             is accepted, and one origin or one direction serves every ray). Directions need not be
             normalized: t is in units of the direction.
-        t_max: only hits with t in (0, t_max) count: one number, or one per ray (``(R,)``).
+        t_max: only hits with t in (t_min, t_max) count: one number, or one per ray (``(R,)``).
         return_barycentrics: also return ``u, v``, the weights of each hit triangle's second and
             third vertex (0 on a miss).
         stats: also return a `TraversalStats` (nodes visited, triangles tested per ray).
+        t_min: the near end of the range, at least 0: one number, or one per ray. A ray whose
+            range is empty (``t_min >= t_max``) misses.
+        ignore_prim: a triangle index each ray does not hit, -1 for none: one for every ray, or
+            one per ray (``(R,)``). A secondary ray leaving a surface ignores the triangle it
+            starts on, which rounding would otherwise let it hit at t near 0.
 
     Returns:
         ``(t, prim_id)`` NumPy arrays (float32, int32), a miss being ``(inf, -1)``; then ``u, v``
@@ -251,12 +308,13 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
         direction, miss.
 
     Raises:
-        ValueError: a BVH over bare boxes, or origins/directions of a wrong shape or dtype.
+        ValueError: a BVH over bare boxes, origins/directions of a wrong shape or dtype, a negative
+            or NaN ``t_min``, or an ``ignore_prim`` that is no triangle of the mesh.
     """
     _require_mesh(bvh, "intersect")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    limits = _t_max_values(t_max, num_rays)
+    lows, limits, skips, plain = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
     device = bvh.device
     hit_t = wp.empty(num_rays, dtype=float, device=device)
     hit_prim = wp.empty(num_rays, dtype=wp.int32, device=device)
@@ -264,10 +322,11 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
     if num_rays:
         rays = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
-        if return_barycentrics or stats or len(limits) > 1:
+        if return_barycentrics or stats or not plain:
+            ranges = [wp.array(lows, dtype=float, device=device), wp.array(limits, dtype=float, device=device),
+                      wp.array(skips, dtype=wp.int32, device=device)]
             wp.launch(traversal.closest_hit_details_kernel, dim=num_rays, device=device,
-                      inputs=rays + [wp.array(limits, dtype=float, device=device), hit_t, hit_prim, hit_u, hit_v,
-                                     visits, tests])
+                      inputs=rays + ranges + [hit_t, hit_prim, hit_u, hit_v, visits, tests])
         else:
             # The lean kernel (one limit, no optional outputs): the common camera-ray call.
             wp.launch(traversal.closest_hit_kernel, dim=num_rays, inputs=rays + [float(limits[0]), hit_t, hit_prim],
@@ -281,11 +340,15 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
 
 
 @holding_tree
-def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = False):
-    """Whether each ray hits any triangle with t in (0, t_max) (shadow rays; stops at the first hit).
+def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = False, *, t_min=0.0,
+             ignore_prim=None):
+    """Whether each ray hits any triangle with t in (t_min, t_max) (shadow rays; stops at the
+    first hit).
 
     Args:
         t_max: one number, or one per ray (``(R,)``), e.g. the distance to a light.
+        t_min, ignore_prim: as for `intersect`: a shadow ray from a surface point ignores the
+            triangle the point lies on.
 
     Returns:
         ``(R,)`` bool NumPy array, and a `TraversalStats` when ``stats``.
@@ -293,7 +356,8 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     _require_mesh(bvh, "occluded")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    t_arr = _t_max_values(t_max, num_rays)  # one limit, or one per ray (`traversal.query_limit`)
+    # Each: one value, or one per ray (`traversal.query_limit`, `traversal.query_prim`).
+    lows, limits, skips, _ = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
     device = bvh.device
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
@@ -305,7 +369,9 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
                 view(bvh),
                 wp.array(o, dtype=wp.vec3, device=device),
                 wp.array(d, dtype=wp.vec3, device=device),
-                wp.array(t_arr.astype(np.float32), dtype=float, device=device),
+                wp.array(lows, dtype=float, device=device),
+                wp.array(limits, dtype=float, device=device),
+                wp.array(skips, dtype=wp.int32, device=device),
                 result,
                 visits,
                 tests,
@@ -338,9 +404,10 @@ def _offsets(counts: wp.array, what: str) -> tuple[wp.array, int]:
 
 
 @holding_tree
-def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
-    """Every triangle each ray hits with t in (0, t_max) (trimesh's ``multiple_hits``); ``t_max``
-    is one number or one per ray, as for `intersect`.
+def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf"), *, t_min=0.0, ignore_prim=None):
+    """Every triangle each ray hits with t in (t_min, t_max) (trimesh's ``multiple_hits``) but its
+    ``ignore_prim``; ``t_min``, ``t_max`` and ``ignore_prim`` are one value or one per ray, as for
+    `intersect`.
 
     Returns:
         ``(ray_id, prim_id, t)`` NumPy arrays, sorted by ray, then t, then primitive. A ray
@@ -349,25 +416,26 @@ def intersect_all(bvh: Bvh, origins, directions, t_max: float = float("inf")):
     _require_mesh(bvh, "intersect_all")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    t_max = _t_max_values(t_max, num_rays)
+    lows, limits, skips, _ = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
     if num_rays == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
     device = bvh.device
     ow = wp.array(o, dtype=wp.vec3, device=device)
     dw = wp.array(d, dtype=wp.vec3, device=device)
-    t_max = wp.array(t_max, dtype=float, device=device)
+    ranges = [wp.array(lows, dtype=float, device=device), wp.array(limits, dtype=float, device=device),
+              wp.array(skips, dtype=wp.int32, device=device)]
     counts = wp.zeros(num_rays, dtype=wp.int32, device=device)
     none_i, none_f = _empty(wp.int32, device), _empty(float, device)
     # Count pass, prefix sum, write pass: each ray owns a slice, no atomics, deterministic.
     wp.launch(traversal.all_hits_kernel, dim=num_rays,
-              inputs=[view(bvh), ow, dw, t_max, counts, counts, none_i, none_f], device=device)
+              inputs=[view(bvh), ow, dw] + ranges + [counts, counts, none_i, none_f], device=device)
     offsets, total = _offsets(counts, "ray hits")
     if total == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
     out_prim = wp.empty(total, dtype=wp.int32, device=device)
     out_t = wp.empty(total, dtype=float, device=device)
     wp.launch(traversal.all_hits_kernel, dim=num_rays,
-              inputs=[view(bvh), ow, dw, t_max, offsets, counts, out_prim, out_t], device=device)
+              inputs=[view(bvh), ow, dw] + ranges + [offsets, counts, out_prim, out_t], device=device)
     ray_id = np.repeat(np.arange(num_rays, dtype=np.int64), counts.numpy())
     prim = out_prim.numpy().astype(np.int64)
     t = out_t.numpy()

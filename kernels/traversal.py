@@ -185,11 +185,11 @@ def triangle_has_no_area(a: wp.vec3, b: wp.vec3, c: wp.vec3):
 
 @wp.func
 def intersect_triangle_watertight(
-    origin: wp.vec3, direction: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, t_max: float
+    origin: wp.vec3, direction: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, t_min: float, t_max: float
 ):
     """Woop et al. 2013: shear/scale into ray space, edge functions with a float64 fallback.
 
-    Returns t in (0, t_max) and the barycentrics (u, v) of b and c, hit = 1; else hit = 0.
+    Returns t in (t_min, t_max) and the barycentrics (u, v) of b and c, hit = 1; else hit = 0.
     """
     result = TriangleHit()
     result.hit = 0
@@ -293,7 +293,7 @@ def intersect_triangle_watertight(
         bary_b = v * inv_det
         bary_c = w * inv_det
         t = bary_a * az + bary_b * bz + bary_c * cz
-    if not (t > 0.0 and t < t_max):
+    if not (t > t_min and t < t_max):
         return result
     # A triangle of three distinct collinear vertices sheared in float32 can keep three tiny edge
     # functions of one sign, which read as a hit with meaningless weights: a zero-area triangle has
@@ -306,6 +306,14 @@ def intersect_triangle_watertight(
     result.v = bary_c
     result.hit = 1
     return result
+
+
+@wp.func
+def intersect_triangle_watertight(  # noqa: F811  (a Warp overload, chosen by argument count)
+    origin: wp.vec3, direction: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, t_max: float
+):
+    """The hit with t in (0, t_max)."""
+    return intersect_triangle_watertight(origin, direction, a, b, c, 0.0, t_max)
 
 
 @wp.func
@@ -341,13 +349,15 @@ def ray_inverse_direction(direction: wp.vec3):
 
 
 @wp.func
-def ray_box_entry(origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_max: float):
-    """Entry distance of the ray into the box, or INF when it misses within [0, t_max].
+def ray_box_entry(origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_min: float, t_max: float):
+    """Entry distance of the ray into the box, or INF when it misses within [t_min, t_max].
 
     Slab distances that are NaN (origin on a slab face, direction parallel to it) fail every
-    comparison and so leave [t0, t1] unchanged: the ray stays on that face, inside the slab.
+    comparison and so leave [t0, t1] unchanged: the ray stays on that face, inside the slab. The
+    padded far distance is what a box behind ``t_min`` is dropped on, so a triangle whose own t
+    lies just past ``t_min`` is not lost to the box test's rounding.
     """
-    t0 = float(0.0)
+    t0 = t_min
     t1 = t_max
     for k in range(3):
         near = (lower[k] - origin[k]) * inv_dir[k]
@@ -367,6 +377,14 @@ def ray_box_entry(origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.v
 
 
 @wp.func
+def ray_box_entry(  # noqa: F811  (a Warp overload, chosen by argument count)
+    origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_max: float
+):
+    """Entry distance into the box, or INF when the ray misses it within [0, t_max]."""
+    return ray_box_entry(origin, inv_dir, lower, upper, 0.0, t_max)
+
+
+@wp.func
 def box_overlap(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: wp.vec3):
     """Closed boxes overlap (touching counts); a NaN bound overlaps nothing."""
     ok = int(1)
@@ -377,33 +395,43 @@ def box_overlap(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: w
 
 
 @wp.func
-def ray_is_valid(origin: wp.vec3, direction: wp.vec3, t_max: float):
-    """NaN or Inf anywhere, a zero direction, or no positive t range: the ray misses."""
+def ray_is_valid(origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float):
+    """NaN or Inf anywhere, a zero direction, or an empty range (t_min < 0 or NaN included): the
+    ray misses."""
     ok = int(1)
     for k in range(3):
         if not wp.isfinite(origin[k]) or not wp.isfinite(direction[k]):
             ok = 0
     if direction[0] == 0.0 and direction[1] == 0.0 and direction[2] == 0.0:
         ok = 0
-    if not (t_max > 0.0):
+    if not (t_min >= 0.0 and t_max > t_min):
         ok = 0
     return ok
 
 
 @wp.func
-def bvh_triangle(bvh: BvhView, prim: int, origin: wp.vec3, direction: wp.vec3, t_max: float):
+def ray_is_valid(origin: wp.vec3, direction: wp.vec3, t_max: float):  # noqa: F811  (a Warp overload)
+    """`ray_is_valid` over (0, t_max)."""
+    return ray_is_valid(origin, direction, 0.0, t_max)
+
+
+@wp.func
+def bvh_triangle(bvh: BvhView, prim: int, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float):
     return intersect_triangle_watertight(
         origin,
         direction,
         bvh.vertices[bvh.faces[prim, 0]],
         bvh.vertices[bvh.faces[prim, 1]],
         bvh.vertices[bvh.faces[prim, 2]],
+        t_min,
         t_max,
     )
 
 
 @wp.func
-def canonical_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
+def canonical_ray_query(
+    bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int, any_hit: int
+):
     """`packed_ray_query` on the canonical arrays, for a view that carries no traversal layout."""
     best_t = t_max
     best_prim = int(-1)
@@ -418,9 +446,9 @@ def canonical_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max
     top = int(0)
     inv = wp.vec3(0.0)
     # A view of a box BVH has no triangles to test (its faces are empty): nothing to find.
-    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, direction, t_max) == 1:
+    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, direction, t_min, t_max) == 1:
         inv = ray_inverse_direction(direction)
-        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], best_t) < INF:
+        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], t_min, best_t) < INF:
             node = 0
     while node >= 0:
         visited += 1
@@ -430,8 +458,8 @@ def canonical_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max
             for k in range(bvh.node_begin[node], bvh.node_end[node]):
                 p = bvh.prim_order[k]
                 tested += 1
-                h = bvh_triangle(bvh, p, origin, direction, best_t)
-                if h.hit == 1:
+                h = bvh_triangle(bvh, p, origin, direction, t_min, best_t)
+                if h.hit == 1 and p != ignore_prim:
                     best_t = h.t
                     best_prim = p
                     best_u = h.u
@@ -447,8 +475,8 @@ def canonical_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max
                         node = stack[top]
         else:
             right = bvh.node_right[node]
-            tl = ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], best_t)
-            tr = ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], best_t)
+            tl = ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], t_min, best_t)
+            tr = ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], t_min, best_t)
             if tl < INF and tr < INF:
                 # Visit the nearer child next, defer the farther one.
                 if tl <= tr:
@@ -528,7 +556,9 @@ def packed_ray_query(
     root: int,
     origin: wp.vec3,
     direction: wp.vec3,
+    t_min: float,
     t_max: float,
+    ignore_prim: int,
     any_hit: int,
 ):
     """Front-to-back traversal of the packed layout, shared by the closest-hit and any-hit queries.
@@ -542,6 +572,9 @@ def packed_ray_query(
     tests both children's boxes from the parent's record, continues with the nearer child and
     defers the farther one with its entry distance (the padded test of Ize 2013 orders the
     children); a deferred node entered behind the closest hit found since is dropped when popped.
+
+    Hits count with t in (t_min, t_max), and never on ``ignore_prim`` (-1: none), the triangle a
+    secondary ray leaves from. Which triangle a position holds is read only for a hit.
     """
     best_t = t_max
     best_k = int(-1)
@@ -557,9 +590,9 @@ def packed_ray_query(
     node = int(0)
     begin = int(0)
     active = int(0)
-    if ray_is_valid(origin, direction, t_max) == 1:
+    if ray_is_valid(origin, direction, t_min, t_max) == 1:
         inv = ray_inverse_direction(direction)
-        if ray_box_entry(origin, inv, root_lower, root_upper, best_t) < INF:
+        if ray_box_entry(origin, inv, root_lower, root_upper, t_min, best_t) < INF:
             active = 1
             node = root
             begin = root_begin
@@ -573,8 +606,8 @@ def packed_ray_query(
             for k in range(begin, begin - node):
                 tested += 1
                 tri = triangles[k]
-                h = intersect_triangle_watertight(origin, direction, tri.a, tri.b, tri.c, best_t)
-                if h.hit == 1:
+                h = intersect_triangle_watertight(origin, direction, tri.a, tri.b, tri.c, t_min, best_t)
+                if h.hit == 1 and (ignore_prim < 0 or prim_order[k] != ignore_prim):
                     best_t = h.t
                     best_k = k
                     best_u = h.u
@@ -595,8 +628,8 @@ def packed_ray_query(
             begin_b = begin + n.count_a
             prefetch_child(nodes, triangles, n.child_a, begin)
             prefetch_child(nodes, triangles, n.child_b, begin_b)
-            ta = ray_box_entry(origin, inv, n.lower_a, n.upper_a, best_t)
-            tb = ray_box_entry(origin, inv, n.lower_b, n.upper_b, best_t)
+            ta = ray_box_entry(origin, inv, n.lower_a, n.upper_a, t_min, best_t)
+            tb = ray_box_entry(origin, inv, n.lower_b, n.upper_b, t_min, best_t)
             if ta < INF and tb < INF:
                 # Visit the nearer child next, defer the farther one.
                 if ta <= tb:
@@ -638,10 +671,13 @@ def packed_ray_query(
 
 
 @wp.func
-def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float, any_hit: int):
+def bvh_ray_query(
+    bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int, any_hit: int
+):
     """Front-to-back traversal shared by the closest-hit and the any-hit query."""
     # A miss's t is inf, and inf times the scale is inf: no test needed before scaling back.
     scale = ray_direction_scale(direction)
+    low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
@@ -657,12 +693,14 @@ def bvh_ray_query(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: floa
             root,
             origin,
             direction * scale,
+            low,
             limit,
+            ignore_prim,
             any_hit,
         )
         h.t = h.t * scale
         return h
-    h = canonical_ray_query(bvh, origin, direction * scale, limit, any_hit)
+    h = canonical_ray_query(bvh, origin, direction * scale, low, limit, ignore_prim, any_hit)
     h.t = h.t * scale
     return h
 
@@ -674,23 +712,50 @@ def bvh_closest_hit(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: fl
     t is in units of ``direction`` (which need not be normalized). Rays with NaN or Inf, or a
     zero direction, miss.
     """
-    return bvh_ray_query(bvh, origin, direction, t_max, 0)
+    return bvh_ray_query(bvh, origin, direction, 0.0, t_max, -1, 0)
+
+
+@wp.func
+def bvh_closest_hit(  # noqa: F811  (a Warp overload, chosen by argument count)
+    bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int
+):
+    """Closest hit with t in (t_min, t_max) on any triangle but ``ignore_prim`` (-1: none).
+
+    For secondary rays (shadows, ambient occlusion, reflections) leaving a surface: ``ignore_prim``
+    is the triangle the ray starts on, so it cannot hit itself at t near 0 through rounding;
+    ``t_min`` skips whatever lies closer than that (a neighbour across a crease). A range
+    with ``t_min < 0``, NaN, or ``t_max <= t_min`` finds nothing.
+    """
+    return bvh_ray_query(bvh, origin, direction, t_min, t_max, ignore_prim, 0)
 
 
 @wp.func
 def bvh_any_hit(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float):
     """The first triangle found with t in (0, t_max), not necessarily the closest (occlusion)."""
-    return bvh_ray_query(bvh, origin, direction, t_max, 1)
+    return bvh_ray_query(bvh, origin, direction, 0.0, t_max, -1, 1)
+
+
+@wp.func
+def bvh_any_hit(  # noqa: F811  (a Warp overload, chosen by argument count)
+    bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int
+):
+    """The first triangle found with t in (t_min, t_max) other than ``ignore_prim`` (-1: none)."""
+    return bvh_ray_query(bvh, origin, direction, t_min, t_max, ignore_prim, 1)
 
 
 @wp.func
 def bvh_occluded(bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_max: float):
     """1 when some triangle lies on the ray with t in (0, t_max), else 0 (shadow rays)."""
-    h = bvh_ray_query(bvh, origin, direction, t_max, 1)
-    occluded = int(0)
-    if h.prim >= 0:
-        occluded = 1
-    return occluded
+    return wp.where(bvh_ray_query(bvh, origin, direction, 0.0, t_max, -1, 1).prim >= 0, 1, 0)
+
+
+@wp.func
+def bvh_occluded(  # noqa: F811  (a Warp overload, chosen by argument count)
+    bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int
+):
+    """1 when a triangle other than ``ignore_prim`` (-1: none) lies on the ray with t in (t_min,
+    t_max), else 0: a shadow ray from a surface point to a light, ``ignore_prim`` its triangle."""
+    return wp.where(bvh_ray_query(bvh, origin, direction, t_min, t_max, ignore_prim, 1).prim >= 0, 1, 0)
 
 
 @wp.func
@@ -698,13 +763,16 @@ def bvh_ray_all_hits(
     bvh: BvhView,
     origin: wp.vec3,
     direction: wp.vec3,
+    t_min: float,
     t_max: float,
+    ignore_prim: int,
     out_prim: wp.array(dtype=wp.int32),
     out_t: wp.array(dtype=float),
     offset: int,
     capacity: int,
 ):
-    """Every triangle hit with t in (0, t_max), in traversal order; returns how many.
+    """Every triangle but ``ignore_prim`` (-1: none) hit with t in (t_min, t_max), in traversal
+    order; returns how many.
 
     The first ``capacity`` hits go to ``out_prim`` / ``out_t`` from ``offset`` on: a count pass
     (capacity 0), a prefix sum, then a write pass gives each ray its own slice without atomics.
@@ -716,18 +784,19 @@ def bvh_ray_all_hits(
     inv = wp.vec3(0.0)
     scale = ray_direction_scale(direction)
     d = direction * scale
+    low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, d, limit) == 1:
+    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, d, low, limit) == 1:
         inv = ray_inverse_direction(d)
-        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], limit) < INF:
+        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:
             node = 0
     while node >= 0:
         left = bvh.node_left[node]
         if left < 0 or top >= STACK_SIZE - 1:
             for k in range(bvh.node_begin[node], bvh.node_end[node]):
                 p = bvh.prim_order[k]
-                h = bvh_triangle(bvh, p, origin, d, limit)
-                if h.hit == 1:
+                h = bvh_triangle(bvh, p, origin, d, low, limit)
+                if h.hit == 1 and p != ignore_prim:
                     if count < capacity:
                         out_prim[offset + count] = p
                         out_t[offset + count] = h.t * scale
@@ -736,16 +805,31 @@ def bvh_ray_all_hits(
         else:
             right = bvh.node_right[node]
             node = -1
-            if ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], limit) < INF:
+            if ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], low, limit) < INF:
                 stack[top] = left
                 top += 1
-            if ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], limit) < INF:
+            if ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], low, limit) < INF:
                 stack[top] = right
                 top += 1
         if top > 0:
             top -= 1
             node = stack[top]
     return count
+
+
+@wp.func
+def bvh_ray_all_hits(  # noqa: F811  (a Warp overload, chosen by argument count)
+    bvh: BvhView,
+    origin: wp.vec3,
+    direction: wp.vec3,
+    t_max: float,
+    out_prim: wp.array(dtype=wp.int32),
+    out_t: wp.array(dtype=float),
+    offset: int,
+    capacity: int,
+):
+    """`bvh_ray_all_hits` over (0, t_max), every triangle counted."""
+    return bvh_ray_all_hits(bvh, origin, direction, 0.0, t_max, -1, out_prim, out_t, offset, capacity)
 
 
 @wp.func
@@ -1195,12 +1279,24 @@ def query_limit(limits: int, query: int):  # noqa: F811  (a Warp overload, chose
     return float(limits)
 
 
+@wp.func
+def query_prim(prims: wp.array(dtype=wp.int32), query: int):
+    """A query's primitive to ignore: none (-1) when ``prims`` is empty, else one for every query
+    (shape 1) or one per query."""
+    prim = int(-1)
+    if prims.shape[0] > 0:
+        prim = prims[wp.where(prims.shape[0] == 1, 0, query)]
+    return prim
+
+
 @wp.kernel
 def closest_hit_details_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    t_min: wp.array(dtype=float),
     t_max: wp.array(dtype=float),
+    ignore_prim: wp.array(dtype=wp.int32),
     hit_t: wp.array(dtype=float),
     hit_prim: wp.array(dtype=wp.int32),
     hit_u: wp.array(dtype=float),
@@ -1208,10 +1304,11 @@ def closest_hit_details_kernel(
     nodes_visited: wp.array(dtype=wp.int32),
     prims_tested: wp.array(dtype=wp.int32),
 ):
-    """One ray per thread, its limit from `query_limit`; ``hit_u``/``hit_v`` and the statistics are
-    written when non-empty."""
+    """One ray per thread, its range from `query_limit` and its ignored triangle from `query_prim`;
+    ``hit_u``/``hit_v`` and the statistics are written when non-empty."""
     tid = wp.tid()
-    h = bvh_closest_hit(bvh, origins[tid], directions[tid], query_limit(t_max, tid))
+    h = bvh_closest_hit(bvh, origins[tid], directions[tid], query_limit(t_min, tid), query_limit(t_max, tid),
+                        query_prim(ignore_prim, tid))
     hit_t[tid] = h.t
     hit_prim[tid] = h.prim
     if hit_u.shape[0] > 0:
@@ -1227,13 +1324,16 @@ def occluded_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    t_min: wp.array(dtype=float),
     t_max: wp.array(dtype=float),
+    ignore_prim: wp.array(dtype=wp.int32),
     occluded: wp.array(dtype=wp.int32),
     nodes_visited: wp.array(dtype=wp.int32),
     prims_tested: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
-    h = bvh_any_hit(bvh, origins[tid], directions[tid], query_limit(t_max, tid))
+    h = bvh_any_hit(bvh, origins[tid], directions[tid], query_limit(t_min, tid), query_limit(t_max, tid),
+                    query_prim(ignore_prim, tid))
     occluded[tid] = wp.where(h.prim >= 0, 1, 0)
     if nodes_visited.shape[0] > 0:
         nodes_visited[tid] = h.nodes_visited
@@ -1245,20 +1345,25 @@ def all_hits_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    t_min: wp.array(dtype=float),
     t_max: wp.array(dtype=float),
+    ignore_prim: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
     out_prim: wp.array(dtype=wp.int32),
     out_t: wp.array(dtype=float),
 ):
     """Count pass when ``out_prim`` is empty (writes ``counts``), else write pass at ``offsets``;
-    the ray's limit from `query_limit`."""
+    the ray's range from `query_limit`, its ignored triangle from `query_prim`."""
     tid = wp.tid()
+    low = query_limit(t_min, tid)
     limit = query_limit(t_max, tid)
+    skip = query_prim(ignore_prim, tid)
     if out_prim.shape[0] == 0:
-        counts[tid] = bvh_ray_all_hits(bvh, origins[tid], directions[tid], limit, out_prim, out_t, 0, 0)
+        counts[tid] = bvh_ray_all_hits(bvh, origins[tid], directions[tid], low, limit, skip, out_prim, out_t, 0, 0)
     else:
-        bvh_ray_all_hits(bvh, origins[tid], directions[tid], limit, out_prim, out_t, offsets[tid], counts[tid])
+        bvh_ray_all_hits(bvh, origins[tid], directions[tid], low, limit, skip, out_prim, out_t, offsets[tid],
+                         counts[tid])
 
 
 @wp.kernel

@@ -6,7 +6,9 @@ import numpy as np
 import warp as wp
 
 import hlbvh_warp as hw
+from hlbvh_warp import query
 from hlbvh_warp.bvh import bvh_from_numpy
+from hlbvh_warp.kernels import traversal
 
 
 def caterpillar(vertices, faces, device, deep: str = "left", boxes_only: bool = False):
@@ -42,3 +44,15 @@ def caterpillar(vertices, faces, device, deep: str = "left", boxes_only: bool = 
                           prim_order=np.arange(n), node_left=left, node_right=right, node_begin=begin, node_end=end,
                           vertices=None if boxes_only else wp.array(vertices, dtype=wp.vec3, device=device),
                           faces=None if boxes_only else wp.array(faces, dtype=wp.int32, device=device))
+
+
+def canonical_view(bvh):
+    """A view without the packed layout: ray and closest-point queries then walk the canonical arrays."""
+    packed = query.view(bvh)
+    canonical = query.BvhView()
+    for name in ("node_lowers", "node_uppers", "node_left", "node_right", "node_begin", "node_end", "prim_order",
+                 "prim_lowers", "prim_uppers", "vertices", "faces"):
+        setattr(canonical, name, getattr(packed, name))
+    canonical.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=bvh.device)
+    canonical.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=bvh.device)
+    return canonical

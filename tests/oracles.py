@@ -44,6 +44,27 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
     return t_out, p_out
 
 
+def numpy_all_hits(vertices, faces, origins, directions, t_max):
+    """Every (ray, triangle) hit with t in (0, t_max), Moller-Trumbore in float64; the t of each pair,
+    and how far inside its triangle the crossing lies (the least barycentric)."""
+    v = np.asarray(vertices, np.float64)
+    a, b, c = (v[np.asarray(faces)[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    o = np.asarray(origins, np.float64)[:, None]
+    d = np.asarray(directions, np.float64)[:, None]
+    with np.errstate(all="ignore"):
+        p = np.cross(d, e2[None])
+        det = np.einsum("rfk,fk->rf", p, e1)
+        tv = o - a[None]
+        u = np.einsum("rfk,rfk->rf", tv, p) / det
+        q = np.cross(tv, e1[None])
+        w = np.einsum("rfk,rfk->rf", np.broadcast_to(d, q.shape), q) / det
+        t = np.einsum("rfk,fk->rf", q, e2) / det
+        margin = np.minimum(np.minimum(u, w), 1 - u - w)
+    hit = (det != 0) & (margin >= 0) & (t > 0) & (t < t_max)
+    return hit, t, margin
+
+
 def assert_hits_match(t, prim, t_ref, prim_ref, rtol=1e-5):
     """Same hit primitive, or (on ties and near-ties) the same t within rtol; misses agree."""
     t = np.asarray(t, dtype=np.float64)

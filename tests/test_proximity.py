@@ -28,7 +28,7 @@ import pytest
 import trimesh
 import warp as wp
 from conftest import shared_mesh
-from handmade_trees import caterpillar
+from handmade_trees import canonical_view, caterpillar
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracles import random_soup
@@ -218,18 +218,6 @@ def check_vertex_points(points, closest):
 # ----------------------------------------------------------------------------- helpers
 def make_scene(family: str, seed: int = 0):
     return stress_report.SCENE_FAMILIES[family](np.random.default_rng(seed))
-
-
-def canonical_view(bvh):
-    """A view without the packed layout: `bvh_closest_point` then walks the canonical arrays."""
-    packed = query.view(bvh)
-    canonical = query.BvhView()
-    for name in ("node_lowers", "node_uppers", "node_left", "node_right", "node_begin", "node_end", "prim_order",
-                 "prim_lowers", "prim_uppers", "vertices", "faces"):
-        setattr(canonical, name, getattr(packed, name))
-    canonical.packed_nodes = wp.zeros(0, dtype=traversal.PackedNode, device=bvh.device)
-    canonical.packed_triangles = wp.zeros(0, dtype=traversal.PackedTriangle, device=bvh.device)
-    return canonical
 
 
 @wp.kernel

@@ -11,7 +11,8 @@ import pytest
 import trimesh
 import warp as wp
 from conftest import REPO_ROOT
-from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, random_rays, random_soup
+from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, numpy_all_hits, random_rays,
+                     random_soup)
 
 import hlbvh_warp
 from hlbvh_warp import query, wide
@@ -353,32 +354,11 @@ def test_tree_and_view_follow_a_second_build_of_the_builder(device, rng, scene):
 
 
 # ----------------------------------------------------------------- pinned by the mutation audit
-def _numpy_all_hits(vertices, faces, origins, directions, t_max):
-    """Every (ray, triangle) hit with t in (0, t_max), Moller-Trumbore in float64; the t of each pair,
-    and how far inside its triangle the crossing lies (the least barycentric)."""
-    v = np.asarray(vertices, np.float64)
-    a, b, c = (v[np.asarray(faces)[:, k]] for k in range(3))
-    e1, e2 = b - a, c - a
-    o = np.asarray(origins, np.float64)[:, None]
-    d = np.asarray(directions, np.float64)[:, None]
-    with np.errstate(all="ignore"):
-        p = np.cross(d, e2[None])
-        det = np.einsum("rfk,fk->rf", p, e1)
-        tv = o - a[None]
-        u = np.einsum("rfk,rfk->rf", tv, p) / det
-        q = np.cross(tv, e1[None])
-        w = np.einsum("rfk,rfk->rf", np.broadcast_to(d, q.shape), q) / det
-        t = np.einsum("rfk,fk->rf", q, e2) / det
-        margin = np.minimum(np.minimum(u, w), 1 - u - w)
-    hit = (det != 0) & (margin >= 0) & (t > 0) & (t < t_max)
-    return hit, t, margin
-
-
 def test_intersect_all_honours_t_max(device, rng, scene):
     verts, faces = scene
     bvh = hlbvh_warp.build(verts, faces, device=device)
     o, d = random_rays(rng, verts, 150)
-    hit, t_ref, margin = _numpy_all_hits(verts, faces, o, d, np.inf)
+    hit, t_ref, margin = numpy_all_hits(verts, faces, o, d, np.inf)
     t_max = float(np.median(t_ref[hit]))
     # Leave out crossings within float32 error of t_max or of a triangle's edge (the oracle is
     # not watertight): the rest must be listed exactly when t < t_max.

@@ -1,0 +1,259 @@
+"""Ray ranges for secondary rays: a near end ``t_min`` and a triangle each ray ignores, in the batched
+calls (`intersect`, `occluded`, `intersect_all`) and in user kernels on packed and canonical views,
+against a float64 brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from handmade_trees import canonical_view
+from oracles import numpy_all_hits, random_rays
+
+import hlbvh_warp
+from hlbvh_warp import query
+
+
+@pytest.fixture
+def scene():
+    """Nested shells and a box beside them: most rays cross several surfaces, so a range or an
+    ignored triangle changes which one a ray finds."""
+    outer = trimesh.creation.icosphere(subdivisions=3)
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((1.6, 0, 0))
+    mesh = trimesh.util.concatenate([outer, inner, box])
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+
+
+def expected_hits(verts, faces, o, d, t_min, ignore):
+    """The float64 closest hit in (t_min, inf) on any triangle but the ray's ``ignore``, and which
+    rays are ambiguous: a crossing within float32 error of t_min or of a triangle's edge (the
+    oracle is not watertight), or two crossings at nearly one t."""
+    hit, t, margin = numpy_all_hits(verts, faces, o, d, np.inf)
+    lows = np.broadcast_to(np.asarray(t_min, np.float64), (len(o),))[:, None]
+    skips = np.broadcast_to(np.asarray(ignore), (len(o),))[:, None]
+    others = np.arange(len(faces))[None] != skips
+    counted = hit & (t > lows) & others
+    t_counted = np.where(counted, t, np.inf)
+    prim = np.argmin(t_counted, axis=1)
+    best = t_counted[np.arange(len(o)), prim]
+    prim = np.where(np.isfinite(best), prim, -1)
+    near_low = hit & others & (np.abs(t - lows) <= 1e-4 * np.maximum(1.0, lows))
+    near_edge = others & (margin > -1e-6) & (margin < 1e-6) & (t > 0)
+    second = np.sort(t_counted, axis=1)[:, 1] if len(faces) > 1 else np.full(len(o), np.inf)
+    with np.errstate(invalid="ignore"):
+        tie = np.isfinite(second) & (second - best <= 1e-5 * np.maximum(1.0, best))
+    ambiguous = near_low.any(axis=1) | near_edge.any(axis=1) | tie
+    return best, prim, ambiguous
+
+
+def assert_matches(t, prim, best, prim_ref, ambiguous):
+    clear = ~ambiguous
+    assert clear.sum() > 0.8 * len(prim), "too many ambiguous rays for the comparison to mean anything"
+    assert np.array_equal(prim[clear], prim_ref[clear]), f"{int((prim[clear] != prim_ref[clear]).sum())} rays differ"
+    hit = clear & (prim_ref >= 0)
+    np.testing.assert_allclose(t[hit], best[hit], rtol=1e-5)
+
+
+def crossings(verts, faces, o, d):
+    """Each ray's first and second crossing distances in float64 (inf where there is none)."""
+    hit, t, _ = numpy_all_hits(verts, faces, o, d, np.inf)
+    ts = np.sort(np.where(hit, t, np.inf), axis=1)
+    return ts[:, 0], ts[:, 1]
+
+
+def test_t_min_per_ray_and_for_every_ray(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 400)
+    first, second = crossings(verts, faces, o, d)
+    # Per ray: a near end between the first and the second crossing, so the answer is the second.
+    lows = np.where(np.isfinite(second), 0.5 * (first + second), np.where(np.isfinite(first), first * 0.5, 1.0))
+    t, prim = query.intersect(bvh, o, d, t_min=lows)
+    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, lows, -1)
+    assert (prim_ref >= 0).sum() > 100 and (prim_ref != crossings_prim(verts, faces, o, d)).sum() > 100
+    assert_matches(t, prim, best, prim_ref, ambiguous)
+    # One near end for every ray, as a Warp array and as a number.
+    low = float(np.median(first[np.isfinite(first)]))
+    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, low, -1)
+    for arg in (low, wp.array([low], dtype=wp.float32, device=device)):
+        t, prim = query.intersect(bvh, o, d, t_min=arg)
+        assert_matches(t, prim, best, prim_ref, ambiguous)
+    assert (t[prim >= 0] > np.float32(low)).all()
+
+
+def crossings_prim(verts, faces, o, d):
+    """The triangle each ray crosses first (float64), -1 for none."""
+    hit, t, _ = numpy_all_hits(verts, faces, o, d, np.inf)
+    t = np.where(hit, t, np.inf)
+    prim = np.argmin(t, axis=1)
+    return np.where(np.isfinite(t[np.arange(len(o)), prim]), prim, -1)
+
+
+def test_ignore_prim_finds_the_next_crossing(device, rng, scene):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 400)
+    first = crossings_prim(verts, faces, o, d)
+    # Every other ray ignores the triangle it would hit first; the rest ignore nothing (-1).
+    ignore = np.where(np.arange(len(o)) % 2 == 0, first, -1).astype(np.int64)
+    t, prim, u, v = query.intersect(bvh, o, d, ignore_prim=ignore, return_barycentrics=True)
+    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, 0.0, ignore)
+    assert ((ignore >= 0) & (prim_ref >= 0) & ~ambiguous).sum() > 100
+    assert_matches(t, prim, best, prim_ref, ambiguous)
+    assert not ((prim == ignore) & (ignore >= 0)).any()
+    # The weights belong to the triangle reported, not to the one ignored.
+    hit = prim >= 0
+    tri = verts[faces[prim[hit]]].astype(np.float64)
+    on_tri = (1 - u[hit] - v[hit])[:, None] * tri[:, 0] + u[hit, None] * tri[:, 1] + v[hit, None] * tri[:, 2]
+    np.testing.assert_allclose(on_tri, o[hit] + t[hit, None] * d[hit], atol=1e-5)
+
+
+def test_secondary_rays_leave_their_surface(device, rng, scene):
+    """What the range is for: rays from the hit points of camera rays, each ignoring its triangle,
+    find the next surface at its float64 distance and never their own triangle."""
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 600)
+    t, prim = query.intersect(bvh, o, d)
+    keep = prim >= 0
+    points = (o[keep] + t[keep, None] * d[keep]).astype(np.float32)
+    tri = verts[faces[prim[keep]]].astype(np.float64)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    # Directions into either side of each surface, never close to its plane.
+    raw = rng.normal(size=points.shape)
+    raw -= 0.8 * (raw * normal).sum(1, keepdims=True) * normal
+    raw += np.where(rng.random((len(raw), 1)) < 0.5, 0.3, -0.3) * normal
+    dirs = (raw / np.linalg.norm(raw, axis=1, keepdims=True)).astype(np.float32)
+    ignore = prim[keep]
+    t2, prim2 = query.intersect(bvh, points, dirs, ignore_prim=ignore)
+    assert not (prim2 == ignore).any()
+    best, prim_ref, ambiguous = expected_hits(verts, faces, points, dirs, 0.0, ignore)
+    # A neighbour sharing the edge or vertex the point lies near is crossed at t near 0: ambiguous.
+    ambiguous |= (best < 1e-3)
+    assert_matches(t2, prim2, best, prim_ref, ambiguous)
+    occ = query.occluded(bvh, points, dirs, ignore_prim=ignore)
+    assert np.array_equal(occ[~ambiguous], prim_ref[~ambiguous] >= 0)
+
+
+def test_occluded_and_intersect_all_honour_the_range(device, rng, scene):
+    """`intersect_all` under a range lists exactly the unrestricted list's crossings inside it (the
+    same watertight test, so the same float32 t), `occluded` says whether it is non-empty, and
+    `intersect`'s answer is its nearest."""
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 300)
+    first, second = crossings(verts, faces, o, d)
+    lows = np.where(np.isfinite(first), first * rng.uniform(0.5, 1.5, len(o)), 0.0)
+    highs = lows + rng.uniform(0.0, 2.0, len(o))
+    ignore = np.where(rng.random(len(o)) < 0.5, crossings_prim(verts, faces, o, d), -1)
+    ray_all, prim_all, t_all = query.intersect_all(bvh, o, d)
+    # Compared in float64: t_min and t_max bound the float32 t as the exact values they are.
+    t64 = t_all.astype(np.float64)
+    inside = (t64 > lows[ray_all]) & (t64 < highs[ray_all]) & (prim_all != ignore[ray_all])
+    ray_id, prim, t = query.intersect_all(bvh, o, d, t_max=highs, t_min=lows, ignore_prim=ignore)
+    assert inside.sum() > 50 and (~inside).sum() > 50
+    assert np.array_equal(ray_id, ray_all[inside]) and np.array_equal(prim, prim_all[inside])
+    assert np.array_equal(t, t_all[inside])
+    occ = query.occluded(bvh, o, d, t_max=highs, t_min=lows, ignore_prim=ignore)
+    assert np.array_equal(occ, np.isin(np.arange(len(o)), ray_id))
+    t_near, prim_near = query.intersect(bvh, o, d, t_max=highs, t_min=lows, ignore_prim=ignore)
+    nearest = np.full(len(o), np.inf, np.float32)
+    np.minimum.at(nearest, ray_id, t)
+    assert np.array_equal(t_near, nearest)
+    assert np.array_equal(prim_near >= 0, occ)
+
+
+@wp.kernel
+def _range_user_kernel(
+    bvh: hlbvh_warp.BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    t_min: wp.array(dtype=float),
+    ignore: wp.array(dtype=wp.int32),
+    out_t: wp.array(dtype=float),
+    out_prim: wp.array(dtype=wp.int32),
+    out_any: wp.array(dtype=wp.int32),
+    out_occluded: wp.array(dtype=wp.int32),
+):
+    # What a user writes for a secondary ray: the range and the triangle it leaves from.
+    tid = wp.tid()
+    h = hlbvh_warp.bvh_closest_hit(bvh, origins[tid], directions[tid], t_min[tid], 1.0e30, ignore[tid])
+    out_t[tid] = h.t
+    out_prim[tid] = h.prim
+    out_any[tid] = hlbvh_warp.bvh_any_hit(bvh, origins[tid], directions[tid], t_min[tid], 1.0e30, ignore[tid]).prim
+    out_occluded[tid] = hlbvh_warp.bvh_occluded(bvh, origins[tid], directions[tid], t_min[tid], 1.0e30, ignore[tid])
+
+
+@pytest.mark.parametrize("layout", ["packed", "canonical"])
+def test_user_kernel_range_overloads(device, rng, scene, layout):
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    o, d = random_rays(rng, verts, 300)
+    first, _ = crossings(verts, faces, o, d)
+    lows = np.where(np.isfinite(first) & (rng.random(len(o)) < 0.5), first * 1.2, 0.0).astype(np.float32)
+    ignore = np.where(rng.random(len(o)) < 0.5, crossings_prim(verts, faces, o, d), -1).astype(np.int32)
+    view = query.view(bvh) if layout == "packed" else canonical_view(bvh)
+    outs = [wp.empty(len(o), dtype=dt, device=device) for dt in (float, wp.int32, wp.int32, wp.int32)]
+    wp.launch(_range_user_kernel, dim=len(o), device=device,
+              inputs=[view, wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device),
+                      wp.array(lows, dtype=float, device=device), wp.array(ignore, dtype=wp.int32, device=device)]
+              + outs)
+    t_k, prim_k, any_k, occ_k = (a.numpy() for a in outs)
+    t, prim = query.intersect(bvh, o, d, t_min=lows, ignore_prim=ignore)
+    assert np.array_equal(prim_k, prim) and np.array_equal(t_k, t)
+    assert np.array_equal(any_k >= 0, prim >= 0) and np.array_equal(occ_k, (prim >= 0).astype(np.int32))
+    assert not ((any_k == ignore) & (ignore >= 0)).any()
+    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, lows, ignore)
+    assert_matches(t_k, prim_k, best, prim_ref, ambiguous)
+
+
+def _plane_at_z1(device):
+    verts = np.array([[-1, -1, 1], [3, -1, 1], [-1, 3, 1]], np.float32)
+    return hlbvh_warp.build(verts, np.array([[0, 1, 2]], np.int32), device=device)
+
+
+def test_t_min_bounds_exactly(device):
+    """The range is open at t_min, which is rounded down to float32 (as t_max is rounded up), so a
+    float64 t_min just under a float32 hit keeps it: rounded to nearest, 1 - 1e-12 read as 1.0 and
+    dropped the hit at t = 1."""
+    bvh = _plane_at_z1(device)
+    o, d = np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32)
+    cases = {0.0: True, 1.0 - 1e-12: True, float(np.nextafter(1.0, 0.0)): True, 1.0: False, 1.0 + 1e-12: False,
+             1e39: False, float("inf"): False}
+    for low, hit in cases.items():
+        t, prim = query.intersect(bvh, o, d, t_min=low)
+        assert (prim[0] == 0) == hit, low
+        if hit:
+            assert t[0] == 1.0
+        assert query.occluded(bvh, o, d, t_min=low)[0] == hit
+    # An empty range misses, whichever end is given per ray.
+    assert query.intersect(bvh, np.zeros((2, 3)), [0, 0, 1], t_min=[0.5, 2.0], t_max=[2.0, 0.5])[1].tolist() == [0, -1]
+    # A tiny direction is scaled into range; t_min is in the caller's units all the same.
+    tiny = np.array([[0, 0, 1e-30]], np.float32)
+    assert query.intersect(bvh, o, tiny, t_min=0.5e30)[1][0] == 0
+    assert query.intersect(bvh, o, tiny, t_min=2e30)[1][0] == -1
+
+
+def test_ray_range_errors_name_the_problem(device):
+    bvh = _plane_at_z1(device)
+    o, d = np.zeros((2, 3), np.float32), np.array([[0, 0, 1]] * 2, np.float32)
+    bad = {
+        "t_min must be >= 0, got -1.0": {"t_min": -1.0},
+        r"t_min must be >= 0, got nan \(ray 1\)": {"t_min": [0.0, np.nan]},
+        r"t_min must be a number or have shape \(2,\)": {"t_min": np.zeros(3)},
+        r"ignore_prim must be -1 \(none\) or a triangle index in \[0, 1\), got 1": {"ignore_prim": 1},
+        r"got -2 \(ray 0\)": {"ignore_prim": [-2, 0]},
+        "ignore_prim must hold integer triangle indices": {"ignore_prim": np.array([0.0, 0.0])},
+        "must hold integer triangle indices.*bool": {"ignore_prim": np.array([True, False])},
+        r"ignore_prim must be one index or have shape \(2,\)": {"ignore_prim": np.zeros(3, np.int32)},
+    }
+    for message, kwargs in bad.items():
+        for call in (query.intersect, query.occluded, query.intersect_all):
+            with pytest.raises(ValueError, match=message):
+                call(bvh, o, d, **kwargs)
+    # A Warp array of indices is read like a NumPy one.
+    ignore = wp.array([0, -1], dtype=wp.int32, device=device)
+    assert query.intersect(bvh, o, d, ignore_prim=ignore)[1].tolist() == [-1, 0]
