@@ -1,9 +1,10 @@
 """Queries from a user's own kernel: shade a mesh with closest-hit, shadow and box queries.
 
 A `hlbvh_warp.query.BvhView` is passed to the kernel like any struct; inside, the ``@wp.func``
-queries `bvh_closest_hit` (t, primitive, barycentrics), `bvh_occluded` (a shadow ray with t_max)
-and `bvh_aabb_count` (triangles whose box overlaps a box around the hit) do the work. Each frame
-moves the light and renders a small image; ``render`` saves it with matplotlib unless headless.
+queries `bvh_closest_hit` (t, primitive, barycentrics), `bvh_occluded` (a shadow ray over the range
+from 0 to the light that ignores the triangle it starts on) and `bvh_aabb_count` (triangles whose
+box overlaps a box around the hit) do the work. Each frame moves the light and renders a small
+image; ``render`` saves it with matplotlib unless headless.
 
     python examples/example_user_kernel.py --headless --num-frames 4
 """
@@ -52,8 +53,9 @@ def shade_kernel(
         to_light = light - p
         dist = wp.length(to_light)
         to_light = to_light / dist
-        # Start the shadow ray a little off the surface so it does not hit its own triangle.
-        lit = 1.0 - float(query.bvh_occluded(bvh, p + n * (1.0e-4 * dist), to_light, dist))
+        # The shadow ray starts on the surface and ignores the triangle it leaves, which rounding
+        # would otherwise let it hit at t near 0; no offset to tune to the scene's scale.
+        lit = 1.0 - float(query.bvh_occluded(bvh, p, to_light, 0.0, dist, hit.prim))
         value = 0.1 + 0.9 * lit * wp.max(wp.dot(n, to_light), 0.0)
         r = wp.vec3(neighbourhood)
         count = query.bvh_aabb_count(bvh, p - r, p + r)
