@@ -48,6 +48,11 @@ STACK_SIZE = wp.constant(TRAVERSAL_STACK_SIZE)
 TINY_DIRECTION = wp.constant(5.421010862427522e-20)
 DIRECTION_STEP = wp.constant(4294967296.0)
 FLOAT32_MAX = wp.constant(3.4028234663852886e38)
+# An origin farther from the root box than this many times the box's extent is first moved along
+# its ray to the box (`ray_far_shift`). Past it, float32 differences of triangle and origin
+# coordinates (the shear of the watertight test) lose the triangle's own size.
+FAR_ORIGIN = wp.constant(1024.0)
+FAR_BOX_PAD = wp.constant(wp.float64(2.0**-30))
 
 
 @wp.struct
@@ -340,6 +345,60 @@ def ray_scaled_t_max(t_max: float, scale: float):
     if scale == 1.0 or not (t_max > 0.0):
         return t_max
     return wp.min(t_max, FLOAT32_MAX) / scale
+
+
+@wp.func
+def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """How far along the ray (in units of ``direction``) to move an origin that lies far outside
+    the root box ``[lower, upper]`` before the traversal: 0 for every other origin.
+
+    Seen from an origin 1e6 box sizes away, float32 coordinates relative to the origin keep
+    nothing of a triangle's size: the watertight test's edge functions are rounding noise (hits
+    lost or invented) and the padded box test (Ize 2013), whose slack grows with the distance,
+    opens every node. Moved in float64 to a box size before the root box, the origin keeps the
+    triangles' float32 resolution and the ray its direction: the walk is then as for a near
+    origin, and the t found there is added to the shift. No hit is lost: every hit lies at or
+    beyond the box's entry distance, and the new origin stops short of it.
+
+    Returns -1 for a far origin whose ray misses the root box in float64 (the box slightly
+    widened): a float32 walk would open every node the padded test cannot rule out and could
+    only find rounding artifacts there.
+    """
+    shift = wp.float64(0.0)
+    extent = wp.max(upper[0] - lower[0], wp.max(upper[1] - lower[1], upper[2] - lower[2]))
+    gap = float(0.0)
+    for k in range(3):
+        gap = wp.max(gap, wp.max(lower[k] - origin[k], origin[k] - upper[k]))
+    # NaN anywhere fails this test: such a ray is refused later, unmoved.
+    if gap > FAR_ORIGIN * extent and wp.isfinite(gap):
+        t0 = wp.float64(0.0)
+        t1 = wp.float64(INF)
+        reach = float(0.0)
+        # Widened by far more than float64's rounding of the slab distances, far less than a triangle.
+        pad = wp.float64(FAR_BOX_PAD) * (wp.float64(extent) + wp.float64(wp.max(wp.abs(lower[0]), wp.max(
+            wp.abs(lower[1]), wp.max(wp.abs(lower[2]), wp.max(wp.abs(upper[0]), wp.max(wp.abs(upper[1]),
+                                                                                     wp.abs(upper[2]))))))))
+        for k in range(3):
+            dk = wp.float64(direction[k])
+            reach = wp.max(reach, wp.abs(direction[k]))
+            lo = wp.float64(lower[k]) - pad - wp.float64(origin[k])
+            hi = wp.float64(upper[k]) + pad - wp.float64(origin[k])
+            if dk != wp.float64(0.0):
+                near = lo / dk
+                far = hi / dk
+                if dk < wp.float64(0.0):
+                    near = hi / dk
+                    far = lo / dk
+                t0 = wp.max(t0, near)
+                t1 = wp.min(t1, far)
+            elif lo > wp.float64(0.0) or hi < wp.float64(0.0):
+                t1 = wp.float64(-1.0)
+        # Stop one box extent short of the box, so the rounded origin still lies outside it.
+        if t0 <= t1 and reach > 0.0:
+            shift = wp.max(t0 - wp.float64(extent) / wp.float64(reach), wp.float64(0.0))
+        else:
+            shift = wp.float64(-1.0)
+    return shift
 
 
 @wp.func
@@ -677,8 +736,21 @@ def bvh_ray_query(
     """Front-to-back traversal shared by the closest-hit and the any-hit query."""
     # A miss's t is inf, and inf times the scale is inf: no test needed before scaling back.
     scale = ray_direction_scale(direction)
+    d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
+    start = origin
+    shift = wp.float64(0.0)
+    if bvh.faces.shape[0] > 0:
+        shift = ray_far_shift(origin, d, bvh.node_lowers[0], bvh.node_uppers[0])
+    if shift > wp.float64(0.0):
+        start = wp.vec3(wp.vec3d(origin) + wp.vec3d(d) * shift)
+        low = float(wp.max(wp.float64(low) - shift, wp.float64(0.0)))
+        limit = float(wp.float64(limit) - shift)
+    elif shift < wp.float64(0.0):
+        # A far ray that misses the root box: an empty range, refused before any node is read.
+        limit = float(0.0)
+    h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
         # The root's record is at position 0; a root that is a leaf has none.
@@ -691,16 +763,17 @@ def bvh_ray_query(
             bvh.node_uppers[0],
             root_begin,
             root,
-            origin,
-            direction * scale,
+            start,
+            d,
             low,
             limit,
             ignore_prim,
             any_hit,
         )
-        h.t = h.t * scale
-        return h
-    h = canonical_ray_query(bvh, origin, direction * scale, low, limit, ignore_prim, any_hit)
+    else:
+        h = canonical_ray_query(bvh, start, d, low, limit, ignore_prim, any_hit)
+    if h.prim >= 0 and shift > wp.float64(0.0):
+        h.t = float(wp.float64(h.t) + shift)
     h.t = h.t * scale
     return h
 
@@ -786,29 +859,39 @@ def bvh_ray_all_hits(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    if bvh.faces.shape[0] > 0 and ray_is_valid(origin, d, low, limit) == 1:
+    start = origin
+    shift = wp.float64(0.0)
+    if bvh.faces.shape[0] > 0:
+        shift = ray_far_shift(origin, d, bvh.node_lowers[0], bvh.node_uppers[0])
+    if shift > wp.float64(0.0):
+        start = wp.vec3(wp.vec3d(origin) + wp.vec3d(d) * shift)
+        low = float(wp.max(wp.float64(low) - shift, wp.float64(0.0)))
+        limit = float(wp.float64(limit) - shift)
+    elif shift < wp.float64(0.0):
+        limit = float(0.0)
+    if bvh.faces.shape[0] > 0 and ray_is_valid(start, d, low, limit) == 1:
         inv = ray_inverse_direction(d)
-        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:
+        if ray_box_entry(start, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:
             node = 0
     while node >= 0:
         left = bvh.node_left[node]
         if left < 0 or top >= STACK_SIZE - 1:
             for k in range(bvh.node_begin[node], bvh.node_end[node]):
                 p = bvh.prim_order[k]
-                h = bvh_triangle(bvh, p, origin, d, low, limit)
+                h = bvh_triangle(bvh, p, start, d, low, limit)
                 if h.hit == 1 and p != ignore_prim:
                     if count < capacity:
                         out_prim[offset + count] = p
-                        out_t[offset + count] = h.t * scale
+                        out_t[offset + count] = float(wp.float64(h.t) + shift) * scale
                     count += 1
             node = -1
         else:
             right = bvh.node_right[node]
             node = -1
-            if ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], low, limit) < INF:
+            if ray_box_entry(start, inv, bvh.node_lowers[left], bvh.node_uppers[left], low, limit) < INF:
                 stack[top] = left
                 top += 1
-            if ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], low, limit) < INF:
+            if ray_box_entry(start, inv, bvh.node_lowers[right], bvh.node_uppers[right], low, limit) < INF:
                 stack[top] = right
                 top += 1
         if top > 0:

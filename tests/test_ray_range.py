@@ -26,10 +26,11 @@ def scene():
     return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
 
 
-def expected_hits(verts, faces, o, d, t_min, ignore):
+def expected_hits(verts, faces, o, d, t_min, ignore, scale=None):
     """The float64 closest hit in (t_min, inf) on any triangle but the ray's ``ignore``, and which
     rays are ambiguous: a crossing within float32 error of t_min or of a triangle's edge (the
-    oracle is not watertight), or two crossings at nearly one t."""
+    oracle is not watertight), or two crossings at nearly one t (within 1e-5 of ``scale``, by
+    default of the distance)."""
     hit, t, margin = numpy_all_hits(verts, faces, o, d, np.inf)
     lows = np.broadcast_to(np.asarray(t_min, np.float64), (len(o),))[:, None]
     skips = np.broadcast_to(np.asarray(ignore), (len(o),))[:, None]
@@ -43,7 +44,7 @@ def expected_hits(verts, faces, o, d, t_min, ignore):
     near_edge = others & (margin > -1e-6) & (margin < 1e-6) & (t > 0)
     second = np.sort(t_counted, axis=1)[:, 1] if len(faces) > 1 else np.full(len(o), np.inf)
     with np.errstate(invalid="ignore"):
-        tie = np.isfinite(second) & (second - best <= 1e-5 * np.maximum(1.0, best))
+        tie = np.isfinite(second) & (second - best <= 1e-5 * (np.maximum(1.0, best) if scale is None else scale))
     ambiguous = near_low.any(axis=1) | near_edge.any(axis=1) | tie
     return best, prim, ambiguous
 
@@ -257,3 +258,46 @@ def test_ray_range_errors_name_the_problem(device):
     # A Warp array of indices is read like a NumPy one.
     ignore = wp.array([0, -1], dtype=wp.int32, device=device)
     assert query.intersect(bvh, o, d, ignore_prim=ignore)[1].tolist() == [-1, 0]
+
+
+@pytest.mark.parametrize("distance", [1e4, 1e6, 1e8])
+def test_rays_from_far_origins(device, rng, scene, distance):
+    """Origins ``distance`` mesh sizes away: float32 coordinates relative to such an origin keep
+    nothing of a triangle's size, so the walk starts from the origin moved along its ray, in
+    float64, to the mesh's box. Hits then agree with the float64 brute force (at 1e6, 32 of 300
+    had disagreed, and at 1e8 most hits were lost), the walk opens as few nodes as from nearby
+    (at 1e8 it had opened the whole tree), and the range bounds the true distance."""
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    lo, hi = verts.min(0).astype(np.float64), verts.max(0).astype(np.float64)
+    size = np.linalg.norm(hi - lo)
+    dirs = rng.normal(size=(300, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    near_o = (0.5 * (lo + hi) - 2.0 * size * dirs).astype(np.float32)
+    far_o = (0.5 * (lo + hi) - distance * size * dirs).astype(np.float32)
+    targets = lo + rng.random((300, 3)) * (hi - lo)
+    rays = {}
+    for name, o in (("near", near_o), ("far", far_o)):
+        d = targets - o.astype(np.float64)
+        rays[name] = (o, (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32))
+    _, _, near_stats = query.intersect(bvh, *rays["near"], stats=True)
+    o, d = rays["far"]
+    t, prim, stats = query.intersect(bvh, o, d, stats=True)
+    # Which triangle is first is decided near the mesh, to the mesh's float32 resolution.
+    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, 0.0, -1, scale=size)
+    # At 1e8 a float32 direction's rounding alone turns a ray by more than the mesh: few still hit.
+    assert (prim_ref >= 0).sum() > (100 if distance < 1e8 else 10)
+    assert_matches(t, prim, best, prim_ref, ambiguous)
+    assert stats.nodes_visited.mean() <= 1.5 * near_stats.nodes_visited.mean()
+    # The range bounds the distance from the caller's origin, wherever the walk started.
+    hit = np.flatnonzero((prim_ref >= 0) & ~ambiguous)
+    below, _ = query.intersect(bvh, o[hit], d[hit], t_max=best[hit] * (1 - 1e-6))
+    above, _ = query.intersect(bvh, o[hit], d[hit], t_max=best[hit] * (1 + 1e-6))
+    assert np.isinf(below).all() and np.isfinite(above).all()
+    ray_id, all_prim, all_t = query.intersect_all(bvh, o[hit], d[hit])
+    first = np.full(len(hit), np.inf)
+    np.minimum.at(first, ray_id, all_t.astype(np.float64))
+    np.testing.assert_allclose(first, best[hit], rtol=1e-5)
+    # A far ray that misses the mesh's box is refused before the walk.
+    away = query.intersect(bvh, o[:50], -d[:50], stats=True)
+    assert (away[1] == -1).all() and (away[2].nodes_visited == 0).all()
