@@ -17,8 +17,9 @@ test may pick either triangle, and on the mesh's silhouette a hit or a miss. Wro
 exit status. ``wp.Mesh``'s hits are compared with this package's and reported, not judged: a ray
 disagrees when the two report different triangles at distances that are not equal to 1e-5
 relative, or one hits and the other does not. ``wp.Mesh`` misses every ray on some valid meshes
-(a sphere of radius 1e-20), where the brute force agrees with this package. Then each kernel is
-timed as the best of ``--repeats`` launches and one fixed-format row is printed per run.
+(spheres of radius 1e-20, and of 1e20 or more), where the brute force agrees with this package.
+Then each kernel is timed as the best of ``--repeats`` launches and one fixed-format row is
+printed per run.
 """
 
 from __future__ import annotations
@@ -44,7 +45,10 @@ ORACLE_RAYS = 256
 
 def random_rays(rng, vertices: np.ndarray, num_rays: int):
     """Rays from a sphere around the bounding box aimed at uniform points inside it."""
-    lo, hi = vertices.min(0), vertices.max(0)
+    # In float64: float32's squares overflowed in the diagonal of a box wider than 1.8e19, and
+    # every ray came out NaN.
+    v = np.asarray(vertices, dtype=np.float64)
+    lo, hi = v.min(0), v.max(0)
     center, radius = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo)
     dirs = rng.normal(size=(num_rays, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -55,7 +59,8 @@ def random_rays(rng, vertices: np.ndarray, num_rays: int):
 
 def camera_rays(vertices: np.ndarray, num_rays: int):
     """A square pinhole image of about ``num_rays`` pixels looking at the mesh along -z, 40 degree fov."""
-    lo, hi = vertices.min(0), vertices.max(0)
+    v = np.asarray(vertices, dtype=np.float64)  # as in `random_rays`
+    lo, hi = v.min(0), v.max(0)
     center, radius = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo)
     side = max(1, int(round(np.sqrt(num_rays))))
     half = np.tan(np.radians(20.0))

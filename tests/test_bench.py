@@ -161,22 +161,25 @@ def test_bench_rays_fails_on_its_own_wrong_hits_not_on_wp_meshs(tmp_path, monkey
     assert "0 wrong of" not in out and "wp.Mesh differs from ours on 0 rays" in out, out
 
 
-def test_bench_rays_passes_on_a_tiny_mesh_wp_mesh_misses(tmp_path, capsys):
-    # A sphere of radius 1e-20 (valid input): wp.Mesh misses every ray, and a verdict taken from
-    # its disagreements failed the run although our hits were right. The oracle here is the
-    # tests' own brute force (tests/oracles.py) on the very rays of the run (seed 0).
+@pytest.mark.parametrize("scale", [1e-20, 1e30])
+def test_bench_rays_passes_on_tiny_and_huge_meshes_wp_mesh_misses(scale, tmp_path, capsys):
+    # A sphere of radius 1e-20 or 1e30 (valid input): wp.Mesh misses every ray, and a verdict
+    # taken from its disagreements failed the run although our hits were right. At 1e30 the
+    # benchmark's own rays were NaN (float32's squares overflowed in the box diagonal) and nothing
+    # was hit. The oracle here is the tests' own brute force (tests/oracles.py) on the very rays
+    # of the run (seed 0).
     import trimesh
     from oracles import assert_hits_match, brute_force_closest_hit
 
     from hlbvh_warp import api, cli, query, ray_bench
 
     ball = trimesh.creation.icosphere(2)
-    ball.apply_scale(1e-20)
-    path = tmp_path / "tiny.ply"
+    ball.apply_scale(scale)
+    path = tmp_path / "ball.ply"
     ball.export(path)
     assert cli.main(["bench-rays", "--mesh", str(path), "--rays", "64", "--repeats", "1"]) == 0
     out = capsys.readouterr().out
-    rows = _rows(out, "tiny")
+    rows = _rows(out, "ball")
     # Every ray we hit is one wp.Mesh missed, and each is checked.
     assert [r[3] for r in rows] == ["random", "camera"]
     assert all(int(r[5]) > 0 and r[7] == "0" and r[8] == r[5] and int(r[6]) >= 64 for r in rows), out
