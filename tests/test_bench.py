@@ -114,27 +114,84 @@ def test_bench_bytes_count_the_boxes_once_and_time_every_builder(tmp_path):
     assert rows["sbvh"]["bytes_per_tri"] is None and rows["recursive_sah"]["bytes_per_tri"] is None
 
 
-def test_bench_rays_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
-    # bench-rays exits 1 when its hits disagree with wp.Mesh's, as bench-wide and quality do; it
-    # used to print the count and exit 0 whatever it was.
+def _rows(out: str, mesh: str) -> list[list[str]]:
+    """A bench command's rows of one mesh, split into columns. bench-rays, bench-points and
+    bench-pairs share the middle ones: 3 the kind of query, 6 checked against the brute force, 7
+    ours wrong among them, 8 where wp.Mesh differs from ours; 5 is the hits or points found."""
+    return [line.split() for line in out.splitlines() if line.startswith(f"{mesh} ")]
+
+
+def test_bench_rays_fails_on_its_own_wrong_hits_not_on_wp_meshs(tmp_path, monkeypatch, capsys):
+    """bench-rays checks its hits against the float64 brute force before timing and exits 1 when
+    one is wrong; where wp.Mesh differs, it says so and the status stays 0. It had taken its
+    status from wp.Mesh's disagreements alone."""
     import trimesh
 
-    from hlbvh_warp import cli, ray_bench
+    from hlbvh_warp import api, cli, ray_bench
 
     path = tmp_path / "ball.ply"
     trimesh.creation.icosphere(2).export(path)
     argv = ["bench-rays", "--mesh", str(path), "--rays", "64", "--repeats", "1"]
     assert cli.main(argv) == 0
-    assert "disagreements in total: 0" in capsys.readouterr().out
-    monkeypatch.setattr(ray_bench, "count_disagreements", lambda *args, **kwargs: 3)
+    out = capsys.readouterr().out
+    # Random rays and an 8 x 8 camera, all 64 of each checked (fewer than the even sample's 256).
+    rows = _rows(out, "ball")
+    assert [r[3] for r in rows] == ["random", "camera"]
+    assert all(r[4] == "64" and r[6:9] == ["64", "0", "0"] for r in rows), out
+    assert "ours against the float64 brute force: 0 wrong of 128 rays checked; wp.Mesh differs from ours on 0 " \
+           "rays (reported, not the exit status)" in out, out
+
+    # wp.Mesh differing on every ray is reported, as wp.Mesh's, and does not fail the run.
+    monkeypatch.setattr(ray_bench, "disagreeing", lambda t_a, *args, **kwargs: np.ones(len(t_a), bool))
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert all(r[6:9] == ["64", "0", "64"] for r in _rows(out, "ball")), out
+    assert "0 wrong of 128 rays checked; wp.Mesh differs from ours on 128 rays (reported" in out, out
+    monkeypatch.undo()
+
+    # Our hits on another mesh (the tree built over the ball moved by a tenth of its radius)
+    # while wp.Mesh is made to agree everywhere: wrong by the brute force, and the run fails.
+    real_build = api.build
+    monkeypatch.setattr(api, "build", lambda vertices, faces, **kwargs: real_build(vertices + 0.1, faces, **kwargs))
+    monkeypatch.setattr(ray_bench, "disagreeing", lambda t_a, *args, **kwargs: np.zeros(len(t_a), bool))
     assert cli.main(argv) == 1
-    assert "disagreements in total: 0" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    rows = _rows(out, "ball")
+    assert all(int(r[7]) > 16 and r[8] == "0" for r in rows), out
+    assert "0 wrong of" not in out and "wp.Mesh differs from ours on 0 rays" in out, out
 
 
-def _point_rows(out: str, mesh: str) -> list[list[str]]:
-    """bench-points' rows of one mesh, split into columns: 3 the set, 5 found, 6 checked against
-    the brute force, 7 ours wrong among them, 8 points where wp.Mesh differs from ours."""
-    return [line.split() for line in out.splitlines() if line.startswith(f"{mesh} ")]
+@pytest.mark.parametrize("scale", [1e-20, 1e30])
+def test_bench_rays_passes_on_tiny_and_huge_meshes_wp_mesh_misses(scale, tmp_path, capsys):
+    # A sphere of radius 1e-20 or 1e30 (valid input): wp.Mesh misses every ray, and a verdict
+    # taken from its disagreements failed the run although our hits were right. At 1e30 the
+    # benchmark's own rays were NaN (float32's squares overflowed in the box diagonal) and nothing
+    # was hit. The oracle here is the tests' own brute force (tests/oracles.py) on the very rays
+    # of the run (seed 0).
+    import trimesh
+    from oracles import assert_hits_match, brute_force_closest_hit
+
+    from hlbvh_warp import api, cli, query, ray_bench
+
+    ball = trimesh.creation.icosphere(2)
+    ball.apply_scale(scale)
+    path = tmp_path / "ball.ply"
+    ball.export(path)
+    assert cli.main(["bench-rays", "--mesh", str(path), "--rays", "64", "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    rows = _rows(out, "ball")
+    # Every ray we hit is one wp.Mesh missed, and each is checked.
+    assert [r[3] for r in rows] == ["random", "camera"]
+    assert all(int(r[5]) > 0 and r[7] == "0" and r[8] == r[5] and int(r[6]) >= 64 for r in rows), out
+    assert "ours against the float64 brute force: 0 wrong of" in out and "wp.Mesh differs from ours on 0" not in out
+
+    vertices, faces = np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)
+    bvh = api.build(vertices, faces, device="cpu")
+    kinds = (ray_bench.random_rays(np.random.default_rng(0), vertices, 64), ray_bench.camera_rays(vertices, 64))
+    for (o, d), row in zip(kinds, rows):
+        t, prim = query.intersect(bvh, o, d)
+        assert_hits_match(t, prim, *brute_force_closest_hit(vertices, faces, o, d))
+        assert int((prim >= 0).sum()) == int(row[5])
 
 
 def test_bench_points_fails_on_its_own_wrong_answers_not_on_wp_meshs(tmp_path, monkeypatch, capsys):
@@ -152,7 +209,7 @@ def test_bench_points_fails_on_its_own_wrong_answers_not_on_wp_meshs(tmp_path, m
     # One row per point set, every point found (no bound, or 5% of the diagonal around vertices
     # moved by about 1%: a miss there would be a 5-sigma offset, seed fixed), all 64 checked
     # (fewer than the even sample's 256).
-    rows = _point_rows(out, "ball")
+    rows = _rows(out, "ball")
     assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
     assert all(r[5] == "64" and r[6:9] == ["64", "0", "0"] for r in rows), out
     assert "ours against the float64 brute force: 0 wrong of 192 points checked; wp.Mesh differs from ours on 0 " \
@@ -162,7 +219,7 @@ def test_bench_points_fails_on_its_own_wrong_answers_not_on_wp_meshs(tmp_path, m
     monkeypatch.setattr(point_bench, "disagreeing", lambda d_a, *args, **kwargs: np.ones(len(d_a), bool))
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
-    assert all(r[6:9] == ["64", "0", "64"] for r in _point_rows(out, "ball")), out
+    assert all(r[6:9] == ["64", "0", "64"] for r in _rows(out, "ball")), out
     assert "0 wrong of 192 points checked; wp.Mesh differs from ours on 192 points (reported" in out, out
     monkeypatch.undo()
 
@@ -172,15 +229,17 @@ def test_bench_points_fails_on_its_own_wrong_answers_not_on_wp_meshs(tmp_path, m
     monkeypatch.setattr(api, "build", lambda vertices, faces, **kwargs: real_build(vertices + 0.1, faces, **kwargs))
     assert cli.main(argv) == 1
     out = capsys.readouterr().out
-    rows = _point_rows(out, "ball")
+    rows = _rows(out, "ball")
     assert all(int(r[7]) > 32 and int(r[8]) > 32 for r in rows), out
     assert "0 wrong of" not in out, out
 
 
-def test_bench_pairs_checks_counts_and_fails_on_a_disagreement(tmp_path, monkeypatch, capsys):
-    """bench-pairs compares every query's pair count with wp.mesh_query_aabb's before timing, and
-    exits 1 on a disagreement, as bench-rays does."""
+def test_bench_pairs_fails_on_its_own_wrong_pairs_not_on_wp_meshs(tmp_path, monkeypatch, capsys):
+    """bench-pairs checks its counts and its pair listing against an exact brute force before
+    timing and exits 1 when one is wrong; where wp.Mesh differs, it says so and the status stays 0.
+    It had taken its status from wp.Mesh's disagreements alone."""
     import trimesh
+    import warp as wp
 
     from hlbvh_warp import cli, pair_bench
 
@@ -189,13 +248,71 @@ def test_bench_pairs_checks_counts_and_fails_on_a_disagreement(tmp_path, monkeyp
     argv = ["bench-pairs", "--mesh", str(path), "--repeats", "1"]
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
-    rows = [line.split() for line in out.splitlines() if line.startswith("ball ")]
+    rows = _rows(out, "ball")
     assert [r[3] for r in rows] == ["self", "moved"]
-    # An icosphere has no self-intersections; the moved copy passes through it.
-    assert all(r[6] == "0" for r in rows) and rows[0][-1] == "0" and int(rows[1][-1]) > 0, out
+    # 256 of the 320 queries checked, none wrong, none differing from wp.Mesh. An icosphere has
+    # no self-intersections; the moved copy passes through it.
+    assert all(r[4] == "320" and r[6:9] == ["256", "0", "0"] for r in rows), out
+    assert rows[0][-1] == "0" and int(rows[1][-1]) > 0, out
+    assert "ours against the exact brute force: 0 wrong of 512 queries checked; wp.Mesh's disagreements with " \
+           "ours: 0 (reported, not the exit status)" in out, out
+
+    # wp.Mesh disagreeing is reported, as wp.Mesh's, and does not fail the run.
     monkeypatch.setattr(pair_bench, "count_disagreements", lambda *args, **kwargs: 4)
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert all(r[6:9] == ["256", "0", "4"] for r in _rows(out, "ball")), out
+    assert "0 wrong of 512 queries checked; wp.Mesh's disagreements with ours: 8 (reported" in out, out
+    monkeypatch.undo()
+
+    # The self rule turned round in the timed count pass (self queries keep every partner, moved
+    # ones only those later in the tree's order) while wp.Mesh is made to agree: the counts are
+    # wrong by the brute force, and the run fails.
+    real_launch = pair_bench.launch_box_pairs
+    monkeypatch.setattr(pair_bench, "launch_box_pairs",
+                        lambda queries, tree, self_pairs, *args: real_launch(queries, tree, not self_pairs, *args))
+    monkeypatch.setattr(pair_bench, "count_disagreements", lambda *args, **kwargs: 0)
+    monkeypatch.setattr(pair_bench, "differing_queries", lambda *args: np.zeros(0, np.int64))
     assert cli.main(argv) == 1
-    assert "disagreements in total: 8" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert all(int(r[7]) > 64 and r[8] == "0" for r in _rows(out, "ball")), out
+    assert "0 wrong of" not in out and "wp.Mesh's disagreements with ours: 0" in out, out
+    monkeypatch.undo()
+
+    # Right counts, but every listed pair names the next face as its partner: the listing is
+    # checked too.
+    real_candidates = pair_bench._candidates
+
+    def shifted(queries, tree, self_pairs):
+        pairs = real_candidates(queries, tree, self_pairs).numpy().reshape(-1, 2)
+        pairs[:, 1] = (pairs[:, 1] + 1) % tree.num_prims
+        return wp.array(pairs, dtype=wp.vec2i, device=tree.device)
+
+    monkeypatch.setattr(pair_bench, "_candidates", shifted)
+    assert cli.main(argv) == 1
+    out = capsys.readouterr().out
+    assert all(int(r[7]) > 64 and r[8] == "0" for r in _rows(out, "ball")), out
+
+
+def test_pair_bench_brute_force_matches_the_tests_oracle(rng):
+    """The command's brute force of box overlap against the tests' own (tests/oracles.py), on
+    boxes snapped to a coarse grid so that many only touch (touching counts)."""
+    from oracles import brute_overlaps
+
+    from hlbvh_warp.pair_bench import brute_force_partners
+
+    lo = np.floor(rng.random((300, 3)) * 8).astype(np.float32)
+    hi = lo + np.floor(rng.random((300, 3)) * 3).astype(np.float32)
+    # Queries: some of the boxes, moved by half a cell along some axes (flat ones included).
+    shift = np.float32(0.5) * (rng.random((70, 3)) < 0.3)
+    q_lo, q_hi = lo[:70] + shift, hi[:70] + shift
+    expected = brute_overlaps(lo, hi, q_lo, q_hi)
+    touching = expected & ((lo[None] == q_hi[:, None]) | (hi[None] == q_lo[:, None])).any(axis=2)
+    assert touching.sum() > 100 and expected.sum() > touching.sum() and not expected.all()
+    found = brute_force_partners(q_lo, q_hi, lo, hi, chunk=16)
+    assert len(found) == 70
+    for row, partners in zip(expected, found):
+        np.testing.assert_array_equal(partners, np.flatnonzero(row))
 
 
 def test_pair_bench_disagreement_rule():
@@ -244,7 +361,7 @@ def test_bench_points_runs_on_a_mesh_whose_vertices_coincide(device, tmp_path, c
         path.write_text("".join(f"v {corner[0]} {corner[1]} {corner[2]}\n" for _ in range(3)) + "f 1 2 3\nf 1 2 3\n")
         rc = cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1", "--device", device])
         out = capsys.readouterr().out
-        rows = _point_rows(out, "degenerate")
+        rows = _rows(out, "degenerate")
         assert rc == 0 and "0 wrong of 192 points checked; wp.Mesh differs from ours on 0 points" in out, out
         assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
         assert all(r[5] == "64" and r[6:9] == ["64", "0", "0"] for r in rows), out
@@ -286,7 +403,7 @@ def test_bench_pairs_moves_a_mesh_near_float32s_limit_without_overflow(device, t
     path.write_text("".join(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in vertices) + "f 1 2 3\nf 2 3 4\n")
     rc = cli.main(["bench-pairs", "--mesh", str(path), "--repeats", "1", "--device", device])
     captured = capsys.readouterr()
-    assert rc == 0 and "disagreements in total: 0" in captured.out, captured
+    assert rc == 0 and "ours against the exact brute force: 0 wrong of 4 queries checked" in captured.out, captured
 
     # Corners near +-3.3e38 along x and z: turned by 30 degrees they pass float32's limit. The
     # error says the benchmark's move overflowed, not that the (finite) file holds NaN or Inf.
@@ -310,7 +427,7 @@ def test_bench_points_passes_on_a_line_mesh_wp_mesh_finds_nothing_on(exponent, t
     path.write_text("".join(f"v {x!r} 0 0\n" for x in (0.0, s, 2.0 * s)) + "f 1 2 3\n" * 5)
     assert cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1"]) == 0
     out = capsys.readouterr().out
-    rows = _point_rows(out, "line")
+    rows = _rows(out, "line")
     assert [r[3] for r in rows] == ["box", "near", "near-bounded"]
     assert all(r[6:9] == ["64", "0", "64"] for r in rows), out  # 64 points where wp.Mesh found nothing
     assert "0 wrong of 192 points checked; wp.Mesh differs from ours on 192 points (reported" in out, out
@@ -347,7 +464,7 @@ def test_bench_points_passes_on_a_mesh_near_float32s_limit(tmp_path, capsys):
         trimesh.Trimesh(vertices, faces, process=False).export(path)
         assert cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1"]) == 0
         out = capsys.readouterr().out
-        assert all(r[6:9] == ["64", "0", differ] for r in _point_rows(out, name)), out
+        assert all(r[6:9] == ["64", "0", differ] for r in _rows(out, name)), out
         bvh = api.build(vertices, faces, device="cpu")
         sets = point_bench.point_sets(np.random.default_rng(0), vertices, 64)
         outputs[name] = [(points, *query.closest_point(bvh, points, max_dist=max_dist)[1:])
