@@ -9,7 +9,8 @@ query through the result, and its SAH cost:
     t, prim = hlbvh_warp.wide.intersect(wide, origins, directions)
 
 and, in a user kernel, ``hlbvh_warp.wide.bvh_wide_closest_hit(view, origin, direction, t_max)``
-on the struct ``hlbvh_warp.wide.view(wide)``.
+(or ``(view, origin, direction, t_min, t_max, ignore_prim)`` for secondary rays) on the struct
+``hlbvh_warp.wide.view(wide)``.
 
 The wide tree shares the binary tree's ``prim_order``, vertices and faces; it owns only its
 nodes. ``width=2`` gives the binary tree itself in the wide layout, the baseline of a k-ary
@@ -203,7 +204,8 @@ def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) 
 
 def view(wide: WideBvh) -> kernels.WideView:
     """The `WideView` struct of ``wide`` for user kernels, which call
-    ``hlbvh_warp.wide.bvh_wide_closest_hit(view, origin, direction, t_max)``.
+    ``hlbvh_warp.wide.bvh_wide_closest_hit(view, origin, direction, t_max)`` or, for a range and
+    an ignored triangle, ``bvh_wide_closest_hit(view, origin, direction, t_min, t_max, ignore_prim)``.
 
     It reads the wide tree's slots and the binary tree's primitive order and triangles: after a
     refit or rebuild of the binary tree, collapse it again and take a new view (this call refuses
@@ -240,7 +242,10 @@ def launch_args(wide: WideBvh, origins: wp.array, directions: wp.array, t_max, h
     outputs (``wp.launch(kernel, dim=len(origins), inputs=inputs)``): ``kernels.wide``'s
     ``wide_closest_hit_kernel`` for one limit, ``wide_closest_hit_limits_kernel`` for one per
     ray. ``t_max``: one number, or one per ray as `intersect` takes it (a float32 Warp array on
-    the tree's device of 1 or ``len(origins)`` entries is used as it is).
+    the tree's device of 1 or ``len(origins)`` entries is used as it is). It takes no ``t_min``
+    or ``ignore_prim``: these lean kernels are the timed path of plain rays (the bench, the camera
+    example); secondary rays go through `intersect` or a user kernel's six-argument
+    ``bvh_wide_closest_hit``.
 
     Every array is checked against what the kernel reads (type, length, device), since a launch
     past an array's end reads or writes memory it does not own."""
@@ -305,11 +310,18 @@ def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max,
     return args
 
 
-def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False):
+def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False, *, t_min=0.0,
+              ignore_prim=None):
     """Closest hit of every ray through the wide tree: ``(t, prim)`` as `hlbvh_warp.intersect`
-    returns them (a miss is ``(inf, -1)``), and a `WideTraversalStats` with `stats`. ``t_max``:
-    one number, or one per ray, as `hlbvh_warp.intersect` takes it."""
-    from .query import _t_max_values
+    returns them (a miss is ``(inf, -1)``), and a `WideTraversalStats` with `stats`. ``t_max``,
+    ``t_min`` and ``ignore_prim``: one value, or one per ray, as `hlbvh_warp.intersect` takes
+    them (hits count for t in (t_min, t_max), never on a ray's ``ignore_prim``), checked alike.
+
+    Raises:
+        ValueError: not a `WideBvh`, one collapsed from bare boxes or from a binary tree changed
+            since, rays of a wrong shape, or a bad ``t_min`` / ``t_max`` / ``ignore_prim``.
+    """
+    from .query import _ray_range
 
     if not isinstance(wide, WideBvh):
         raise ValueError(f"intersect() takes a WideBvh, got {type(wide).__name__}")
@@ -320,13 +332,20 @@ def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: boo
     o, d = inputs.ray_arrays(origins, directions)
     device = wide.device
     n = o.shape[0]
-    limits = _t_max_values(t_max, n)
+    lows, limits, skips, _ = _ray_range(t_min, t_max, ignore_prim, n, bvh.num_prims)
     hit_t = wp.empty(n, dtype=float, device=device)
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
     if n:
-        kernel, args = _launch_for(wide, wp.array(o, dtype=wp.vec3, device=device),
-                                   wp.array(d, dtype=wp.vec3, device=device), limits, hit_t, hit_prim, counts)
+        rays = [wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
+        if len(skips) == 0 and not lows.any():
+            # No near end and nothing ignored: the lean kernels `launch_args` hands out, whose
+            # per-thread copy of the arguments holds no range arrays.
+            kernel, args = _launch_for(wide, *rays, limits, hit_t, hit_prim, counts)
+        else:
+            ranges = [wp.array(lows, dtype=float, device=device), wp.array(limits, dtype=float, device=device),
+                      wp.array(skips, dtype=wp.int32, device=device)]
+            kernel, args = kernels.wide_closest_hit_range_kernel, [view(wide), *rays, *ranges, hit_t, hit_prim, counts]
         wp.launch(kernel, dim=n, device=device, inputs=args)
     out = (hit_t.numpy(), hit_prim.numpy())
     if stats:

@@ -18,8 +18,8 @@ from typing import Any
 import warp as wp
 
 from .metrics import box_area64
-from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, ray_box_entry, ray_direction_scale,
-                        ray_inverse_direction, ray_is_valid, query_limit, ray_scaled_t_max)
+from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, query_limit, query_prim, ray_box_entry,
+                        ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -264,13 +264,20 @@ def wide_closest_hit(
     triangles: wp.array(dtype=PackedTriangle),
     origin: wp.vec3,
     direction: wp.vec3,
+    t_min: float,
     t_max: float,
+    ignore_prim: int,
 ):
     """Closest hit through a wide BVH: at each node all k child boxes are tested and the hit ones
     stacked farthest first, so the nearest is taken next; an entry popped behind the closest hit
     so far is dropped. Stack entries are wide nodes (>= 0) or leaf slots (-(slot + 1)). The same
     watertight triangle test and padded box test as the binary traversal (kernels/traversal.py),
-    so both find the same hits. ``triangles`` are the binary tree's, in ``prim_order`` order."""
+    so both find the same hits. ``triangles`` are the binary tree's, in ``prim_order`` order.
+
+    Hits count with t in (t_min, t_max), and never on ``ignore_prim`` (-1: none), the triangle a
+    secondary ray leaves from, as in the binary `traversal.packed_ray_query`: boxes are entered
+    from t_min on, and a hit on the ignored triangle is refused after the triangle test, where
+    ``prim_order`` is read for every hit anyway."""
     best_t = t_max
     best_prim = int(-1)
     visited = int(0)
@@ -283,10 +290,11 @@ def wide_closest_hit(
     # A tiny direction is scaled into range, exactly (see `ray_direction_scale`).
     scale = ray_direction_scale(direction)
     d = direction * scale
+    low = ray_scaled_t_max(t_min, scale)
     best_t = ray_scaled_t_max(t_max, scale)
-    if ray_is_valid(origin, d, best_t) == 1:
+    if ray_is_valid(origin, d, low, best_t) == 1:
         inv = ray_inverse_direction(d)
-        t_root = ray_box_entry(origin, inv, root_lower, root_upper, best_t)
+        t_root = ray_box_entry(origin, inv, root_lower, root_upper, low, best_t)
         if t_root < INF:
             stack[0] = 0
             stack_t[0] = t_root
@@ -316,7 +324,7 @@ def wide_closest_hit(
                     record = slots[s]
                     if record.child != EMPTY:
                         boxes += 1
-                        t = ray_box_entry(origin, inv, record.lower, record.upper, best_t)
+                        t = ray_box_entry(origin, inv, record.lower, record.upper, low, best_t)
                         if t < INF:
                             e = record.child
                             if e == LEAF:
@@ -340,10 +348,12 @@ def wide_closest_hit(
             for k in range(first, last):
                 tested += 1
                 tri = triangles[k]
-                h = intersect_triangle_watertight(origin, d, tri.a, tri.b, tri.c, best_t)
+                h = intersect_triangle_watertight(origin, d, tri.a, tri.b, tri.c, low, best_t)
                 if h.hit == 1:
-                    best_t = h.t
-                    best_prim = prim_order[k]
+                    p = prim_order[k]
+                    if p != ignore_prim:
+                        best_t = h.t
+                        best_prim = p
     result = WideHit()
     result.t = INF
     result.prim = best_prim
@@ -376,10 +386,21 @@ class WideView:
 @wp.func
 def bvh_wide_closest_hit(view: WideView, origin: wp.vec3, direction: wp.vec3, t_max: float):
     """Closest hit of one ray through a wide BVH, for user kernels: a `WideHit` (``prim`` -1 and
-    ``t`` inf on a miss; hits count for t < t_max). The same hits as ``hlbvh_warp.wide.intersect``
-    (see `wide_closest_hit`)."""
+    ``t`` inf on a miss; hits count for t in (0, t_max)). The same hits as
+    ``hlbvh_warp.wide.intersect`` (see `wide_closest_hit`)."""
     return wide_closest_hit(view.width, view.root_lower, view.root_upper, view.slots, view.wide_begin, view.wide_end,
-                            view.prim_order, view.triangles, origin, direction, t_max)
+                            view.prim_order, view.triangles, origin, direction, 0.0, t_max, -1)
+
+
+@wp.func
+def bvh_wide_closest_hit(  # noqa: F811  (a Warp overload, chosen by argument count)
+    view: WideView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int
+):
+    """Closest hit with t in (t_min, t_max) on any triangle but ``ignore_prim`` (-1: none), as the
+    binary tree's ``bvh_closest_hit`` of the same arguments: a secondary ray ignores the triangle
+    it leaves from. A range with ``t_min < 0``, NaN, or ``t_max <= t_min`` finds nothing."""
+    return wide_closest_hit(view.width, view.root_lower, view.root_upper, view.slots, view.wide_begin, view.wide_end,
+                            view.prim_order, view.triangles, origin, direction, t_min, t_max, ignore_prim)
 
 
 @wp.kernel
@@ -407,3 +428,28 @@ def wide_closest_hit_any_limit_kernel(
 # `proximity.closest_point_kernel`), the one-limit one under the kernel's old name.
 wide_closest_hit_kernel = wp.overload(wide_closest_hit_any_limit_kernel, {"t_max": float})
 wide_closest_hit_limits_kernel = wp.overload(wide_closest_hit_any_limit_kernel, {"t_max": wp.array(dtype=float)})
+
+
+@wp.kernel
+def wide_closest_hit_range_kernel(
+    view: WideView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    t_min: wp.array(dtype=float),
+    t_max: wp.array(dtype=float),
+    ignore_prim: wp.array(dtype=wp.int32),
+    hit_t: wp.array(dtype=float),
+    hit_prim: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.vec3i),
+):
+    """One ray per thread over its range (`query_limit` for each end) and its ignored triangle
+    (`query_prim`); ``counts`` as in `wide_closest_hit_any_limit_kernel`. Kept apart from the
+    lean kernels above: on the CPU every thread copies the kernel's arguments, which plain rays
+    should not pay for."""
+    i = wp.tid()
+    h = bvh_wide_closest_hit(view, origins[i], directions[i], query_limit(t_min, i), query_limit(t_max, i),
+                             query_prim(ignore_prim, i))
+    hit_t[i] = h.t
+    hit_prim[i] = h.prim
+    if counts.shape[0] > 0:
+        counts[i] = wp.vec3i(h.nodes_visited, h.boxes_tested, h.prims_tested)

@@ -78,6 +78,80 @@ def assert_hits_match(t, prim, t_ref, prim_ref, rtol=1e-5):
     assert np.allclose(t[both], t_ref[both], rtol=rtol, atol=0.0), "hit distances differ"
 
 
+def nested_shells():
+    """Nested shells and a box beside them: most rays cross several surfaces, so a range or an
+    ignored triangle changes which one a ray finds. ``(vertices, faces)`` as float32 and int32."""
+    import trimesh
+
+    outer = trimesh.creation.icosphere(subdivisions=3)
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((1.6, 0, 0))
+    mesh = trimesh.util.concatenate([outer, inner, box])
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+
+
+def expected_range_hits(verts, faces, o, d, t_min, ignore, t_max=np.inf, scale=None):
+    """The float64 closest hit in (t_min, t_max) on any triangle but the ray's ``ignore``, and
+    which rays are ambiguous: a crossing within float32 error of t_min, of a finite t_max or of a
+    triangle's edge (the oracle is not watertight), or two crossings at nearly one t (within 1e-5
+    of ``scale``, by default of the distance)."""
+    hit, t, margin = numpy_all_hits(verts, faces, o, d, np.inf)
+    lows = np.broadcast_to(np.asarray(t_min, np.float64), (len(o),))[:, None]
+    highs = np.broadcast_to(np.asarray(t_max, np.float64), (len(o),))[:, None]
+    skips = np.broadcast_to(np.asarray(ignore), (len(o),))[:, None]
+    others = np.arange(len(faces))[None] != skips
+    counted = hit & (t > lows) & (t < highs) & others
+    t_counted = np.where(counted, t, np.inf)
+    prim = np.argmin(t_counted, axis=1)
+    best = t_counted[np.arange(len(o)), prim]
+    prim = np.where(np.isfinite(best), prim, -1)
+    near_end = hit & others & (np.abs(t - lows) <= 1e-4 * np.maximum(1.0, lows))
+    near_end |= hit & others & np.isfinite(highs) & (np.abs(t - highs) <= 1e-4 * np.maximum(1.0, highs))
+    near_edge = others & (margin > -1e-6) & (margin < 1e-6) & (t > 0)
+    second = np.sort(t_counted, axis=1)[:, 1] if len(faces) > 1 else np.full(len(o), np.inf)
+    with np.errstate(invalid="ignore"):
+        tie = np.isfinite(second) & (second - best <= 1e-5 * (np.maximum(1.0, best) if scale is None else scale))
+    ambiguous = near_end.any(axis=1) | near_edge.any(axis=1) | tie
+    return best, prim, ambiguous
+
+
+def assert_range_hits_match(t, prim, best, prim_ref, ambiguous):
+    """The hits of a ray range agree with `expected_range_hits` on every ray it does not call
+    ambiguous (the same triangle, t within float32 error), which must be most of them."""
+    clear = ~ambiguous
+    assert clear.sum() > 0.8 * len(prim), "too many ambiguous rays for the comparison to mean anything"
+    assert np.array_equal(prim[clear], prim_ref[clear]), f"{int((prim[clear] != prim_ref[clear]).sum())} rays differ"
+    hit = clear & (prim_ref >= 0)
+    np.testing.assert_allclose(t[hit], best[hit], rtol=1e-5)
+
+
+def crossings(verts, faces, o, d):
+    """Each ray's first and second crossing distances in float64 (inf where there is none)."""
+    hit, t, _ = numpy_all_hits(verts, faces, o, d, np.inf)
+    ts = np.sort(np.where(hit, t, np.inf), axis=1)
+    return ts[:, 0], ts[:, 1]
+
+
+def crossings_prim(verts, faces, o, d):
+    """The triangle each ray crosses first (float64), -1 for none."""
+    hit, t, _ = numpy_all_hits(verts, faces, o, d, np.inf)
+    t = np.where(hit, t, np.inf)
+    prim = np.argmin(t, axis=1)
+    return np.where(np.isfinite(t[np.arange(len(o)), prim]), prim, -1)
+
+
+def directions_off_surface(rng, verts, faces, prims):
+    """A random unit direction from each of the triangles ``prims`` into either side of its
+    surface, never close to its plane (secondary rays leaving a hit point), as float32."""
+    tri = np.asarray(verts, np.float64)[np.asarray(faces)[prims]]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    raw = rng.normal(size=normal.shape)
+    raw -= 0.8 * (raw * normal).sum(1, keepdims=True) * normal
+    raw += np.where(rng.random((len(raw), 1)) < 0.5, 0.3, -0.3) * normal
+    return (raw / np.linalg.norm(raw, axis=1, keepdims=True)).astype(np.float32)
+
+
 def check_tree_invariants(tree: dict, num_prims: int, max_leaf_size: int = 1, exact_node_count=None):
     """Each primitive exactly once, leaf ranges partition prim_order, children inside parents."""
     left, right = tree["node_left"], tree["node_right"]

@@ -1,15 +1,16 @@
 """Ray ranges for secondary rays: a near end ``t_min`` and a triangle each ray ignores, in the batched
 calls (`intersect`, `occluded`, `intersect_all`) and in user kernels on packed and canonical views,
-against a float64 brute force."""
+against a float64 brute force; and rays from far origins, whose walk starts nearer with the range
+shifted to match."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 import warp as wp
 from handmade_trees import canonical_view
-from oracles import numpy_all_hits, random_rays
+from oracles import (assert_range_hits_match, crossings, crossings_prim, directions_off_surface, expected_range_hits,
+                     nested_shells, random_rays)
 
 import hlbvh_warp
 from hlbvh_warp import query
@@ -17,51 +18,7 @@ from hlbvh_warp import query
 
 @pytest.fixture
 def scene():
-    """Nested shells and a box beside them: most rays cross several surfaces, so a range or an
-    ignored triangle changes which one a ray finds."""
-    outer = trimesh.creation.icosphere(subdivisions=3)
-    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
-    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((1.6, 0, 0))
-    mesh = trimesh.util.concatenate([outer, inner, box])
-    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
-
-
-def expected_hits(verts, faces, o, d, t_min, ignore, scale=None):
-    """The float64 closest hit in (t_min, inf) on any triangle but the ray's ``ignore``, and which
-    rays are ambiguous: a crossing within float32 error of t_min or of a triangle's edge (the
-    oracle is not watertight), or two crossings at nearly one t (within 1e-5 of ``scale``, by
-    default of the distance)."""
-    hit, t, margin = numpy_all_hits(verts, faces, o, d, np.inf)
-    lows = np.broadcast_to(np.asarray(t_min, np.float64), (len(o),))[:, None]
-    skips = np.broadcast_to(np.asarray(ignore), (len(o),))[:, None]
-    others = np.arange(len(faces))[None] != skips
-    counted = hit & (t > lows) & others
-    t_counted = np.where(counted, t, np.inf)
-    prim = np.argmin(t_counted, axis=1)
-    best = t_counted[np.arange(len(o)), prim]
-    prim = np.where(np.isfinite(best), prim, -1)
-    near_low = hit & others & (np.abs(t - lows) <= 1e-4 * np.maximum(1.0, lows))
-    near_edge = others & (margin > -1e-6) & (margin < 1e-6) & (t > 0)
-    second = np.sort(t_counted, axis=1)[:, 1] if len(faces) > 1 else np.full(len(o), np.inf)
-    with np.errstate(invalid="ignore"):
-        tie = np.isfinite(second) & (second - best <= 1e-5 * (np.maximum(1.0, best) if scale is None else scale))
-    ambiguous = near_low.any(axis=1) | near_edge.any(axis=1) | tie
-    return best, prim, ambiguous
-
-
-def assert_matches(t, prim, best, prim_ref, ambiguous):
-    clear = ~ambiguous
-    assert clear.sum() > 0.8 * len(prim), "too many ambiguous rays for the comparison to mean anything"
-    assert np.array_equal(prim[clear], prim_ref[clear]), f"{int((prim[clear] != prim_ref[clear]).sum())} rays differ"
-    hit = clear & (prim_ref >= 0)
-    np.testing.assert_allclose(t[hit], best[hit], rtol=1e-5)
-
-
-def crossings(verts, faces, o, d):
-    """Each ray's first and second crossing distances in float64 (inf where there is none)."""
-    hit, t, _ = numpy_all_hits(verts, faces, o, d, np.inf)
-    ts = np.sort(np.where(hit, t, np.inf), axis=1)
-    return ts[:, 0], ts[:, 1]
+    return nested_shells()
 
 
 def test_t_min_per_ray_and_for_every_ray(device, rng, scene):
@@ -72,24 +29,16 @@ def test_t_min_per_ray_and_for_every_ray(device, rng, scene):
     # Per ray: a near end between the first and the second crossing, so the answer is the second.
     lows = np.where(np.isfinite(second), 0.5 * (first + second), np.where(np.isfinite(first), first * 0.5, 1.0))
     t, prim = query.intersect(bvh, o, d, t_min=lows)
-    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, lows, -1)
+    best, prim_ref, ambiguous = expected_range_hits(verts, faces, o, d, lows, -1)
     assert (prim_ref >= 0).sum() > 100 and (prim_ref != crossings_prim(verts, faces, o, d)).sum() > 100
-    assert_matches(t, prim, best, prim_ref, ambiguous)
+    assert_range_hits_match(t, prim, best, prim_ref, ambiguous)
     # One near end for every ray, as a Warp array and as a number.
     low = float(np.median(first[np.isfinite(first)]))
-    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, low, -1)
+    best, prim_ref, ambiguous = expected_range_hits(verts, faces, o, d, low, -1)
     for arg in (low, wp.array([low], dtype=wp.float32, device=device)):
         t, prim = query.intersect(bvh, o, d, t_min=arg)
-        assert_matches(t, prim, best, prim_ref, ambiguous)
+        assert_range_hits_match(t, prim, best, prim_ref, ambiguous)
     assert (t[prim >= 0] > np.float32(low)).all()
-
-
-def crossings_prim(verts, faces, o, d):
-    """The triangle each ray crosses first (float64), -1 for none."""
-    hit, t, _ = numpy_all_hits(verts, faces, o, d, np.inf)
-    t = np.where(hit, t, np.inf)
-    prim = np.argmin(t, axis=1)
-    return np.where(np.isfinite(t[np.arange(len(o)), prim]), prim, -1)
 
 
 def test_ignore_prim_finds_the_next_crossing(device, rng, scene):
@@ -100,9 +49,9 @@ def test_ignore_prim_finds_the_next_crossing(device, rng, scene):
     # Every other ray ignores the triangle it would hit first; the rest ignore nothing (-1).
     ignore = np.where(np.arange(len(o)) % 2 == 0, first, -1).astype(np.int64)
     t, prim, u, v = query.intersect(bvh, o, d, ignore_prim=ignore, return_barycentrics=True)
-    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, 0.0, ignore)
+    best, prim_ref, ambiguous = expected_range_hits(verts, faces, o, d, 0.0, ignore)
     assert ((ignore >= 0) & (prim_ref >= 0) & ~ambiguous).sum() > 100
-    assert_matches(t, prim, best, prim_ref, ambiguous)
+    assert_range_hits_match(t, prim, best, prim_ref, ambiguous)
     assert not ((prim == ignore) & (ignore >= 0)).any()
     # The weights belong to the triangle reported, not to the one ignored.
     hit = prim >= 0
@@ -120,21 +69,14 @@ def test_secondary_rays_leave_their_surface(device, rng, scene):
     t, prim = query.intersect(bvh, o, d)
     keep = prim >= 0
     points = (o[keep] + t[keep, None] * d[keep]).astype(np.float32)
-    tri = verts[faces[prim[keep]]].astype(np.float64)
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    # Directions into either side of each surface, never close to its plane.
-    raw = rng.normal(size=points.shape)
-    raw -= 0.8 * (raw * normal).sum(1, keepdims=True) * normal
-    raw += np.where(rng.random((len(raw), 1)) < 0.5, 0.3, -0.3) * normal
-    dirs = (raw / np.linalg.norm(raw, axis=1, keepdims=True)).astype(np.float32)
+    dirs = directions_off_surface(rng, verts, faces, prim[keep])
     ignore = prim[keep]
     t2, prim2 = query.intersect(bvh, points, dirs, ignore_prim=ignore)
     assert not (prim2 == ignore).any()
-    best, prim_ref, ambiguous = expected_hits(verts, faces, points, dirs, 0.0, ignore)
+    best, prim_ref, ambiguous = expected_range_hits(verts, faces, points, dirs, 0.0, ignore)
     # A neighbour sharing the edge or vertex the point lies near is crossed at t near 0: ambiguous.
     ambiguous |= (best < 1e-3)
-    assert_matches(t2, prim2, best, prim_ref, ambiguous)
+    assert_range_hits_match(t2, prim2, best, prim_ref, ambiguous)
     occ = query.occluded(bvh, points, dirs, ignore_prim=ignore)
     assert np.array_equal(occ[~ambiguous], prim_ref[~ambiguous] >= 0)
 
@@ -207,8 +149,8 @@ def test_user_kernel_range_overloads(device, rng, scene, layout):
     assert np.array_equal(prim_k, prim) and np.array_equal(t_k, t)
     assert np.array_equal(any_k >= 0, prim >= 0) and np.array_equal(occ_k, (prim >= 0).astype(np.int32))
     assert not ((any_k == ignore) & (ignore >= 0)).any()
-    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, lows, ignore)
-    assert_matches(t_k, prim_k, best, prim_ref, ambiguous)
+    best, prim_ref, ambiguous = expected_range_hits(verts, faces, o, d, lows, ignore)
+    assert_range_hits_match(t_k, prim_k, best, prim_ref, ambiguous)
 
 
 def _plane_at_z1(device):
@@ -284,10 +226,10 @@ def test_rays_from_far_origins(device, rng, scene, distance):
     o, d = rays["far"]
     t, prim, stats = query.intersect(bvh, o, d, stats=True)
     # Which triangle is first is decided near the mesh, to the mesh's float32 resolution.
-    best, prim_ref, ambiguous = expected_hits(verts, faces, o, d, 0.0, -1, scale=size)
+    best, prim_ref, ambiguous = expected_range_hits(verts, faces, o, d, 0.0, -1, scale=size)
     # At 1e8 a float32 direction's rounding alone turns a ray by more than the mesh: few still hit.
     assert (prim_ref >= 0).sum() > (100 if distance < 1e8 else 10)
-    assert_matches(t, prim, best, prim_ref, ambiguous)
+    assert_range_hits_match(t, prim, best, prim_ref, ambiguous)
     assert stats.nodes_visited.mean() <= 1.5 * near_stats.nodes_visited.mean()
     # The range bounds the distance from the caller's origin, wherever the walk started.
     hit = np.flatnonzero((prim_ref >= 0) & ~ambiguous)
