@@ -401,6 +401,37 @@ def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp
     return shift
 
 
+@wp.struct
+class RayStart:
+    """Where a walk starts (`ray_start`): the origin, the range in units of the direction from that
+    origin, and ``shift``, the distance from the caller's origin to add to a hit's t."""
+
+    origin: wp.vec3
+    t_min: float
+    t_max: float
+    shift: wp.float64
+
+
+@wp.func
+def ray_start(origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, lower: wp.vec3, upper: wp.vec3):
+    """The walk's start for a ray and its range (t_min, t_max) against the root box
+    ``[lower, upper]``: the ray itself, or for a far origin the origin moved by `ray_far_shift`
+    and the range moved with it; a far ray that misses the box gets an empty range."""
+    result = RayStart()
+    result.origin = origin
+    result.t_min = t_min
+    result.t_max = t_max
+    result.shift = ray_far_shift(origin, direction, lower, upper)
+    if result.shift > wp.float64(0.0):
+        result.origin = wp.vec3(wp.vec3d(origin) + wp.vec3d(direction) * result.shift)
+        result.t_min = float(wp.max(wp.float64(t_min) - result.shift, wp.float64(0.0)))
+        result.t_max = float(wp.float64(t_max) - result.shift)
+    elif result.shift < wp.float64(0.0):
+        result.t_max = float(0.0)
+        result.shift = wp.float64(0.0)
+    return result
+
+
 @wp.func
 def ray_inverse_direction(direction: wp.vec3):
     """1 / d per axis; a zero component gives +-inf, which `ray_box_entry` is written to accept."""
@@ -739,17 +770,16 @@ def bvh_ray_query(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    start = origin
-    shift = wp.float64(0.0)
+    ray = RayStart()
+    ray.origin = origin
+    ray.t_min = low
+    ray.t_max = limit
     if bvh.faces.shape[0] > 0:
-        shift = ray_far_shift(origin, d, bvh.node_lowers[0], bvh.node_uppers[0])
-    if shift > wp.float64(0.0):
-        start = wp.vec3(wp.vec3d(origin) + wp.vec3d(d) * shift)
-        low = float(wp.max(wp.float64(low) - shift, wp.float64(0.0)))
-        limit = float(wp.float64(limit) - shift)
-    elif shift < wp.float64(0.0):
-        # A far ray that misses the root box: an empty range, refused before any node is read.
-        limit = float(0.0)
+        ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
+    start = ray.origin
+    low = ray.t_min
+    limit = ray.t_max
+    shift = ray.shift
     h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
@@ -859,16 +889,16 @@ def bvh_ray_all_hits(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    start = origin
-    shift = wp.float64(0.0)
+    ray = RayStart()
+    ray.origin = origin
+    ray.t_min = low
+    ray.t_max = limit
     if bvh.faces.shape[0] > 0:
-        shift = ray_far_shift(origin, d, bvh.node_lowers[0], bvh.node_uppers[0])
-    if shift > wp.float64(0.0):
-        start = wp.vec3(wp.vec3d(origin) + wp.vec3d(d) * shift)
-        low = float(wp.max(wp.float64(low) - shift, wp.float64(0.0)))
-        limit = float(wp.float64(limit) - shift)
-    elif shift < wp.float64(0.0):
-        limit = float(0.0)
+        ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
+    start = ray.origin
+    low = ray.t_min
+    limit = ray.t_max
+    shift = ray.shift
     if bvh.faces.shape[0] > 0 and ray_is_valid(start, d, low, limit) == 1:
         inv = ray_inverse_direction(d)
         if ray_box_entry(start, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:

@@ -19,7 +19,7 @@ import warp as wp
 
 from .metrics import box_area64
 from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, query_limit, query_prim, ray_box_entry,
-                        ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max)
+                        ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max, ray_start)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -290,11 +290,15 @@ def wide_closest_hit(
     # A tiny direction is scaled into range, exactly (see `ray_direction_scale`).
     scale = ray_direction_scale(direction)
     d = direction * scale
-    low = ray_scaled_t_max(t_min, scale)
-    best_t = ray_scaled_t_max(t_max, scale)
-    if ray_is_valid(origin, d, low, best_t) == 1:
+    # A far origin starts nearer, in float64, as in the binary walk (`traversal.ray_start`).
+    ray = ray_start(origin, d, ray_scaled_t_max(t_min, scale), ray_scaled_t_max(t_max, scale), root_lower,
+                    root_upper)
+    start = ray.origin
+    low = ray.t_min
+    best_t = ray.t_max
+    if ray_is_valid(start, d, low, best_t) == 1:
         inv = ray_inverse_direction(d)
-        t_root = ray_box_entry(origin, inv, root_lower, root_upper, low, best_t)
+        t_root = ray_box_entry(start, inv, root_lower, root_upper, low, best_t)
         if t_root < INF:
             stack[0] = 0
             stack_t[0] = t_root
@@ -324,7 +328,7 @@ def wide_closest_hit(
                     record = slots[s]
                     if record.child != EMPTY:
                         boxes += 1
-                        t = ray_box_entry(origin, inv, record.lower, record.upper, low, best_t)
+                        t = ray_box_entry(start, inv, record.lower, record.upper, low, best_t)
                         if t < INF:
                             e = record.child
                             if e == LEAF:
@@ -348,7 +352,7 @@ def wide_closest_hit(
             for k in range(first, last):
                 tested += 1
                 tri = triangles[k]
-                h = intersect_triangle_watertight(origin, d, tri.a, tri.b, tri.c, low, best_t)
+                h = intersect_triangle_watertight(start, d, tri.a, tri.b, tri.c, low, best_t)
                 if h.hit == 1:
                     p = prim_order[k]
                     if p != ignore_prim:
@@ -358,7 +362,7 @@ def wide_closest_hit(
     result.t = INF
     result.prim = best_prim
     if best_prim >= 0:
-        result.t = best_t * scale
+        result.t = float(wp.float64(best_t) + ray.shift) * scale
     result.nodes_visited = visited
     result.boxes_tested = boxes
     result.prims_tested = tested

@@ -13,7 +13,7 @@ from oracles import (assert_range_hits_match, crossings, crossings_prim, directi
                      nested_shells, random_rays)
 
 import hlbvh_warp
-from hlbvh_warp import query
+from hlbvh_warp import query, wide
 
 
 @pytest.fixture
@@ -243,3 +243,7 @@ def test_rays_from_far_origins(device, rng, scene, distance):
     # A far ray that misses the mesh's box is refused before the walk.
     away = query.intersect(bvh, o[:50], -d[:50], stats=True)
     assert (away[1] == -1).all() and (away[2].nodes_visited == 0).all()
+    # Wide trees start their walk the same way, so they find the same hits at the same t.
+    for width in (4, 16):
+        t_wide, prim_wide = wide.intersect(wide.collapse(bvh, width), o, d)
+        assert np.array_equal(prim_wide, prim) and np.array_equal(t_wide, t)
