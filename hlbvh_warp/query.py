@@ -362,22 +362,15 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
     if num_rays:
-        wp.launch(
-            traversal.occluded_kernel,
-            dim=num_rays,
-            inputs=[
-                view(bvh),
-                wp.array(o, dtype=wp.vec3, device=device),
-                wp.array(d, dtype=wp.vec3, device=device),
-                wp.array(lows, dtype=float, device=device),
-                wp.array(limits, dtype=float, device=device),
-                wp.array(skips, dtype=wp.int32, device=device),
-                result,
-                visits,
-                tests,
-            ],
-            device=device,
-        )
+        rays = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
+        outputs = [result, visits, tests]
+        limit_array = wp.array(limits, dtype=float, device=device)
+        if len(lows) == 1 and lows[0] == 0.0 and len(skips) == 0:
+            wp.launch(traversal.occluded_kernel, dim=num_rays, inputs=rays + [limit_array] + outputs, device=device)
+        else:
+            ranges = [wp.array(lows, dtype=float, device=device), limit_array, wp.array(skips, dtype=wp.int32,
+                                                                                          device=device)]
+            wp.launch(traversal.occluded_range_kernel, dim=num_rays, inputs=rays + ranges + outputs, device=device)
     hit = result.numpy().astype(bool)
     if stats:
         return hit, TraversalStats(visits.numpy(), tests.numpy())

@@ -348,6 +348,18 @@ def ray_scaled_t_max(t_max: float, scale: float):
 
 
 @wp.func
+def origin_is_far(origin: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """1 when ``origin`` lies farther outside the box than `FAR_ORIGIN` times its extent: the test
+    every ray pays, kept apart from the float64 work only far rays do (`ray_start`)."""
+    extent = wp.max(upper[0] - lower[0], wp.max(upper[1] - lower[1], upper[2] - lower[2]))
+    gap = wp.max(wp.max(lower[0] - origin[0], origin[0] - upper[0]),
+                 wp.max(wp.max(lower[1] - origin[1], origin[1] - upper[1]),
+                        wp.max(lower[2] - origin[2], origin[2] - upper[2])))
+    # NaN anywhere fails this test: such a ray is refused later, unmoved.
+    return wp.where(gap > FAR_ORIGIN * extent and wp.isfinite(gap), 1, 0)
+
+
+@wp.func
 def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp.vec3):
     """How far along the ray (in units of ``direction``) to move an origin that lies far outside
     the root box ``[lower, upper]`` before the traversal: 0 for every other origin.
@@ -366,11 +378,7 @@ def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp
     """
     shift = wp.float64(0.0)
     extent = wp.max(upper[0] - lower[0], wp.max(upper[1] - lower[1], upper[2] - lower[2]))
-    gap = float(0.0)
-    for k in range(3):
-        gap = wp.max(gap, wp.max(lower[k] - origin[k], origin[k] - upper[k]))
-    # NaN anywhere fails this test: such a ray is refused later, unmoved.
-    if gap > FAR_ORIGIN * extent and wp.isfinite(gap):
+    if origin_is_far(origin, lower, upper) == 1:
         t0 = wp.float64(0.0)
         t1 = wp.float64(INF)
         reach = float(0.0)
@@ -523,6 +531,14 @@ def canonical_ray_query(
     bvh: BvhView, origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, ignore_prim: int, any_hit: int
 ):
     """`packed_ray_query` on the canonical arrays, for a view that carries no traversal layout."""
+    shift = wp.float64(0.0)
+    if bvh.faces.shape[0] > 0:
+        if origin_is_far(origin, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+            ray = ray_start(origin, direction, t_min, t_max, bvh.node_lowers[0], bvh.node_uppers[0])
+            origin = ray.origin
+            t_min = ray.t_min
+            t_max = ray.t_max
+            shift = ray.shift
     best_t = t_max
     best_prim = int(-1)
     best_u = float(0.0)
@@ -594,7 +610,7 @@ def canonical_ray_query(
     result.u = best_u
     result.v = best_v
     if best_prim >= 0:
-        result.t = best_t
+        result.t = float(wp.float64(best_t) + shift)
     result.nodes_visited = visited
     result.prims_tested = tested
     return result
@@ -664,8 +680,16 @@ def packed_ray_query(
     children); a deferred node entered behind the closest hit found since is dropped when popped.
 
     Hits count with t in (t_min, t_max), and never on ``ignore_prim`` (-1: none), the triangle a
-    secondary ray leaves from. Which triangle a position holds is read only for a hit.
+    secondary ray leaves from. Which triangle a position holds is read only for a hit. A far
+    origin is first moved to the root box (`ray_start`); the t returned is from the caller's.
     """
+    shift = wp.float64(0.0)
+    if origin_is_far(origin, root_lower, root_upper) == 1:
+        ray = ray_start(origin, direction, t_min, t_max, root_lower, root_upper)
+        origin = ray.origin
+        t_min = ray.t_min
+        t_max = ray.t_max
+        shift = ray.shift
     best_t = t_max
     best_k = int(-1)
     best_u = float(0.0)
@@ -753,7 +777,7 @@ def packed_ray_query(
     result.u = best_u
     result.v = best_v
     if best_k >= 0:
-        result.t = best_t
+        result.t = float(wp.float64(best_t) + shift)
         result.prim = prim_order[best_k]
     result.nodes_visited = visited
     result.prims_tested = tested
@@ -770,16 +794,8 @@ def bvh_ray_query(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    ray = RayStart()
-    ray.origin = origin
-    ray.t_min = low
-    ray.t_max = limit
-    if bvh.faces.shape[0] > 0:
-        ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
-    start = ray.origin
-    low = ray.t_min
-    limit = ray.t_max
-    shift = ray.shift
+    # (A far origin is moved inside the two walks, `ray_start`: here it would stop this function,
+    # which passes the view by value, from being inlined, a cost every ray paid.)
     h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
@@ -793,7 +809,7 @@ def bvh_ray_query(
             bvh.node_uppers[0],
             root_begin,
             root,
-            start,
+            origin,
             d,
             low,
             limit,
@@ -801,9 +817,7 @@ def bvh_ray_query(
             any_hit,
         )
     else:
-        h = canonical_ray_query(bvh, start, d, low, limit, ignore_prim, any_hit)
-    if h.prim >= 0 and shift > wp.float64(0.0):
-        h.t = float(wp.float64(h.t) + shift)
+        h = canonical_ray_query(bvh, origin, d, low, limit, ignore_prim, any_hit)
     h.t = h.t * scale
     return h
 
@@ -889,16 +903,15 @@ def bvh_ray_all_hits(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    ray = RayStart()
-    ray.origin = origin
-    ray.t_min = low
-    ray.t_max = limit
+    start = origin
+    shift = wp.float64(0.0)
     if bvh.faces.shape[0] > 0:
-        ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
-    start = ray.origin
-    low = ray.t_min
-    limit = ray.t_max
-    shift = ray.shift
+        if origin_is_far(origin, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
+            ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
+            start = ray.origin
+            low = ray.t_min
+            limit = ray.t_max
+            shift = ray.shift
     if bvh.faces.shape[0] > 0 and ray_is_valid(start, d, low, limit) == 1:
         inv = ray_inverse_direction(d)
         if ray_box_entry(start, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:
@@ -1437,6 +1450,27 @@ def occluded_kernel(
     bvh: BvhView,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
+    t_max: wp.array(dtype=float),
+    occluded: wp.array(dtype=wp.int32),
+    nodes_visited: wp.array(dtype=wp.int32),
+    prims_tested: wp.array(dtype=wp.int32),
+):
+    """Shadow rays over (0, t_max), one limit or one per ray. Kept apart from
+    `occluded_range_kernel` for the reason `closest_hit_kernel` is: short shadow rays cost a few
+    nanoseconds each, and two more arrays copied per thread made them 30% slower."""
+    tid = wp.tid()
+    h = bvh_any_hit(bvh, origins[tid], directions[tid], query_limit(t_max, tid))
+    occluded[tid] = wp.where(h.prim >= 0, 1, 0)
+    if nodes_visited.shape[0] > 0:
+        nodes_visited[tid] = h.nodes_visited
+        prims_tested[tid] = h.prims_tested
+
+
+@wp.kernel
+def occluded_range_kernel(
+    bvh: BvhView,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
     t_min: wp.array(dtype=float),
     t_max: wp.array(dtype=float),
     ignore_prim: wp.array(dtype=wp.int32),
@@ -1444,6 +1478,7 @@ def occluded_kernel(
     nodes_visited: wp.array(dtype=wp.int32),
     prims_tested: wp.array(dtype=wp.int32),
 ):
+    """`occluded_kernel` with each ray's near end and ignored triangle (`query_limit`, `query_prim`)."""
     tid = wp.tid()
     h = bvh_any_hit(bvh, origins[tid], directions[tid], query_limit(t_min, tid), query_limit(t_max, tid),
                     query_prim(ignore_prim, tid))

@@ -18,8 +18,9 @@ from typing import Any
 import warp as wp
 
 from .metrics import box_area64
-from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, query_limit, query_prim, ray_box_entry,
-                        ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max, ray_start)
+from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, origin_is_far, query_limit, query_prim,
+                        ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max,
+                        ray_start)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -290,12 +291,17 @@ def wide_closest_hit(
     # A tiny direction is scaled into range, exactly (see `ray_direction_scale`).
     scale = ray_direction_scale(direction)
     d = direction * scale
-    # A far origin starts nearer, in float64, as in the binary walk (`traversal.ray_start`).
-    ray = ray_start(origin, d, ray_scaled_t_max(t_min, scale), ray_scaled_t_max(t_max, scale), root_lower,
-                    root_upper)
-    start = ray.origin
-    low = ray.t_min
-    best_t = ray.t_max
+    low = ray_scaled_t_max(t_min, scale)
+    best_t = ray_scaled_t_max(t_max, scale)
+    start = origin
+    shift = wp.float64(0.0)
+    if origin_is_far(origin, root_lower, root_upper) == 1:
+        # A far origin starts nearer, in float64, as in the binary walk (`traversal.ray_start`).
+        ray = ray_start(origin, d, low, best_t, root_lower, root_upper)
+        start = ray.origin
+        low = ray.t_min
+        best_t = ray.t_max
+        shift = ray.shift
     if ray_is_valid(start, d, low, best_t) == 1:
         inv = ray_inverse_direction(d)
         t_root = ray_box_entry(start, inv, root_lower, root_upper, low, best_t)
@@ -362,7 +368,7 @@ def wide_closest_hit(
     result.t = INF
     result.prim = best_prim
     if best_prim >= 0:
-        result.t = float(wp.float64(best_t) + ray.shift) * scale
+        result.t = float(wp.float64(best_t) + shift) * scale
     result.nodes_visited = visited
     result.boxes_tested = boxes
     result.prims_tested = tested
