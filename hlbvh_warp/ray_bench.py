@@ -1,7 +1,8 @@
 """``python -m hlbvh_warp bench-rays``: closest-hit rays per second against ``wp.mesh_query_ray``.
 
 For each mesh, one BVH per method and one ``wp.Mesh`` of the same triangles trace the same rays
-(random rays through the bounding box, and pinhole camera rays) in the same process.
+(random rays through the bounding box, pinhole camera rays, and with ``--far-distance D`` random
+rays from D mesh sizes away) in the same process.
 
 Hits are checked first. This package's are checked against a float64 brute force
 (`brute_force_closest_hit`) on an even sample of each kind and on every ray where ``wp.Mesh``
@@ -25,13 +26,15 @@ printed per run.
 from __future__ import annotations
 
 import argparse
+import functools
 import pathlib
 import time
 
 import numpy as np
 import warp as wp
 
-from .cli import device_name, leaf_size, non_negative_int, positive_int, query_count, quiet_warp, read_mesh
+from .cli import (device_name, finite_float, leaf_size, non_negative_int, positive_int, query_count, quiet_warp,
+                  read_mesh)
 from .reference import brute_force_closest_hit
 from .stress_report import classify
 
@@ -55,6 +58,21 @@ def random_rays(rng, vertices: np.ndarray, num_rays: int):
     origins = center - 2.0 * radius * dirs
     d = lo + rng.random((num_rays, 3)) * (hi - lo) - origins
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
+def far_rays(rng, vertices: np.ndarray, num_rays: int, distance: float):
+    """`random_rays` whose origins lie ``distance`` bounding-box diagonals from the box's centre: a
+    far camera or a sun's rays cast from outside the scene, where float32 coordinates relative to the
+    origin no longer resolve a triangle."""
+    v = np.asarray(vertices, dtype=np.float64)
+    lo, hi = v.min(0), v.max(0)
+    dirs = rng.normal(size=(num_rays, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = (0.5 * (lo + hi) - distance * np.linalg.norm(hi - lo) * dirs).astype(np.float32)
+    # Aimed from the float32 origins: at 1e8 diagonals a float32 direction still turns a ray off
+    # the mesh by more than its size, and few rays hit.
+    d = lo + rng.random((num_rays, 3)) * (hi - lo) - origins.astype(np.float64)
+    return origins, (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
 def camera_rays(vertices: np.ndarray, num_rays: int):
@@ -107,8 +125,9 @@ def best_times(fns, repeats: int, device) -> list[float]:
 
 
 def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, num_rays: int, repeats: int,
-        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
-    """One row per kind of ray on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`)."""
+        device, seed: int = 0, max_leaf_size: int = 1, far_distance: float = 0.0) -> list[dict]:
+    """One row per kind of ray on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`);
+    a third kind, from ``far_distance`` diagonals away, when it is positive."""
     from . import api, query
     from .config import BuildConfig
     from .kernels import traversal
@@ -122,7 +141,10 @@ def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method
     bvh_view = query.view(bvh)
     rng = np.random.default_rng(seed)
     rows = []
-    for kind, (o, d) in (("random", random_rays(rng, vertices, num_rays)), ("camera", camera_rays(vertices, num_rays))):
+    kinds = [("random", random_rays(rng, vertices, num_rays)), ("camera", camera_rays(vertices, num_rays))]
+    if far_distance > 0.0:
+        kinds.append(("far", far_rays(rng, vertices, num_rays, far_distance)))
+    for kind, (o, d) in kinds:
         n = o.shape[0]
         ow = wp.array(o, dtype=wp.vec3, device=device)
         dw = wp.array(d, dtype=wp.vec3, device=device)
@@ -255,11 +277,23 @@ EPILOG = (f"Exit status 1 when one of the rays checked (up to {ORACLE_RAYS} of e
           "ray on some valid meshes.")
 
 
+def far_distance(text: str) -> float:
+    """argparse type of ``--far-distance``: 0 (none) or a distance from 1 to 1e30 diagonals; past
+    that the origins' float32 coordinates overflow."""
+    value = finite_float(text)
+    if value != 0.0 and not 1.0 <= value <= 1e30:
+        raise argparse.ArgumentTypeError(f"must be 0 or between 1 and 1e30, got {text}")
+    return value
+
+
 def main(argv=None) -> int:
     parser = mesh_method_parser("python -m hlbvh_warp bench-rays", __doc__.splitlines()[0], "--rays", 1_000_000,
                                 "rays per kind (default 1M)", EPILOG)
+    parser.add_argument("--far-distance", type=far_distance, default=0.0,
+                        help="also trace random rays from this many bounding-box diagonals away (default: none)")
     args = parser.parse_args(argv)
-    return run_rows(parser, args, args.rays, run, HEADER, format_row,
+    return run_rows(parser, args, args.rays, functools.partial(run, far_distance=args.far_distance), HEADER,
+                    format_row,
                     "checked: rays checked against the float64 brute force (an even sample and where wp.Mesh "
                     "differs), wrong: ours wrong among them beyond near-ties; wp differ: rays where wp.Mesh's hit "
                     "differs from ours; ratio = wp.mesh_query_ray time / ours (> 1: ours is faster)", verdict)

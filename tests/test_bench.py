@@ -161,6 +161,34 @@ def test_bench_rays_fails_on_its_own_wrong_hits_not_on_wp_meshs(tmp_path, monkey
     assert "0 wrong of" not in out and "wp.Mesh differs from ours on 0 rays" in out, out
 
 
+def test_bench_rays_far_rays_are_checked(tmp_path, capsys):
+    """``--far-distance`` adds rays from that many diagonals away, checked like the others: the
+    float64 brute force (the tests' own, on the run's rays) agrees with every hit the row counts."""
+    import trimesh
+    from oracles import brute_force_closest_hit
+
+    from hlbvh_warp import cli, ray_bench
+
+    ball = trimesh.creation.icosphere(2)
+    path = tmp_path / "ball.ply"
+    ball.export(path)
+    assert cli.main(["bench-rays", "--mesh", str(path), "--rays", "64", "--repeats", "1", "--far-distance",
+                     "1e7"]) == 0
+    out = capsys.readouterr().out
+    rows = _rows(out, "ball")
+    assert [r[3] for r in rows] == ["random", "camera", "far"] and rows[2][7] == "0", out
+    vertices = np.asarray(ball.vertices, np.float32)
+    rng = np.random.default_rng(0)
+    ray_bench.random_rays(rng, vertices, 64)  # the run's first kind, drawn from the same generator
+    o, d = ray_bench.far_rays(rng, vertices, 64, 1e7)
+    _, prim = brute_force_closest_hit(vertices, np.asarray(ball.faces), o, d)
+    assert int((prim >= 0).sum()) == int(rows[2][5]) > 0
+    for bad in ("-1", "0.5", "1e31", "nan"):
+        with pytest.raises(SystemExit):
+            cli.main(["bench-rays", "--mesh", str(path), "--far-distance", bad])
+    assert "--far-distance" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("scale", [1e-20, 1e30])
 def test_bench_rays_passes_on_tiny_and_huge_meshes_wp_mesh_misses(scale, tmp_path, capsys):
     # A sphere of radius 1e-20 or 1e30 (valid input): wp.Mesh misses every ray, and a verdict
