@@ -63,6 +63,9 @@ FLOAT32_MAX = wp.constant(3.4028234663852886e38)
 # coordinates (the shear of the watertight test) lose the triangle's own size.
 FAR_ORIGIN = wp.constant(1024.0)
 FAR_BOX_PAD = wp.constant(wp.float64(2.0**-30))
+# A bound, with a margin of ten, on float64's rounding of a slab distance from a far origin, per
+# unit of the origin's and the box's largest coordinates.
+FAR_ORIGIN_PAD = wp.constant(wp.float64(2.0**-48))
 
 
 @wp.struct
@@ -385,6 +388,11 @@ def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp
     Returns -1 for a far origin whose ray misses the root box in float64 (the box slightly
     widened): a float32 walk would open every node the padded test cannot rule out and could
     only find rounding artifacts there.
+
+    The box is widened by more than float64's rounding of the slab distances (a few units in the
+    last place of the origin's coordinates): no ray that meets the box is refused, and the shift
+    never passes its entry. From about 1e15 box extents on that rounding exceeds the box itself,
+    and the walk starts that much before it, where float32 resolves less of each triangle.
     """
     shift = wp.float64(0.0)
     extent = wp.max(upper[0] - lower[0], wp.max(upper[1] - lower[1], upper[2] - lower[2]))
@@ -392,10 +400,11 @@ def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp
         t0 = wp.float64(0.0)
         t1 = wp.float64(INF)
         reach = float(0.0)
-        # Widened by far more than float64's rounding of the slab distances, far less than a triangle.
-        pad = wp.float64(FAR_BOX_PAD) * (wp.float64(extent) + wp.float64(wp.max(wp.abs(lower[0]), wp.max(
-            wp.abs(lower[1]), wp.max(wp.abs(lower[2]), wp.max(wp.abs(upper[0]), wp.max(wp.abs(upper[1]),
-                                                                                     wp.abs(upper[2]))))))))
+        box_size = wp.float64(wp.max(wp.max(wp.abs(lower[0]), wp.abs(upper[0])), wp.max(
+            wp.max(wp.abs(lower[1]), wp.abs(upper[1])), wp.max(wp.abs(lower[2]), wp.abs(upper[2])))))
+        origin_size = wp.float64(wp.max(wp.abs(origin[0]), wp.max(wp.abs(origin[1]), wp.abs(origin[2]))))
+        pad = (wp.float64(FAR_BOX_PAD) * (wp.float64(extent) + box_size)
+               + wp.float64(FAR_ORIGIN_PAD) * (origin_size + box_size))
         for k in range(3):
             dk = wp.float64(direction[k])
             reach = wp.max(reach, wp.abs(direction[k]))
@@ -419,6 +428,54 @@ def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp
     return shift
 
 
+@wp.func
+def two_sum_error(a: wp.float64, b: wp.float64, s: wp.float64):
+    """The rounding error of ``s = a + b`` (Knuth's TwoSum): ``a + b == s + error`` exactly."""
+    z = s - a
+    return (a - (s - z)) + (b - z)
+
+
+@wp.func
+def point_on_ray(origin: wp.vec3, direction: wp.vec3, s: wp.float64):
+    """``origin + s * direction`` with each coordinate rounded once, to float32, from a sum whose
+    own error is about 2^-106 of the origin's coordinates.
+
+    From a far origin a plain float64 ``o + s * d`` is off the ray by float64's rounding of ``o``
+    (2^-53 of it, a whole box at 1e16 box sizes), which moves the ray sideways. Here ``s`` is cut
+    into two halves, whose products with a float32 direction are both exact, and the three terms are summed with their rounding errors kept (TwoSum): the point
+    lies on the ray wherever ``s`` puts it along.
+    """
+    # Veltkamp's split: a head of 26 bits and a tail of 27, each exact times a 24-bit float32.
+    c = wp.float64(134217729.0) * s
+    s_head = c - (c - s)
+    s_tail = s - s_head
+    out = wp.vec3()
+    for k in range(3):
+        dk = wp.float64(direction[k])
+        o = wp.float64(origin[k])
+        p_head = s_head * dk
+        p_tail = s_tail * dk
+        a = o + p_head
+        ea = two_sum_error(o, p_head, a)
+        b = a + p_tail
+        eb = two_sum_error(a, p_tail, b)
+        out[k] = wp.float32(b + (ea + eb))
+    return out
+
+
+@wp.func
+def far_hit_in_range(t: float, shift: wp.float64, t_min: float, t_max: float):
+    """1 when a hit found at ``t`` from a moved origin lies, as the float32 distance from the
+    caller's origin it is reported as, strictly inside the caller's (t_min, t_max): rounded onto an
+    end, or past float32's range, it does not count. Always 1 for an origin that was not moved."""
+    ok = int(1)
+    if shift > wp.float64(0.0):
+        reported = wp.float32(wp.float64(t) + shift)
+        if not (reported > t_min and reported < t_max):
+            ok = 0
+    return ok
+
+
 @wp.struct
 class RayStart:
     """Where a walk starts (`ray_start`): the origin, the range in units of the direction from that
@@ -439,9 +496,14 @@ def ray_start(origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, l
     result.origin = origin
     result.t_min = t_min
     result.t_max = t_max
+    result.shift = wp.float64(0.0)
+    # An empty range (t_min < 0 or NaN included) stays as it is, for `ray_is_valid` to refuse:
+    # moved, it could become a valid one.
+    if not (t_min >= 0.0 and t_max > t_min):
+        return result
     result.shift = ray_far_shift(origin, direction, lower, upper)
     if result.shift > wp.float64(0.0):
-        result.origin = wp.vec3(wp.vec3d(origin) + wp.vec3d(direction) * result.shift)
+        result.origin = point_on_ray(origin, direction, result.shift)
         result.t_min = float(wp.max(wp.float64(t_min) - result.shift, wp.float64(0.0)))
         result.t_max = float(wp.float64(t_max) - result.shift)
     elif result.shift < wp.float64(0.0):
@@ -542,6 +604,8 @@ def canonical_ray_query(
 ):
     """`packed_ray_query` on the canonical arrays, for a view that carries no traversal layout."""
     shift = wp.float64(0.0)
+    range_min = t_min
+    range_max = t_max
     if bvh.faces.shape[0] > 0:
         if origin_is_far(origin, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
             ray = ray_start(origin, direction, t_min, t_max, bvh.node_lowers[0], bvh.node_uppers[0])
@@ -575,7 +639,7 @@ def canonical_ray_query(
                 p = bvh.prim_order[k]
                 tested += 1
                 h = bvh_triangle(bvh, p, origin, direction, t_min, best_t)
-                if h.hit == 1 and p != ignore_prim:
+                if h.hit == 1 and p != ignore_prim and far_hit_in_range(h.t, shift, range_min, range_max) == 1:
                     best_t = h.t
                     best_prim = p
                     best_u = h.u
@@ -694,6 +758,8 @@ def packed_ray_query(
     origin is first moved to the root box (`ray_start`); the t returned is from the caller's.
     """
     shift = wp.float64(0.0)
+    range_min = t_min
+    range_max = t_max
     if origin_is_far(origin, root_lower, root_upper) == 1:
         ray = ray_start(origin, direction, t_min, t_max, root_lower, root_upper)
         origin = ray.origin
@@ -731,7 +797,8 @@ def packed_ray_query(
                 tested += 1
                 tri = triangles[k]
                 h = intersect_triangle_watertight(origin, direction, tri.a, tri.b, tri.c, t_min, best_t)
-                if h.hit == 1 and (ignore_prim < 0 or prim_order[k] != ignore_prim):
+                if (h.hit == 1 and (ignore_prim < 0 or prim_order[k] != ignore_prim)
+                        and far_hit_in_range(h.t, shift, range_min, range_max) == 1):
                     best_t = h.t
                     best_k = k
                     best_u = h.u
@@ -915,6 +982,8 @@ def bvh_ray_all_hits(
     limit = ray_scaled_t_max(t_max, scale)
     start = origin
     shift = wp.float64(0.0)
+    range_min = low
+    range_max = limit
     if bvh.faces.shape[0] > 0:
         if origin_is_far(origin, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
             ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
@@ -932,7 +1001,7 @@ def bvh_ray_all_hits(
             for k in range(bvh.node_begin[node], bvh.node_end[node]):
                 p = bvh.prim_order[k]
                 h = bvh_triangle(bvh, p, start, d, low, limit)
-                if h.hit == 1 and p != ignore_prim:
+                if h.hit == 1 and p != ignore_prim and far_hit_in_range(h.t, shift, range_min, range_max) == 1:
                     if count < capacity:
                         out_prim[offset + count] = p
                         out_t[offset + count] = float(wp.float64(h.t) + shift) * scale

@@ -18,8 +18,8 @@ from typing import Any
 import warp as wp
 
 from .metrics import box_area64
-from .traversal import (INF, PackedTriangle, intersect_triangle_watertight, origin_is_far, query_limit, query_prim,
-                        ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max,
+from .traversal import (INF, PackedTriangle, far_hit_in_range, intersect_triangle_watertight, origin_is_far,
+                        query_limit, query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max,
                         ray_start)
 
 # Forward-only kernels: no adjoints to compile.
@@ -295,6 +295,8 @@ def wide_closest_hit(
     best_t = ray_scaled_t_max(t_max, scale)
     start = origin
     shift = wp.float64(0.0)
+    range_min = low
+    range_max = best_t
     if origin_is_far(origin, root_lower, root_upper) == 1:
         # A far origin starts nearer, in float64, as in the binary walk (`traversal.ray_start`).
         ray = ray_start(origin, d, low, best_t, root_lower, root_upper)
@@ -361,7 +363,7 @@ def wide_closest_hit(
                 h = intersect_triangle_watertight(start, d, tri.a, tri.b, tri.c, low, best_t)
                 if h.hit == 1:
                     p = prim_order[k]
-                    if p != ignore_prim:
+                    if p != ignore_prim and far_hit_in_range(h.t, shift, range_min, range_max) == 1:
                         best_t = h.t
                         best_prim = p
     result = WideHit()

@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 import warp as wp
 from handmade_trees import canonical_view
 from oracles import (assert_range_hits_match, crossings, crossings_prim, directions_off_surface, expected_range_hits,
-                     nested_shells, random_rays)
+                     nested_shells, numpy_all_hits, random_rays)
 
 import hlbvh_warp
 from hlbvh_warp import query, wide
@@ -247,3 +248,78 @@ def test_rays_from_far_origins(device, rng, scene, distance):
     for width in (4, 16):
         t_wide, prim_wide = wide.intersect(wide.collapse(bvh, width), o, d)
         assert np.array_equal(prim_wide, prim) and np.array_equal(t_wide, t)
+
+
+@pytest.mark.parametrize("z", [-1e5, -1e16, -2e16, -1e20])
+def test_far_axis_rays_keep_the_front_face(device, z):
+    """Rays along z have exact answers at any distance (x and y never round): the first face is
+    the front one, and every crossing is listed. From 2e16 sphere sizes the float64 entry distance
+    is off by more than the sphere, and a walk started one extent before the box began inside it:
+    the back face came first and the front one was lost from `intersect_all`."""
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    verts, faces = np.asarray(sphere.vertices, np.float32), np.asarray(sphere.faces, np.int32)
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    xy = np.random.default_rng(1).uniform(-0.6, 0.6, (40, 2))
+    o = np.c_[xy, np.full(len(xy), z)].astype(np.float32)
+    d = np.array([0, 0, 1], np.float32)
+    # The same lines from nearby: only t differs, by the origin's offset.
+    near = np.c_[xy, np.full(len(xy), -3.0)].astype(np.float32)
+    hit, t_ref, margin = numpy_all_hits(verts, faces, near, np.tile(d, (len(xy), 1)), np.inf)
+    clear = ~((np.abs(margin) < 1e-6) & hit).any(axis=1)
+    first = np.where(hit.any(axis=1), np.argmin(np.where(hit, t_ref, np.inf), axis=1), -1)
+    assert (first[clear] >= 0).sum() > 20
+    t, prim = query.intersect(bvh, o, d)
+    assert np.array_equal(prim[clear], first[clear])
+    for width in (4, 16):
+        assert np.array_equal(wide.intersect(wide.collapse(bvh, width), o, d)[1][clear], first[clear])
+    ray_id, all_prim, _ = query.intersect_all(bvh, o, d)
+    listed = set(zip(ray_id.tolist(), all_prim.tolist()))
+    expected = set(map(tuple, np.argwhere(hit).tolist()))
+    assert {pair for pair in expected if clear[pair[0]]} <= listed
+
+
+def test_far_hits_honour_the_open_range(device):
+    """The range is tested on the t reported, the float32 distance from the caller's origin: a far
+    walk compares in its own frame, and adding the shift back had rounded hits onto t_max (half
+    of them at 1e5 sphere sizes) or onto t_min with the same triangle, and past float32's range
+    to an infinite t with a triangle."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    bvh = hlbvh_warp.build(sphere, device=device)
+    xy = np.random.default_rng(0).uniform(-0.5, 0.5, (64, 2))
+    d = np.array([0, 0, 1], np.float32)
+    for z in (-1e5, -1e8):
+        o = np.c_[xy, np.full(len(xy), z)].astype(np.float32)
+        t, prim = query.intersect(bvh, o, d)
+        assert (prim >= 0).all()
+        t2, prim2 = query.intersect(bvh, o, d, t_min=t)
+        assert ((t2 > t) | (prim2 == -1)).all()
+        assert not query.occluded(bvh, o, d, t_max=t).any()
+        assert query.intersect_all(bvh, o, d, t_max=t)[0].size == 0
+        assert (query.intersect_all(bvh, o, d, t_min=t)[2] > t[query.intersect_all(bvh, o, d, t_min=t)[0]]).all()
+        w = wide.collapse(bvh, 4)
+        assert (wide.intersect(w, o, d, t_max=t)[1] == -1).all()
+    # The sphere lies 3e38 / 0.5 = 6e38 along the ray, past float32's range: no hit, as from nearby.
+    far = np.array([[0.1, 0.2, -3e38]], np.float32)
+    assert query.intersect(bvh, far, [0, 0, 0.5])[1][0] == -1
+    assert not query.occluded(bvh, far, [0, 0, 0.5])[0]
+
+
+@wp.kernel
+def _far_empty_range_kernel(view: hlbvh_warp.BvhView, z: float, t_min: float, out: wp.array(dtype=wp.int32)):
+    origin = wp.vec3(0.1, 0.2, z)
+    direction = wp.vec3(0.0, 0.0, 1.0)
+    out[0] = hlbvh_warp.bvh_closest_hit(view, origin, direction, t_min, 1.0e30, -1).prim
+    out[1] = hlbvh_warp.bvh_occluded(view, origin, direction, t_min, 1.0e30, -1)
+
+
+def test_user_kernel_empty_ranges_find_nothing_from_far(device):
+    """In a kernel nothing can raise: t_min < 0, NaN or -inf is an empty range and finds nothing,
+    from far as from near. Moving a far origin had turned such a t_min into 0 before the check."""
+    bvh = hlbvh_warp.build(trimesh.creation.icosphere(subdivisions=2), device=device)
+    out = wp.zeros(2, dtype=wp.int32, device=device)
+    for z in (-3.0, -1e5):
+        wp.launch(_far_empty_range_kernel, dim=1, inputs=[query.view(bvh), z, 0.0, out], device=device)
+        assert out.numpy()[0] >= 0 and out.numpy()[1] == 1
+        for low in (-1.0, float("nan"), float("-inf")):
+            wp.launch(_far_empty_range_kernel, dim=1, inputs=[query.view(bvh), z, low, out], device=device)
+            assert out.numpy().tolist() == [-1, 0], (z, low)
