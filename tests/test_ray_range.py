@@ -203,7 +203,7 @@ def test_ray_range_errors_name_the_problem(device):
     assert query.intersect(bvh, o, d, ignore_prim=ignore)[1].tolist() == [-1, 0]
 
 
-@pytest.mark.parametrize("distance", [1e4, 1e6, 1e8])
+@pytest.mark.parametrize("distance", [200.0, 1e3, 1e4, 1e6, 1e8])
 def test_rays_from_far_origins(device, rng, scene, distance):
     """Origins ``distance`` mesh sizes away: float32 coordinates relative to such an origin keep
     nothing of a triangle's size, so the walk starts from the origin moved along its ray, in
