@@ -279,7 +279,7 @@ EPILOG = (f"Exit status 1 when one of the rays checked (up to {ORACLE_RAYS} of e
 
 def far_distance(text: str) -> float:
     """argparse type of ``--far-distance``: 0 (none) or a distance from 1 to 1e30 diagonals; past
-    that the origins' float32 coordinates overflow."""
+    that the origins' float32 coordinates overflow on a mesh of unit size (sooner on a larger one)."""
     value = finite_float(text)
     if value != 0.0 and not 1.0 <= value <= 1e30:
         raise argparse.ArgumentTypeError(f"must be 0 or between 1 and 1e30, got {text}")
@@ -290,7 +290,9 @@ def main(argv=None) -> int:
     parser = mesh_method_parser("python -m hlbvh_warp bench-rays", __doc__.splitlines()[0], "--rays", 1_000_000,
                                 "rays per kind (default 1M)", EPILOG)
     parser.add_argument("--far-distance", type=far_distance, default=0.0,
-                        help="also trace random rays from this many bounding-box diagonals away (default: none)")
+                        help="also trace random rays from this many bounding-box diagonals away (default: none). "
+                             "Past 256 box extents the walk starts at the box; from about 1e8 a float32 "
+                             "direction no longer aims within the mesh, and few rays hit")
     args = parser.parse_args(argv)
     return run_rows(parser, args, args.rays, functools.partial(run, far_distance=args.far_distance), HEADER,
                     format_row,
