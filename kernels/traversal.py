@@ -40,8 +40,11 @@ wp.set_module_options({"enable_backward": False})
 #: taking the `BvhView` struct is passed it by value: called out of line, every query copied its
 #: thirteen arrays (about 700 bytes) first, which cost camera rays 12% once the walk grew past the
 #: C++ compiler's own inlining threshold.
-inline_func = functools.partial(wp.func, inline=True) if "inline" in inspect.signature(wp.func).parameters \
-    else wp.func
+_HINTS = "inline" in inspect.signature(wp.func).parameters
+inline_func = functools.partial(wp.func, inline=True) if _HINTS else wp.func
+#: ``@outline_func``: a `wp.func` kept out of line where Warp can say so: code only rare queries
+#: run (a far origin's float64 start), which inlined would crowd the walk every query runs.
+outline_func = functools.partial(wp.func, inline=False) if _HINTS else wp.func
 
 TRAVERSAL_STACK_SIZE = 64
 vec64i = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.int32)
@@ -491,7 +494,7 @@ class RayStart:
     shift: wp.float64
 
 
-@wp.func
+@outline_func
 def ray_start(origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, lower: wp.vec3, upper: wp.vec3):
     """The walk's start for a ray and its range (t_min, t_max) against the root box
     ``[lower, upper]``: the ray itself, or for a far origin the origin moved by `ray_far_shift`
@@ -744,6 +747,9 @@ def packed_ray_query(
     t_max: float,
     ignore_prim: int,
     any_hit: int,
+    shift: wp.float64,
+    range_min: float,
+    range_max: float,
 ):
     """Front-to-back traversal of the packed layout, shared by the closest-hit and any-hit queries.
 
@@ -758,18 +764,11 @@ def packed_ray_query(
     children); a deferred node entered behind the closest hit found since is dropped when popped.
 
     Hits count with t in (t_min, t_max), and never on ``ignore_prim`` (-1: none), the triangle a
-    secondary ray leaves from. Which triangle a position holds is read only for a hit. A far
-    origin is first moved to the root box (`ray_start`); the t returned is from the caller's.
+    secondary ray leaves from. Which triangle a position holds is read only for a hit. For a far
+    origin the caller passes the start `ray_start` moved it to, the ``shift`` to add back and the
+    caller's own range, which the reported t must lie in (`far_hit_in_range`); the t returned is
+    from the caller's origin.
     """
-    shift = wp.float64(0.0)
-    range_min = t_min
-    range_max = t_max
-    if origin_is_far(origin, root_lower, root_upper) == 1:
-        ray = ray_start(origin, direction, t_min, t_max, root_lower, root_upper)
-        origin = ray.origin
-        t_min = ray.t_min
-        t_max = ray.t_max
-        shift = ray.shift
     best_t = t_max
     best_k = int(-1)
     best_u = float(0.0)
@@ -875,27 +874,38 @@ def bvh_ray_query(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
-    # (A far origin is moved inside the two walks, `ray_start`: here it would stop this function,
-    # which passes the view by value, from being inlined, a cost every ray paid.)
     h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
         # The root's record is at position 0; a root that is a leaf has none.
         root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
+        root_lower = bvh.node_lowers[0]
+        root_upper = bvh.node_uppers[0]
+        # A far origin is moved here, out of the walk: its float64 code, out of line, stays out of
+        # the loop every ray runs (inside the walk it cost near rays 5-7%).
+        start = RayStart()
+        start.origin = origin
+        start.t_min = low
+        start.t_max = limit
+        if origin_is_far(origin, root_lower, root_upper) == 1:
+            start = ray_start(origin, d, low, limit, root_lower, root_upper)
         h = packed_ray_query(
             bvh.packed_nodes,
             bvh.packed_triangles,
             bvh.prim_order,
-            bvh.node_lowers[0],
-            bvh.node_uppers[0],
+            root_lower,
+            root_upper,
             root_begin,
             root,
-            origin,
+            start.origin,
             d,
-            low,
-            limit,
+            start.t_min,
+            start.t_max,
             ignore_prim,
             any_hit,
+            start.shift,
+            low,
+            limit,
         )
     else:
         h = canonical_ray_query(bvh, origin, d, low, limit, ignore_prim, any_hit)
