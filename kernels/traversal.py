@@ -449,8 +449,9 @@ def point_on_ray(origin: wp.vec3, direction: wp.vec3, s: wp.float64):
 
     From a far origin a plain float64 ``o + s * d`` is off the ray by float64's rounding of ``o``
     (2^-53 of it, a whole box at 1e16 box sizes), which moves the ray sideways. Here ``s`` is cut
-    into two halves, whose products with a float32 direction are both exact, and the three terms are summed with their rounding errors kept (TwoSum): the point
-    lies on the ray wherever ``s`` puts it along.
+    into two halves, whose products with a float32 direction are both exact, and the three terms
+    are summed with their rounding errors kept (TwoSum): the point lies on the ray wherever ``s``
+    puts it along.
     """
     # Veltkamp's split: a head of 26 bits and a tail of 27, each exact times a 24-bit float32.
     c = wp.float64(134217729.0) * s

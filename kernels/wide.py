@@ -19,8 +19,8 @@ import warp as wp
 
 from .metrics import box_area64
 from .traversal import (INF, PackedTriangle, far_hit_in_range, intersect_triangle_watertight, origin_is_far,
-                        query_limit, query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid, ray_scaled_t_max,
-                        ray_start)
+                        query_limit, query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction,
+                        ray_is_valid, ray_scaled_t_max, ray_start)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
