@@ -39,7 +39,7 @@ import numpy as np
 import warp as wp
 
 from .collide import _candidates, launch_box_pairs
-from .ray_bench import best_times, mesh_method_parser, run_rows
+from .ray_bench import best_times, checked_verdict, mesh_method_parser, run_rows
 
 
 #: Largest finite float32: the trees are built over float32 coordinates.
@@ -259,12 +259,9 @@ def format_row(r: dict) -> str:
 
 
 def verdict(rows: list[dict]) -> tuple[str, bool]:
-    """The summary line and whether the run failed: on this package's answers against the brute
-    force alone. wp.Mesh's disagreements are reported beside them, as wp.Mesh's."""
-    wrong, checked = sum(r["wrong"] for r in rows), sum(r["checked"] for r in rows)
-    differ = sum(r["disagree"] for r in rows)
-    return (f"ours against the exact brute force: {wrong} wrong of {checked} queries checked; wp.Mesh's disagreements "
-            f"with ours: {differ} (reported, not the exit status)"), wrong > 0
+    """bench-pairs' `ray_bench.checked_verdict` (on ``self`` a disagreement is a difference of
+    totals, not of queries)."""
+    return checked_verdict(rows, "exact", "queries", "wp.Mesh's disagreements with ours: {}")
 
 
 #: The exit status, for --help.

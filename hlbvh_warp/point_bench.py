@@ -34,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from .reference import brute_force_closest, point_triangle_d2
-from .ray_bench import best_times, mesh_method_parser, run_rows
+from .ray_bench import best_times, checked_verdict, mesh_method_parser, run_rows
 
 #: Disagreement with wp.Mesh: distances further apart than this fraction of the box diagonal.
 DISAGREE_RTOL = 1e-5
@@ -221,12 +221,8 @@ def format_row(r: dict) -> str:
 
 
 def verdict(rows: list[dict]) -> tuple[str, bool]:
-    """The summary line and whether the run failed: on this package's answers against the brute
-    force alone. wp.Mesh's disagreements are reported beside them, as wp.Mesh's."""
-    wrong, checked = sum(r["wrong"] for r in rows), sum(r["checked"] for r in rows)
-    differ = sum(r["disagree"] for r in rows)
-    return (f"ours against the float64 brute force: {wrong} wrong of {checked} points checked; wp.Mesh differs from "
-            f"ours on {differ} points (reported, not the exit status)"), wrong > 0
+    """bench-points' `ray_bench.checked_verdict`."""
+    return checked_verdict(rows, "float64", "points", "wp.Mesh differs from ours on {} points")
 
 
 #: The exit status, for --help.

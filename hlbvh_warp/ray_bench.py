@@ -225,13 +225,20 @@ def mesh_method_parser(prog: str, description: str, count_option: str | None = N
     return parser
 
 
-def verdict(rows: list[dict]) -> tuple[str, bool]:
-    """The summary line and whether the run failed: on this package's answers against the brute
-    force alone. wp.Mesh's disagreements are reported beside them, as wp.Mesh's."""
+def checked_verdict(rows: list[dict], oracle: str, queries: str, differ_text: str) -> tuple[str, bool]:
+    """The summary line and whether the run failed, shared by the bench commands: on this package's
+    answers against the brute force alone (``oracle``: which one; ``queries``: what was checked).
+    wp.Mesh's disagreements are reported beside them, as wp.Mesh's, by ``differ_text`` with the
+    total in place of ``{}``."""
     wrong, checked = sum(r["wrong"] for r in rows), sum(r["checked"] for r in rows)
     differ = sum(r["disagree"] for r in rows)
-    return (f"ours against the float64 brute force: {wrong} wrong of {checked} rays checked; wp.Mesh differs from "
-            f"ours on {differ} rays (reported, not the exit status)"), wrong > 0
+    return (f"ours against the {oracle} brute force: {wrong} wrong of {checked} {queries} checked; "
+            f"{differ_text.format(differ)} (reported, not the exit status)"), wrong > 0
+
+
+def verdict(rows: list[dict]) -> tuple[str, bool]:
+    """bench-rays' `checked_verdict`."""
+    return checked_verdict(rows, "float64", "rays", "wp.Mesh differs from ours on {} rays")
 
 
 def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: str, verdict) -> int:
