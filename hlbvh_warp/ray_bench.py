@@ -68,7 +68,11 @@ def far_rays(rng, vertices: np.ndarray, num_rays: int, distance: float):
     lo, hi = v.min(0), v.max(0)
     dirs = rng.normal(size=(num_rays, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    origins = (0.5 * (lo + hi) - distance * np.linalg.norm(hi - lo) * dirs).astype(np.float32)
+    with np.errstate(over="ignore"):
+        origins = (0.5 * (lo + hi) - distance * np.linalg.norm(hi - lo) * dirs).astype(np.float32)
+    if not np.isfinite(origins).all():
+        raise ValueError(f"--far-distance {distance:g} puts ray origins past float32's range for a mesh whose "
+                         f"box diagonal is {np.linalg.norm(hi - lo):.3g}")
     # Aimed from the float32 origins: at 1e8 diagonals a float32 direction still turns a ray off
     # the mesh by more than its size, and few rays hit.
     d = lo + rng.random((num_rays, 3)) * (hi - lo) - origins.astype(np.float64)

@@ -187,6 +187,11 @@ def test_bench_rays_far_rays_are_checked(tmp_path, capsys):
         with pytest.raises(SystemExit):
             cli.main(["bench-rays", "--mesh", str(path), "--far-distance", bad])
     assert "--far-distance" in capsys.readouterr().err
+    # Within the option's bounds but past float32's range for this mesh: one line naming it.
+    big = tmp_path / "big.ply"
+    trimesh.creation.icosphere(1).apply_scale(1e20).export(big)
+    assert cli.main(["bench-rays", "--mesh", str(big), "--rays", "16", "--far-distance", "1e30"]) == 2
+    assert "past float32's range" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("scale", [1e-20, 1e30])
