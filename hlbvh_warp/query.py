@@ -214,13 +214,13 @@ def _ignore_prim_values(ignore_prim, num_rays: int, num_prims: int) -> np.ndarra
 
 
 def _ray_range(t_min, t_max, ignore_prim, num_rays: int, num_prims: int):
-    """The checked ``t_min``, ``t_max`` and ``ignore_prim`` of a ray call, and whether any of them
-    asks for more than the plain (0, t_max) of one limit for every ray."""
+    """The checked ``t_min``, ``t_max`` and ``ignore_prim`` of a ray call, and whether a ray has a
+    near end or ignores a triangle (``ranged``): the calls keep their lean kernels when none does."""
     limits = _t_max_values(t_max, num_rays)
     lows = _t_min_values(t_min, num_rays)
     skips = _ignore_prim_values(ignore_prim, num_rays, num_prims)
-    plain = len(limits) == 1 and len(lows) == 1 and lows[0] == 0.0 and len(skips) == 0
-    return lows, limits, skips, plain
+    ranged = bool(lows.any()) or len(skips) > 0
+    return lows, limits, skips, ranged
 
 
 def _max_dist_values(max_dist, num_points: int):
@@ -314,7 +314,7 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     _require_mesh(bvh, "intersect")
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
-    lows, limits, skips, plain = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
+    lows, limits, skips, ranged = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
     device = bvh.device
     hit_t = wp.empty(num_rays, dtype=float, device=device)
     hit_prim = wp.empty(num_rays, dtype=wp.int32, device=device)
@@ -322,7 +322,7 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
     if num_rays:
         rays = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
-        if return_barycentrics or stats or not plain:
+        if return_barycentrics or stats or ranged or len(limits) > 1:
             ranges = [wp.array(lows, dtype=float, device=device), wp.array(limits, dtype=float, device=device),
                       wp.array(skips, dtype=wp.int32, device=device)]
             wp.launch(traversal.closest_hit_details_kernel, dim=num_rays, device=device,
@@ -357,7 +357,7 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
     o, d = inputs.ray_arrays(origins, directions)
     num_rays = o.shape[0]
     # Each: one value, or one per ray (`traversal.query_limit`, `traversal.query_prim`).
-    lows, limits, skips, _ = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
+    lows, limits, skips, ranged = _ray_range(t_min, t_max, ignore_prim, num_rays, bvh.num_prims)
     device = bvh.device
     result = wp.empty(num_rays, dtype=wp.int32, device=device)
     visits, tests = _optional_outputs(wp.int32, num_rays, stats, device)
@@ -365,7 +365,7 @@ def occluded(bvh: Bvh, origins, directions, t_max=float("inf"), stats: bool = Fa
         rays = [view(bvh), wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
         outputs = [result, visits, tests]
         limit_array = wp.array(limits, dtype=float, device=device)
-        if len(lows) == 1 and lows[0] == 0.0 and len(skips) == 0:
+        if not ranged:
             wp.launch(traversal.occluded_kernel, dim=num_rays, inputs=rays + [limit_array] + outputs, device=device)
         else:
             ranges = [wp.array(lows, dtype=float, device=device), limit_array, wp.array(skips, dtype=wp.int32,

@@ -332,13 +332,13 @@ def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: boo
     o, d = inputs.ray_arrays(origins, directions)
     device = wide.device
     n = o.shape[0]
-    lows, limits, skips, _ = _ray_range(t_min, t_max, ignore_prim, n, bvh.num_prims)
+    lows, limits, skips, ranged = _ray_range(t_min, t_max, ignore_prim, n, bvh.num_prims)
     hit_t = wp.empty(n, dtype=float, device=device)
     hit_prim = wp.empty(n, dtype=wp.int32, device=device)
     counts = wp.empty(n if stats else 0, dtype=wp.vec3i, device=device)
     if n:
         rays = [wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)]
-        if len(skips) == 0 and not lows.any():
+        if not ranged:
             # No near end and nothing ignored: the lean kernels `launch_args` hands out, whose
             # per-thread copy of the arguments holds no range arrays.
             kernel, args = _launch_for(wide, *rays, limits, hit_t, hit_prim, counts)

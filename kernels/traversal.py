@@ -403,6 +403,7 @@ def ray_far_shift(origin: wp.vec3, direction: wp.vec3, lower: wp.vec3, upper: wp
     """
     shift = wp.float64(0.0)
     extent = wp.max(upper[0] - lower[0], wp.max(upper[1] - lower[1], upper[2] - lower[2]))
+    # Called for origins `origin_is_far` calls far (`walk_start`); the test again, for any other caller.
     if origin_is_far(origin, lower, upper) == 1:
         t0 = wp.float64(0.0)
         t1 = wp.float64(INF)
@@ -520,6 +521,20 @@ def ray_start(origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, l
     return result
 
 
+@inline_func
+def walk_start(origin: wp.vec3, direction: wp.vec3, t_min: float, t_max: float, lower: wp.vec3, upper: wp.vec3):
+    """Where every ray walk starts: the ray as given (shift 0), or for an origin `origin_is_far`
+    calls far the out-of-line `ray_start`. Inlined: the cheap test every ray pays stays in the
+    caller, the float64 move only far rays run stays out of its loop."""
+    start = RayStart()
+    start.origin = origin
+    start.t_min = t_min
+    start.t_max = t_max
+    if origin_is_far(origin, lower, upper) == 1:
+        start = ray_start(origin, direction, t_min, t_max, lower, upper)
+    return start
+
+
 @wp.func
 def ray_inverse_direction(direction: wp.vec3):
     """1 / d per axis; a zero component gives +-inf, which `ray_box_entry` is written to accept."""
@@ -615,12 +630,11 @@ def canonical_ray_query(
     range_min = t_min
     range_max = t_max
     if bvh.faces.shape[0] > 0:
-        if origin_is_far(origin, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
-            ray = ray_start(origin, direction, t_min, t_max, bvh.node_lowers[0], bvh.node_uppers[0])
-            origin = ray.origin
-            t_min = ray.t_min
-            t_max = ray.t_max
-            shift = ray.shift
+        start = walk_start(origin, direction, t_min, t_max, bvh.node_lowers[0], bvh.node_uppers[0])
+        origin = start.origin
+        t_min = start.t_min
+        t_max = start.t_max
+        shift = start.shift
     best_t = t_max
     best_prim = int(-1)
     best_u = float(0.0)
@@ -884,12 +898,7 @@ def bvh_ray_query(
         root_upper = bvh.node_uppers[0]
         # A far origin is moved here, out of the walk: its float64 code, out of line, stays out of
         # the loop every ray runs (inside the walk it cost near rays 5-7%).
-        start = RayStart()
-        start.origin = origin
-        start.t_min = low
-        start.t_max = limit
-        if origin_is_far(origin, root_lower, root_upper) == 1:
-            start = ray_start(origin, d, low, limit, root_lower, root_upper)
+        start = walk_start(origin, d, low, limit, root_lower, root_upper)
         h = packed_ray_query(
             bvh.packed_nodes,
             bvh.packed_triangles,
@@ -1000,12 +1009,11 @@ def bvh_ray_all_hits(
     range_min = low
     range_max = limit
     if bvh.faces.shape[0] > 0:
-        if origin_is_far(origin, bvh.node_lowers[0], bvh.node_uppers[0]) == 1:
-            ray = ray_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
-            start = ray.origin
-            low = ray.t_min
-            limit = ray.t_max
-            shift = ray.shift
+        ray = walk_start(origin, d, low, limit, bvh.node_lowers[0], bvh.node_uppers[0])
+        start = ray.origin
+        low = ray.t_min
+        limit = ray.t_max
+        shift = ray.shift
     if bvh.faces.shape[0] > 0 and ray_is_valid(start, d, low, limit) == 1:
         inv = ray_inverse_direction(d)
         if ray_box_entry(start, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:

@@ -18,9 +18,9 @@ from typing import Any
 import warp as wp
 
 from .metrics import box_area64
-from .traversal import (INF, PackedTriangle, far_hit_in_range, intersect_triangle_watertight, origin_is_far,
-                        query_limit, query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction,
-                        ray_is_valid, ray_scaled_t_max, ray_start)
+from .traversal import (INF, PackedTriangle, far_hit_in_range, intersect_triangle_watertight, query_limit,
+                        query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid,
+                        ray_scaled_t_max, walk_start)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -293,17 +293,14 @@ def wide_closest_hit(
     d = direction * scale
     low = ray_scaled_t_max(t_min, scale)
     best_t = ray_scaled_t_max(t_max, scale)
-    start = origin
-    shift = wp.float64(0.0)
     range_min = low
     range_max = best_t
-    if origin_is_far(origin, root_lower, root_upper) == 1:
-        # A far origin starts nearer, in float64, as in the binary walk (`traversal.ray_start`).
-        ray = ray_start(origin, d, low, best_t, root_lower, root_upper)
-        start = ray.origin
-        low = ray.t_min
-        best_t = ray.t_max
-        shift = ray.shift
+    # A far origin starts nearer, in float64, as in the binary walk.
+    ray = walk_start(origin, d, low, best_t, root_lower, root_upper)
+    start = ray.origin
+    low = ray.t_min
+    best_t = ray.t_max
+    shift = ray.shift
     if ray_is_valid(start, d, low, best_t) == 1:
         inv = ray_inverse_direction(d)
         t_root = ray_box_entry(start, inv, root_lower, root_upper, low, best_t)
