@@ -174,6 +174,15 @@ def _per_query_values(value, count: int, name: str) -> np.ndarray:
     return values.astype(np.float64)
 
 
+def _refuse_first(values: np.ndarray, bad: np.ndarray, rule: str, query: str):
+    """Raise a ValueError stating ``rule`` and the first value where ``bad`` holds, naming its
+    query (``ray`` or ``point``) when there is one value per query."""
+    first = np.flatnonzero(bad)
+    if first.size:
+        where = "" if values.shape[0] == 1 else f" ({query} {first[0]})"
+        raise ValueError(f"{rule}, got {values[first[0]]}{where}")
+
+
 def _t_max_values(t_max, num_rays: int) -> np.ndarray:
     """``t_max`` as float32: ``(1,)`` for one number (or a one-element array), ``(num_rays,)`` for
     one per ray. Each is rounded up: a float32 t is below t_max exactly when it is below the
@@ -186,10 +195,7 @@ def _t_min_values(t_min, num_rays: int) -> np.ndarray:
     rounded down, as ``t_max`` is rounded up: a float32 t lies above t_min exactly when it lies
     above the float32 at or below it. An infinite ``t_min`` leaves its ray nothing to hit."""
     values = _per_query_values(t_min, num_rays, "t_min")
-    bad = np.flatnonzero(~(values >= 0.0))
-    if bad.size:
-        where = "" if values.shape[0] == 1 else f" (ray {bad[0]})"
-        raise ValueError(f"t_min must be >= 0, got {values[bad[0]]}{where}")
+    _refuse_first(values, ~(values >= 0.0), "t_min must be >= 0", "ray")
     return _round_down_to_float32_array(values)
 
 
@@ -205,11 +211,8 @@ def _ignore_prim_values(ignore_prim, num_rays: int, num_prims: int) -> np.ndarra
         values = values.reshape(1)
     elif values.shape != (num_rays,):
         raise ValueError(f"ignore_prim must be one index or have shape ({num_rays},), got {values.shape}")
-    bad = np.flatnonzero((values < -1) | (values >= num_prims))
-    if bad.size:
-        where = "" if values.shape[0] == 1 else f" (ray {bad[0]})"
-        raise ValueError(f"ignore_prim must be -1 (none) or a triangle index in [0, {num_prims}), "
-                         f"got {values[bad[0]]}{where}")
+    _refuse_first(values, (values < -1) | (values >= num_prims),
+                  f"ignore_prim must be -1 (none) or a triangle index in [0, {num_prims})", "ray")
     return values.astype(np.int32)
 
 
@@ -234,10 +237,7 @@ def _max_dist_values(max_dist, num_points: int):
             raise ValueError(f"max_dist must be >= 0, got {max_dist}")
         return _round_up_to_float32(max_dist)
     values = _per_query_values(max_dist, num_points, "max_dist")
-    bad = np.flatnonzero(~(values >= 0.0))
-    if bad.size:
-        where = "" if values.shape[0] == 1 else f" (point {bad[0]})"
-        raise ValueError(f"max_dist must be >= 0, got {values[bad[0]]}{where}")
+    _refuse_first(values, ~(values >= 0.0), "max_dist must be >= 0", "point")
     if values.shape[0] == 1:
         return _round_up_to_float32(float(values[0]))
     return _round_up_to_float32_array(values)
