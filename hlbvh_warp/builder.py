@@ -643,6 +643,9 @@ class Builder:
         self._rebuild(timer)
         stages = self._finish(timer)
         self.sah_reference = None
+        # A fresh tree: `auto`'s refits in a row and their growth start again from it.
+        self.refits_since_rebuild = 0
+        self.previous_growth = self.last_growth = 0.0
         self._report("rebuild", "rebuild requested", start, stages)
         return self.bvh
 
@@ -657,6 +660,10 @@ class Builder:
         timer = StageTimer(self.device, self.timings)
         self._refit(timer)
         stages = self._finish(timer)
+        # One more refit of the same topology, forced or under the `refit` policy: `auto`'s
+        # `max_refits` bounds them all, or substeps refit through `refit()` past the limit and
+        # a switch back to `auto` priced a tree refit 40 times as "after 1 refits".
+        self.refits_since_rebuild += 1
         self._report("refit", "refit requested", start, stages)
         return self.bvh
 
