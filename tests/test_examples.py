@@ -460,3 +460,13 @@ def test_frame_timing_checks_its_plot_folder_even_headless(tmp_path, capsys, mon
     assert "--headless" in args
     assert f"--out {a_file} is a file, not a folder" in argument_error("example_frame_timing", args, capsys,
                                                                         monkeypatch)
+
+
+@pytest.mark.parametrize("name", [name for name, args in TINY_ARGS.items() if "--num-tris" in args])
+def test_example_scripts_refuse_a_scene_too_small_to_generate(name, capsys, monkeypatch):
+    """`--num-tris 5` (a tiny mesh to try the per-frame loop on) ended in a ValueError traceback
+    from `default_scene` after the arguments were accepted; the generated scene needs 18."""
+    args = TINY_ARGS[name]
+    at = args.index("--num-tris")
+    last = argument_error(name, args[:at] + ["--num-tris", "5"] + args[at + 2:], capsys, monkeypatch)
+    assert "--num-tris: must be at least 18" in last, last
