@@ -10,7 +10,8 @@ import argparse
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
-from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh
+from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh,
+                            scene_tris)
 from hlbvh_warp.dynamic import Animation, BendingMesh
 from hlbvh_warp.scenes import scene
 
@@ -52,7 +53,7 @@ def main(argv=None):
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
-    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Size of the generated scene.")
+    parser.add_argument("--num-tris", type=scene_tris, default=60000, help="Size of the generated scene.")
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="auto")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")

@@ -19,7 +19,7 @@ import warp as wp
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_int,
-                            positive_int, read_mesh)
+                            positive_int, read_mesh, scene_tris)
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import scene, subdivide
@@ -187,7 +187,7 @@ def main(argv=None):
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
-    parser.add_argument("--num-tris", type=positive_int, default=60000, help="Size of the generated scene.")
+    parser.add_argument("--num-tris", type=scene_tris, default=60000, help="Size of the generated scene.")
     parser.add_argument("--sequences", type=str, default="explode,bend",
                         help="Comma-separated: explode, bend, static (the mesh at rest every frame).")
     parser.add_argument("--modes", type=str, default=",".join(MODES), help="Comma-separated subset of the modes.")

@@ -20,7 +20,7 @@ import warp as wp
 
 import hlbvh_warp as hb
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh
+from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh, scene_tris
 from hlbvh_warp.scenes import scene
 
 # The copy starts and ends this many box diagonals from the mesh's centre along x: clear of it.
@@ -119,7 +119,7 @@ def main(argv=None):
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
-    parser.add_argument("--num-tris", type=positive_int, default=20000, help="Size of the generated scene.")
+    parser.add_argument("--num-tris", type=scene_tris, default=20000, help="Size of the generated scene.")
     parser.add_argument("--out", type=str, default="example_mesh_collision.png",
                         help="The picture of the frame with the most contact.")
     args = parser.parse_args(argv)

@@ -13,6 +13,7 @@ import os
 import sys
 
 from .inputs import MAX_PRIMS
+from .scenes import MIN_SCENE_TRIS
 
 COMMANDS = {
     "demo": ("hlbvh_warp.demo", "build a generated scene with each method, check rays, print timings"),
@@ -62,6 +63,9 @@ def int_in_range(minimum: int, maximum: int, why: str):
 
 
 tris_count = int_in_range(1, MAX_TRIS, TRIS_LIMIT)
+# The examples' --num-tris sizes the generated scene, which cannot be smaller: below this the
+# arguments were accepted and `default_scene` ended the run with a traceback.
+scene_tris = int_in_range(MIN_SCENE_TRIS, MAX_TRIS, TRIS_LIMIT)
 query_count = int_in_range(1, MAX_QUERIES, MEMORY_LIMIT)
 query_count_or_zero = int_in_range(0, MAX_QUERIES, MEMORY_LIMIT)
 image_side = int_in_range(1, MAX_IMAGE_SIDE, MEMORY_LIMIT)

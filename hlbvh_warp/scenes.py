@@ -51,10 +51,14 @@ def torus_knot(p: int = 2, q: int = 3, rings: int = 600, sides: int = 50, knot_r
     return vertices.astype(np.float32), faces.astype(np.int32)
 
 
+#: The fewest triangles `default_scene` makes (a knot of 3 rings of 3 sides, two triangles per quad).
+MIN_SCENE_TRIS = 18
+
+
 def default_scene(num_tris: int = 60000):
     """The package's default scene: a bumpy torus knot with about ``num_tris`` triangles."""
-    if num_tris < 18:
-        raise ValueError(f"default_scene needs at least 18 triangles, got {num_tris}")
+    if num_tris < MIN_SCENE_TRIS:
+        raise ValueError(f"default_scene needs at least {MIN_SCENE_TRIS} triangles, got {num_tris}")
     # rings : sides about 12 : 1 keeps the quads roughly square along the tube.
     sides = max(3, int(round(np.sqrt(num_tris / 24.0))))
     rings = max(3, int(round(num_tris / (2.0 * sides))))

@@ -406,8 +406,6 @@ def test_example_scripts_hand_the_mesh_they_checked_to_the_example(tmp_path, cap
 # ----------------------------------------------------------------- pinned by the third mutation audit
 COUNT_OPTIONS = [
     *[(name, "--num-frames") for name in TINY_ARGS],
-    *[(name, "--num-tris") for name in ("example_exploding_mesh", "example_bending_mesh", "example_frame_timing",
-                                        "example_mesh_contact", "example_mesh_collision", "example_camera_orbit")],
     ("example_exploding_mesh", "--image-size"), ("example_bending_mesh", "--image-size"),
     ("example_mesh_contact", "--num-particles"), ("example_particle_collisions", "--num-particles"),
     ("example_user_kernel", "--resolution"), ("example_camera_orbit", "--resolution"),
@@ -419,6 +417,10 @@ NON_NEGATIVE_OPTIONS = [("example_frame_timing", "--cpu-threads"), ("example_fra
 @pytest.mark.parametrize("name,option,value,message", [
     *[(name, option, "0", f"argument {option}: must be at least 1, got 0") for name, option in COUNT_OPTIONS],
     *[(name, option, "-1", f"argument {option}: must be at least 0, got -1") for name, option in NON_NEGATIVE_OPTIONS],
+    # The generated scene's least (`scenes.MIN_SCENE_TRIS`), not 1.
+    *[(name, "--num-tris", "0", "argument --num-tris: must be at least 18, got 0")
+      for name in ("example_exploding_mesh", "example_bending_mesh", "example_frame_timing", "example_mesh_contact",
+                   "example_mesh_collision", "example_camera_orbit")],
 ])
 def test_example_scripts_refuse_counts_below_their_least(name, option, value, message, capsys, monkeypatch):
     # A count of 0 (or -1 where 0 is allowed) ran no frame, or failed in the library as a traceback.
