@@ -109,6 +109,8 @@ class Builder:
         max_refits: ``auto`` rebuilds after this many refit frames in a row even when the refit
             tree's SAH cost holds: a deformation can make a fresh build better while the refit
             tree's cost stays flat, which no measure of the refit tree alone can see.
+            Refits forced by `refit` (or made under the ``refit`` policy) count toward it;
+            `rebuild` starts the count again.
             Also the number of frames ``auto`` rebuilds without trying a refit after a refit
             failed on its first frame (chaotic motion), doubled after each retry that fails again,
             up to ``MAX_CHAOTIC_BACKOFF`` times.
