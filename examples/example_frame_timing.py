@@ -51,6 +51,12 @@ def sequence_bounds(anim, param, num_frames):
     return (tuple(lower), tuple(upper))
 
 
+def _cell(value: float, width: int, spec: str) -> str:
+    """A table cell, or "-" where a ratio has no reference in this run (no scratch or resorted
+    mode of that method was asked for): a NaN column reads as a failure."""
+    return f"{value:{width}{spec}}" if np.isfinite(value) else f"{'-':>{width}}"
+
+
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
                  headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide_times=0):
@@ -153,7 +159,7 @@ class Example:
                 if any(inputs):
                     decisions += f" (resorted {inputs.count('previous tree')})"
                 lines.append(f"{name:8}  {label:18}  {ms.mean():10.2f}  {ms.max():8.2f}  {ms.min():8.2f}  "
-                             f"{ms.mean() / base:10.2f}  {ratio:20.3f}  {decisions}")
+                             f"{_cell(ms.mean() / base, 10, '.2f')}  {_cell(ratio, 20, '.3f')}  {decisions}")
         lines.append("vs scratch: average over the same method's scratch average (hlbvh scratch for a method "
                      "run no other way, such as wp.Bvh); worst SAH vs rebuild: against that method resorted")
         return "\n".join(lines)

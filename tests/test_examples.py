@@ -82,6 +82,21 @@ def test_frame_timing(device, tmp_path):
     assert pathlib.Path(path).stat().st_size > 0
 
 
+def test_frame_timing_table_without_references(device):
+    """A run with no scratch or resorted mode of a method has no reference for its ratios: the
+    cells say so ("-") instead of printing nan, while the measured columns are still numbers."""
+    module = load_example("example_frame_timing")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=500, num_frames=1, sequences=("bend",), modes=["hlbvh auto"],
+                                 headless=True)
+        example.step()
+    row = next(line for line in example.table().splitlines() if "hlbvh auto" in line)
+    assert "nan" not in row.lower()
+    cells = row.split()
+    assert cells[6:8] == ["-", "-"], row  # sequence, two words of mode, three times, the ratios
+    assert float(cells[3]) == pytest.approx(np.mean(example.sequences["bend"]["ms"]["hlbvh auto"]), abs=0.01)
+
+
 def test_frame_timing_static_sequence(device):
     """The "static" sequence rebuilds the mesh at rest every frame (the paper's resorting of an
     already sorted model): the vertices never move, and the resorted tree is the scratch one."""
