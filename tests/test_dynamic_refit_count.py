@@ -1,5 +1,7 @@
-"""A demanding user's per-frame sequences, each checked against independent float64 NumPy
-(the oracles here are this file's own, not the project's), and the faults they found."""
+"""`auto`'s ``max_refits`` counts every refit since the last rebuild, forced ones too: a
+simulation that refits each substep through `refit()`, or runs under the ``refit`` policy for a
+while, must not leave `auto` refitting past its limit. SAH costs are checked against this file's
+own float64 NumPy pricing of the tree."""
 
 from __future__ import annotations
 
