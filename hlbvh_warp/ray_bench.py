@@ -40,6 +40,21 @@ from .stress_report import classify
 
 DEFAULT_MESHES = ("bunny", "armadillo")
 SHARED_MESHES = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+#: ``../shared/meshes`` as the help and the README write it: from the current folder.
+RELATIVE_MESHES = pathlib.Path("..") / "shared" / "meshes"
+
+
+def default_mesh_paths() -> list[pathlib.Path] | None:
+    """The bunny and the armadillo of bench-rays, bench-points and bench-pairs without ``--mesh``:
+    from ``../shared/meshes`` beside the current folder (the README runs the commands from the
+    repository root), else beside the checkout this package runs from; None where neither holds
+    them. Only the second was looked at, which for an installed package is a folder beside
+    site-packages: the default failed there, naming that folder, whatever the current one."""
+    for folder in (RELATIVE_MESHES, SHARED_MESHES):
+        paths = [folder / f"{name}.ply" for name in DEFAULT_MESHES]
+        if all(path.is_file() for path in paths):
+            return paths
+    return None
 #: Rays of each kind checked against the float64 brute force: this many evenly spaced, and as many
 #: of the rays where wp.Mesh disagrees. The brute force takes under half a second for 512 rays on
 #: the bunny or the armadillo (70k and 100k triangles), against seconds for the timed launches.
@@ -251,7 +266,11 @@ def run_rows(parser, args, count: int, run_fn, header: str, format_fn, footer: s
     rely on the status)."""
     quiet_warp()
     wp.init()
-    paths = args.mesh or [SHARED_MESHES / f"{name}.ply" for name in DEFAULT_MESHES]
+    paths = args.mesh or default_mesh_paths()
+    if paths is None:
+        names = " and ".join(f"{name}.ply" for name in DEFAULT_MESHES)
+        parser.error(f"no --mesh given, and the default meshes ({names}) are not in {RELATIVE_MESHES}; "
+                     "pass --mesh FILE")
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         parser.error(f"mesh not found: {', '.join(missing)}")

@@ -340,3 +340,39 @@ def test_the_moved_copy_names_a_nan_as_a_nan():
     # A finite mesh whose copy leaves float32's range is still told apart from a NaN.
     with pytest.raises(ValueError, match="the mesh is finite, but too near float32's limit"):
         moved_copy(np.array([[-3.4e38, 0.0, 0.0], [3.4e38, 0.0, 0.0], [0.0, 3.4e38, 0.0]]))
+
+
+# ------------------------------------------------------------- the default meshes of the query benches
+@pytest.mark.parametrize("command", ["bench-rays", "bench-points", "bench-pairs"])
+def test_default_meshes_are_read_from_shared_meshes_beside_the_current_folder(command, tmp_path, monkeypatch, capsys):
+    # Without --mesh the help says "bunny and armadillo from ../shared/meshes"; the path was taken
+    # beside the package's own folder only, so an installed package looked beside site-packages.
+    # Two small stand-ins, told apart by their triangle counts, must be the ones measured.
+    import trimesh
+
+    from hlbvh_warp import ray_bench
+
+    shared = tmp_path / "shared" / "meshes"
+    shared.mkdir(parents=True)
+    expected = {"bunny": trimesh.creation.icosphere(subdivisions=1), "armadillo": trimesh.creation.box()}
+    for name, mesh in expected.items():
+        mesh.export(shared / f"{name}.ply")
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    monkeypatch.setattr(ray_bench, "SHARED_MESHES", tmp_path / "nowhere")
+    count = {"bench-rays": ["--rays", "8"], "bench-points": ["--points", "8"], "bench-pairs": []}[command]
+    assert cli.main([command, *count, "--repeats", "1"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()]
+    measured = {row[0]: int(row[1]) for row in rows if row and row[0] in expected}
+    assert measured == {name: len(mesh.faces) for name, mesh in expected.items()}, rows
+
+
+def test_missing_default_meshes_are_one_line_that_names_the_option(tmp_path, monkeypatch, capsys, no_builds):
+    from hlbvh_warp import ray_bench
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(ray_bench, "SHARED_MESHES", tmp_path / "nowhere")
+    for command in ("bench-rays", "bench-points", "bench-pairs"):
+        err = error_of([command], capsys)
+        assert "default meshes (bunny.ply and armadillo.ply) are not in" in err and "pass --mesh FILE" in err, err
