@@ -55,6 +55,8 @@ def default_mesh_paths() -> list[pathlib.Path] | None:
         if all(path.is_file() for path in paths):
             return paths
     return None
+
+
 #: Rays of each kind checked against the float64 brute force: this many evenly spaced, and as many
 #: of the rays where wp.Mesh disagrees. The brute force takes under half a second for 512 rays on
 #: the bunny or the armadillo (70k and 100k triangles), against seconds for the timed launches.
