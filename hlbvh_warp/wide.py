@@ -19,13 +19,14 @@ comparison that changes nothing but k.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from . import inputs, metrics
-from .bvh import Bvh, holding_tree
+from .bvh import Bvh, held, holding_tree
 from .kernels import wide as kernels
 from .kernels.traversal import PackedTriangle
 from .kernels.wide import WideHit, WideView, bvh_wide_closest_hit  # noqa: F401  (re-exported for user kernels)
@@ -48,6 +49,19 @@ class WideTraversalStats:
 
         return {"mean_nodes_visited": mean(self.nodes_visited), "mean_boxes_tested": mean(self.boxes_tested),
                 "mean_prims_tested": mean(self.prims_tested)}
+
+
+def _holding_binary_tree(fn):
+    """`held` around a host call on a wide tree: it reads its binary tree's primitive order and
+    triangles, which a `Builder` rewrites in place, so it waits for an update in progress as the
+    binary queries do, and its generation check then sees that update (and refuses)."""
+
+    @functools.wraps(fn)
+    def wrapper(wide, *args, **kwargs):
+        with held(getattr(wide, "bvh", None)):
+            return fn(wide, *args, **kwargs)
+
+    return wrapper
 
 
 class WideBvh:
@@ -84,6 +98,7 @@ class WideBvh:
         """The device of the binary tree it was collapsed from."""
         return self.bvh.device
 
+    @_holding_binary_tree
     def to_numpy(self) -> dict:
         """The slot and per-node range arrays, and the binary tree's ``prim_order``, as NumPy, keyed by
         attribute name."""
@@ -179,6 +194,7 @@ def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
     return wide
 
 
+@_holding_binary_tree
 def sah_cost(wide: WideBvh, t_traversal: float = 1.0, t_intersect: float = 1.0) -> float:
     """Pantaleoni & Luebke's eq. (1) on the wide tree: C(node) = T1 * N_children + sum of
     C(child) * area(child) / area(node), C(leaf) = T2 * N_prims. At width 2 it is
@@ -310,6 +326,7 @@ def launch_inputs(wide: WideBvh, origins: wp.array, directions: wp.array, t_max,
     return args
 
 
+@_holding_binary_tree
 def intersect(wide: WideBvh, origins, directions, t_max=float("inf"), stats: bool = False, *, t_min=0.0,
               ignore_prim=None):
     """Closest hit of every ray through the wide tree: ``(t, prim)`` as `hlbvh_warp.intersect`
