@@ -1,4 +1,4 @@
-"""Edge cases of the wide BVHs (`hlbvh_warp.wide`) found in review."""
+"""Wide BVHs (`hlbvh_warp.wide`) and updates of their binary tree: a wide host call waits for one in progress."""
 
 from __future__ import annotations
 
