@@ -32,8 +32,8 @@ import numpy as np
 import warp as wp
 
 from . import api, inputs, reference, scenes
-from .cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_file, device_name, int_in_range, mesh_file,
-                  non_negative_int, positive_int, query_count_or_zero, quiet_warp, read_meshes, tris_count)
+from .cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_file, command_prog, device_name, int_in_range,
+                  mesh_file, non_negative_int, positive_int, query_count_or_zero, quiet_warp, read_meshes, tris_count)
 from .config import BuildConfig
 from .hlbvh import StageTimer
 from .kernels import morton
@@ -443,7 +443,7 @@ def subdivided_meshes(paths, times: int) -> list:
 
 
 def parse_args(argv):
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=command_prog("bench"), description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
     parser.add_argument("--subdivide", type=int_in_range(0, MAX_SUBDIVIDE, f"4^{MAX_SUBDIVIDE + 1} triangles of one "

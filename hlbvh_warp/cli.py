@@ -45,6 +45,19 @@ TRIS_LIMIT = f"a tree holds fewer than 2^{MAX_PRIMS.bit_length() - 1} triangles"
 MEMORY_LIMIT = "a run's memory grows with it, to gigabytes at this bound"
 
 
+def program() -> str:
+    """How the user ran the command line, for usage and error lines: the installed
+    ``hlbvh-warp`` script or ``python -m hlbvh_warp``. A usage line naming the other form would
+    tell a script user to type a command they did not."""
+    name = os.path.basename(sys.argv[0] if sys.argv else "")
+    return "hlbvh-warp" if name.startswith("hlbvh-warp") else "python -m hlbvh_warp"
+
+
+def command_prog(command: str) -> str:
+    """argparse's ``prog`` of one command: ``<program> <command>``."""
+    return f"{program()} {command}"
+
+
 def int_in_range(minimum: int, maximum: int, why: str):
     """argparse type: an integer in ``[minimum, maximum]``; ``why`` says in the error what the
     upper bound protects. Sizes without an upper bound reached NumPy's allocator, which failed
@@ -232,8 +245,8 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
         if argv and argv[0] not in ("-h", "--help"):
-            print(f"hlbvh_warp: unknown command {argv[0]!r}", file=sys.stderr)
-        print("usage: python -m hlbvh_warp <command> [options]\n\ncommands:")
+            print(f"{program()}: unknown command {argv[0]!r}", file=sys.stderr)
+        print(f"usage: {program()} <command> [options]\n\ncommands:")
         for name, (_, text) in COMMANDS.items():
             print(f"  {name:12s} {text}")
         return 0 if not argv or argv[0] in ("-h", "--help") else 2
@@ -243,13 +256,13 @@ def main(argv=None) -> int:
     except (ValueError, OSError, NotImplementedError) as error:
         # Bad input the library names (a file that is not a mesh, an unknown builder or device,
         # an empty scene): one line, not a traceback. Anything else is a bug and keeps its trace.
-        print(f"hlbvh_warp {argv[0]}: error: {error}", file=sys.stderr)
+        print(f"{command_prog(argv[0])}: error: {error}", file=sys.stderr)
         return 2
     except MemoryError as error:
         # The bounds on sizes keep a run to what the library and a few GB hold, not to what this
         # machine has: a run that still does not fit is one line naming it, not a traceback.
         detail = f" ({error})" if str(error) else ""
-        print(f"hlbvh_warp {argv[0]}: error: out of memory{detail}; choose smaller sizes", file=sys.stderr)
+        print(f"{command_prog(argv[0])}: error: out of memory{detail}; choose smaller sizes", file=sys.stderr)
         return 2
 
 

@@ -12,8 +12,8 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import (check_out_folder, device_name, image_side, mesh_file, positive_int, query_count_or_zero, quiet_warp,
-                  tris_count)
+from .cli import (check_out_folder, command_prog, device_name, image_side, mesh_file, positive_int,
+                  query_count_or_zero, quiet_warp, scene_tris)
 from .reference import brute_force_closest_hit
 
 #: Pixels of all the animation's frames together: every frame is kept for the GIF, and the save
@@ -69,10 +69,10 @@ def animation_reach(vertices, num_frames: int) -> float:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp demo", description=__doc__,
+    parser = argparse.ArgumentParser(prog=command_prog("demo"), description=__doc__,
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default).")
-    parser.add_argument("--num-tris", type=tris_count, default=60000, help="Triangles of the generated scene.")
+    parser.add_argument("--num-tris", type=scene_tris, default=60000, help="Triangles of the generated scene.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
     parser.add_argument("--rays", type=query_count_or_zero, default=256,
                         help="Rays checked against the float64 brute force.")

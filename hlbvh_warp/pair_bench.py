@@ -38,6 +38,7 @@ import pathlib
 import numpy as np
 import warp as wp
 
+from .cli import command_prog
 from .collide import _candidates, launch_box_pairs
 from .ray_bench import best_times, checked_verdict, mesh_method_parser, run_rows
 
@@ -273,7 +274,7 @@ EPILOG = (f"Exit status 1 when one of the queries checked (up to {ORACLE_QUERIES
 def main(argv=None) -> int:
     from . import api
 
-    parser = mesh_method_parser("python -m hlbvh_warp bench-pairs", __doc__.splitlines()[0], epilog=EPILOG)
+    parser = mesh_method_parser(command_prog("bench-pairs"), __doc__.splitlines()[0], epilog=EPILOG)
     args = parser.parse_args(argv)
     # A builder that cuts triangles (sbvh) lists some in several leaves, each under a box of its
     # part only; the pair queries refuse such trees (`collide`), which surfaced only after the

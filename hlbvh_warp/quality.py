@@ -23,8 +23,8 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
-from .cli import (argument_errors, check_out_file, check_ray_count, device_name, finite_float, image_side, mesh_file,
-                  non_negative_int, query_count, quiet_warp, read_meshes, tris_count)
+from .cli import (argument_errors, check_out_file, check_ray_count, command_prog, device_name, finite_float,
+                  image_side, mesh_file, non_negative_int, query_count, quiet_warp, read_meshes, scene_tris)
 
 #: The builders compared, and the one each ratio divides by.
 BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
@@ -164,10 +164,10 @@ def format_row(row: dict) -> str:
 
 
 def parse_args(argv):
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp quality", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=command_prog("quality"), description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=tris_count, default=20000,
+    parser.add_argument("--scene-tris", type=scene_tris, default=20000,
                         help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--scene", default="knot", choices=["knot", "knot+large"],
                         help="the generated scene: the torus knot, or with 8 large triangles across it "

@@ -33,8 +33,8 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import (device_name, finite_float, leaf_size, non_negative_int, positive_int, query_count, quiet_warp,
-                  read_mesh)
+from .cli import (command_prog, device_name, finite_float, leaf_size, non_negative_int, positive_int, query_count,
+                  quiet_warp, read_mesh)
 from .reference import brute_force_closest_hit
 from .stress_report import classify
 
@@ -319,7 +319,7 @@ def far_distance(text: str) -> float:
 
 
 def main(argv=None) -> int:
-    parser = mesh_method_parser("python -m hlbvh_warp bench-rays", __doc__.splitlines()[0], "--rays", 1_000_000,
+    parser = mesh_method_parser(command_prog("bench-rays"), __doc__.splitlines()[0], "--rays", 1_000_000,
                                 "rays per kind (default 1M)", EPILOG)
     parser.add_argument("--far-distance", type=far_distance, default=0.0,
                         help="also trace random rays from this many bounding-box diagonals away (default: none). "

@@ -26,7 +26,7 @@ import argparse
 
 import numpy as np
 
-from .cli import device_name, non_negative_int, quiet_warp
+from .cli import command_prog, device_name, non_negative_int, quiet_warp
 from .reference import brute_force_closest_hit
 
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
@@ -294,7 +294,7 @@ def main(argv=None) -> int:
 
     from . import api
 
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp stress", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=command_prog("stress"), description=__doc__.splitlines()[0])
     parser.add_argument("--device", action="append", type=device_name,
                         help="Warp device (repeatable); default: every device")
     parser.add_argument("--family", action="append", choices=sorted(SCENE_FAMILIES), help="default: all")

@@ -24,8 +24,8 @@ import time
 import numpy as np
 import warp as wp
 
-from .cli import (argument_errors, check_out_file, check_ray_count, device_name, image_side, mesh_file,
-                  non_negative_int, positive_int, query_count, quiet_warp, read_meshes, tris_count)
+from .cli import (argument_errors, check_out_file, check_ray_count, command_prog, device_name, image_side, mesh_file,
+                  non_negative_int, positive_int, query_count, quiet_warp, read_meshes, scene_tris)
 
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
@@ -127,10 +127,10 @@ def format_row(r: dict) -> str:
 def parse_args(argv):
     from . import wide
 
-    parser = argparse.ArgumentParser(prog="python -m hlbvh_warp bench-wide", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=command_prog("bench-wide"), description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", action="append", default=[], type=mesh_file,
                         help="mesh file (repeatable); default: a generated scene")
-    parser.add_argument("--scene-tris", type=tris_count, default=20000,
+    parser.add_argument("--scene-tris", type=scene_tris, default=20000,
                         help="triangles of the generated scene (default: %(default)s)")
     parser.add_argument("--method", action="append", default=None,
                         help="binary builder to collapse (repeatable; default: hlbvh_sah)")

@@ -125,7 +125,7 @@ def test_mesh_file_errors_name_the_file(tmp_path, capsys, no_builds):
     for command in ("quality", "bench-wide", "bench"):
         for path, problem in ((text, "file_type 'txt' not supported"), (garbage, "Not a ply file")):
             err = error_of([command, "--mesh", str(path), "--json", str(tmp_path / "x.json")], capsys)
-            assert f"hlbvh_warp {command}: error: {path}: {problem}" in err, err
+            assert f"python -m hlbvh_warp {command}: error: {path}: {problem}" in err, err
 
 
 # ----------------------------------------------------------------- pinned by the third mutation audit
@@ -147,7 +147,7 @@ def test_a_commands_input_errors_end_in_one_line(error, capsys, monkeypatch):
 
     monkeypatch.setattr(quality, "main", failing)
     err = error_of(["quality"], capsys)
-    assert err.strip() == f"hlbvh_warp quality: error: {error}", err
+    assert err.strip() == f"python -m hlbvh_warp quality: error: {error}", err
 
 
 @pytest.mark.parametrize("error,message", [
@@ -164,7 +164,7 @@ def test_a_run_that_does_not_fit_in_memory_ends_in_one_line(error, message, caps
 
     monkeypatch.setattr(quality, "main", failing)
     err = error_of(["quality"], capsys)
-    assert err.strip() == f"hlbvh_warp quality: error: {message}", err
+    assert err.strip() == f"python -m hlbvh_warp quality: error: {message}", err
 
 
 def test_a_commands_bug_keeps_its_traceback(monkeypatch):
@@ -266,7 +266,7 @@ def test_subdivide_is_bounded_by_the_meshs_own_size(tmp_path, monkeypatch, capsy
     json_path = str(tmp_path / "b.json")
     err = error_of(["bench", "--mesh", str(three), "--mesh", str(four), "--subdivide", "14", "--json", json_path],
                    capsys)
-    assert err.strip() == (f"hlbvh_warp bench: error: --subdivide 14: {four} has 4 triangles, 1073741824 once "
+    assert err.strip() == (f"python -m hlbvh_warp bench: error: --subdivide 14: {four} has 4 triangles, 1073741824 once "
                            "split; a tree holds fewer than 2^30 triangles"), err
     assert split == []  # not even the first mesh, which was small enough
     assert passes_the_argument_checks(["bench", "--mesh", str(three), "--subdivide", "14", "--json", json_path])
@@ -326,7 +326,7 @@ def test_an_invalid_mesh_is_named_before_any_work(command, tmp_path, capsys, no_
     for path, problem in ((nan, "vertices has a NaN or Inf coordinate (first at row 1: [1.0, nan, 0.0])"),
                           (out_of_range, "face index 9 out of range [0, 3) (first at face 1)")):
         err = error_of([command, "--mesh", str(good), "--mesh", str(path), *extra], capsys)
-        assert err.strip().splitlines()[-1] == f"hlbvh_warp {command}: error: {path}: {problem}", err
+        assert err.strip().splitlines()[-1] == f"python -m hlbvh_warp {command}: error: {path}: {problem}", err
         assert "finite" not in err and "float32" not in err, err
 
 
@@ -376,3 +376,26 @@ def test_missing_default_meshes_are_one_line_that_names_the_option(tmp_path, mon
     for command in ("bench-rays", "bench-points", "bench-pairs"):
         err = error_of([command], capsys)
         assert "default meshes (bunny.ply and armadillo.ply) are not in" in err and "pass --mesh FILE" in err, err
+
+
+@pytest.mark.parametrize("command, option", [("demo", "--num-tris"), ("quality", "--scene-tris"),
+                                             ("bench-wide", "--scene-tris")])
+def test_a_generated_scene_too_small_is_an_argument_error(command, option, capsys, no_builds):
+    # The generated knot needs 18 triangles: below that these commands accepted the argument,
+    # started Warp and failed in the scene generator, after the argument checks.
+    err = error_of([command, option, "5"], capsys)
+    assert f"{command}: error: argument {option}: must be at least 18, got 5" in err, err
+
+
+@pytest.mark.parametrize("argv0, program", [("/usr/local/bin/hlbvh-warp", "hlbvh-warp"),
+                                            ("/src/hlbvh_warp/__main__.py", "python -m hlbvh_warp")])
+def test_usage_and_errors_name_the_program_the_user_ran(argv0, program, capsys, monkeypatch):
+    # The installed script printed "usage: python -m hlbvh_warp ..." and errors prefixed with
+    # either form, so a script user was shown a command line they had not typed.
+    monkeypatch.setattr("sys.argv", [argv0])
+    err = error_of(["bench-pairs", "--no-such-option"], capsys)
+    assert err.splitlines()[-1].startswith(f"{program} bench-pairs: error: unrecognized arguments"), err
+    assert cli.main(["--help"]) == 0
+    assert capsys.readouterr().out.startswith(f"usage: {program} <command>")
+    err = error_of(["no-such-command"], capsys)
+    assert err.startswith(f"{program}: unknown command 'no-such-command'"), err

@@ -46,7 +46,7 @@ def test_bad_arguments_end_in_one_line_errors(tmp_path, capsys):
         (["bench", "--scene-tris", "-5"], "--scene-tris: must be at least 1"),
         (["bench", "--warmup", "-2"], "--warmup: must be at least 0"),
         (["quality", "--mesh", str(not_a_mesh)],
-         f"hlbvh_warp quality: error: {not_a_mesh}: file_type 'txt' not supported"),
+         f"python -m hlbvh_warp quality: error: {not_a_mesh}: file_type 'txt' not supported"),
         (["nosuch"], "unknown command 'nosuch'"),
     ]
     for argv, message in cases:
@@ -215,7 +215,7 @@ def test_demo_refuses_a_mesh_too_large_for_its_animation(tmp_path, monkeypatch, 
     rc = _exit_code(["demo", "--mesh", str(path), "--num-frames", "1", "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err and "NaN" not in err, err
-    assert err.startswith(f"hlbvh_warp demo: error: {path}: coordinates up to 3e+38 are too large for the "
+    assert err.startswith(f"python -m hlbvh_warp demo: error: {path}: coordinates up to 3e+38 are too large for the "
                           "exploding-mesh animation: over --num-frames 1 its float32 arithmetic may reach "), err
     assert err.count("\n") == 1 and "scale the mesh down by a factor of" in err, err
 
