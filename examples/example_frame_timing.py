@@ -39,6 +39,12 @@ MODES = {
 }
 
 
+#: The stages of a frame that sort the primitives, resorting's check and gather with them: what
+#: feeding the previous tree's order can shorten (the rest costs the same in any order).
+SORT_STAGES = ("resort_check", "resort_gather", "order_check", "run_length_encode", "top_level_sort",
+               "run_length_decode", "voxel_sort", "global_sort")
+
+
 def sequence_bounds(anim, param, num_frames):
     """Bounds of the triangle-box centroids over frames 0..num_frames of an animation (its
     ``update`` is a pure function of the frame's parameter)."""
@@ -59,7 +65,8 @@ def _cell(value: float, width: int, spec: str) -> str:
 
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
-                 headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide_times=0):
+                 headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide_times=0,
+                 stages=False):
         vertices, faces = subdivide(*scene(mesh, num_tris), subdivide_times)
         if face_order == "shuffled":
             # Scanned meshes list their faces in scan order, already about as coherent as a Morton
@@ -70,6 +77,7 @@ class Example:
             raise ValueError(f"face_order must be 'file' or 'shuffled', got {face_order!r}")
         self.num_frames = max(int(num_frames), 1)
         self.headless = headless
+        self.stages = bool(stages)
         self.frame = 0
         device = wp.get_device()
         self.sequences = {}
@@ -97,13 +105,14 @@ class Example:
                 if isinstance(options, str):
                     runner = WarpBvhPeer(len(faces), options, device)
                 else:
-                    runner = Builder(len(faces), config, device=device, **options)
+                    runner = Builder(len(faces), config, device=device, timings=self.stages, **options)
                 runner.build(anim.vertices, anim.faces)  # setup and kernel compilation: not timed
                 runners[label] = runner
             self.sequences[name] = {"anim": anim, "param": param, "runners": runners,
                                     "ms": {label: [] for label in runners}, "sah": {label: [] for label in runners},
                                     "decisions": {label: [] for label in runners},
-                                    "inputs": {label: [] for label in runners}}
+                                    "inputs": {label: [] for label in runners},
+                                    "stages": {label: [] for label in runners}}
 
     def step(self):
         """One frame of every sequence, every mode timed on the same vertices (synchronized)."""
@@ -127,6 +136,7 @@ class Example:
                     seq["decisions"][label].append(report["decision"])
                     # A resorted Builder's rebuild: fed the previous tree's order, or the faces'.
                     seq["inputs"][label].append(report.get("input_order"))
+                    seq["stages"][label].append(report.get("stages_ms") or {})
             for label, runner in seq["runners"].items():
                 # Tree quality, outside the timed region (Builders only).
                 seq["sah"][label].append(runner.sah_cost() if isinstance(runner, Builder) else float("nan"))
@@ -162,6 +172,28 @@ class Example:
                              f"{_cell(ms.mean() / base, 10, '.2f')}  {_cell(ratio, 20, '.3f')}  {decisions}")
         lines.append("vs scratch: average over the same method's scratch average (hlbvh scratch for a method "
                      "run no other way, such as wp.Bvh); worst SAH vs rebuild: against that method resorted")
+        return "\n".join(lines)
+
+    def stage_table(self) -> str:
+        """Mean ms per frame of each stage of every `Builder` mode (`--stages`), over all frames (a
+        stage a frame skipped counts 0 there), and the share of the sort stages: the part of a
+        frame resorting can shorten (Pantaleoni & Luebke 2010, section 2.2). A resorted frame whose
+        sort cost nothing would take the frame less that share."""
+        lines = []
+        for name, seq in self.sequences.items():
+            for label, frames in seq["stages"].items():
+                if not any(frames):
+                    continue  # the wp.Bvh peer: no stages
+                names = list(dict.fromkeys(stage for frame in frames for stage in frame))
+                means = {stage: float(np.mean([frame.get(stage, 0.0) for frame in frames])) for stage in names}
+                total = sum(means.values())
+                sort = sum(means.get(stage, 0.0) for stage in SORT_STAGES)
+                share = sort / total if total > 0.0 else float("nan")
+                lines.append(f"{name:8}  {label:18}  stages {total:6.2f} ms, sort stages {sort:5.2f} "
+                             f"({_cell(share, 4, '.0%').strip()}): "
+                             + " ".join(f"{stage} {ms:.2f}" for stage, ms in means.items()))
+        lines.append("stages: mean ms per frame (0 in a frame that skipped it); sort stages: "
+                     + ", ".join(SORT_STAGES))
         return "\n".join(lines)
 
     def plot(self, path):
@@ -208,6 +240,9 @@ def main(argv=None):
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
     parser.add_argument("--subdivide", type=non_negative_int, default=0,
                         help="Split every triangle into four this many times (a mesh at the paper's sizes).")
+    parser.add_argument("--stages", action="store_true",
+                        help="Time every stage of the Builders' frames and print their means and the share "
+                             "of the sort stages (a clock read per stage).")
     args = parser.parse_args(argv)
     unknown = [m for m in args.modes.split(",") if m not in MODES]
     if unknown:
@@ -224,11 +259,14 @@ def main(argv=None):
     with wp.ScopedDevice(args.device):
         example = Example(mesh, args.num_tris, args.num_frames, args.sequences.split(","),
                           args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads,
-                          fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide_times=args.subdivide)
+                          fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide_times=args.subdivide,
+                          stages=args.stages)
         for _ in range(args.num_frames):
             example.step()
             example.render()
         print(example.table())
+        if args.stages:
+            print(example.stage_table())
         print(f"wrote {example.plot(os.path.join(args.out, 'frame_timing.png'))}")
 
 

@@ -266,8 +266,8 @@ def test_subdivide_is_bounded_by_the_meshs_own_size(tmp_path, monkeypatch, capsy
     json_path = str(tmp_path / "b.json")
     err = error_of(["bench", "--mesh", str(three), "--mesh", str(four), "--subdivide", "14", "--json", json_path],
                    capsys)
-    assert err.strip() == (f"python -m hlbvh_warp bench: error: --subdivide 14: {four} has 4 triangles, 1073741824 once "
-                           "split; a tree holds fewer than 2^30 triangles"), err
+    assert err.strip() == (f"python -m hlbvh_warp bench: error: --subdivide 14: {four} has 4 triangles, "
+                           "1073741824 once split; a tree holds fewer than 2^30 triangles"), err
     assert split == []  # not even the first mesh, which was small enough
     assert passes_the_argument_checks(["bench", "--mesh", str(three), "--subdivide", "14", "--json", json_path])
     assert split == [3]

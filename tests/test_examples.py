@@ -97,6 +97,48 @@ def test_frame_timing_table_without_references(device):
     assert float(cells[3]) == pytest.approx(np.mean(example.sequences["bend"]["ms"]["hlbvh auto"]), abs=0.01)
 
 
+def test_frame_timing_stage_table(device):
+    """`--stages`: each Builder mode's line lists the mean of every stage its frames ran (a
+    skipped stage counts 0), their total, and the part of it in the sort stages; the names the
+    share adds up are stages the pipeline really reports, on both of its sort paths (a renamed
+    stage would silently leave the share)."""
+    from hlbvh_warp.builder import Builder
+    from hlbvh_warp.config import BuildConfig
+
+    module = load_example("example_frame_timing")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=1000, num_frames=2, sequences=("static", "bend"),
+                                 modes=["hlbvh scratch", "hlbvh resorted", "wp.Bvh sah"], headless=True, stages=True)
+        for _ in range(2):
+            example.step()
+        reported = set()
+        vertices, faces = module.scene(None, 1000)
+        for runs in (0.0, 1.0):  # the global radix sort, and compress-sort-decompress
+            builder = Builder(len(faces), BuildConfig(global_sort_runs=runs), resort=False, timings=True)
+            builder.build(vertices, faces)
+            report = builder.update(vertices[::-1].copy())  # a new order: every sort stage has work
+            reported |= set(report["stages_ms"])
+        resorting = Builder(len(faces), timings=True)
+        resorting.build(vertices, faces)
+        reported |= set(resorting.update(vertices)["stages_ms"])
+    assert set(module.SORT_STAGES) <= reported, set(module.SORT_STAGES) - reported
+    lines = example.stage_table().splitlines()
+    assert not any("wp.Bvh" in line for line in lines)
+    for name, seq in example.sequences.items():
+        for label in ("hlbvh scratch", "hlbvh resorted"):
+            line = next(x for x in lines if x.split()[:3] == [name, *label.split()])
+            frames = seq["stages"][label]
+            listed = dict(zip(line.split(": ", 1)[1].split()[::2], map(float, line.split(": ", 1)[1].split()[1::2])))
+            assert set(listed) == set().union(*frames)
+            for stage, ms in listed.items():
+                assert ms == pytest.approx(np.mean([f.get(stage, 0.0) for f in frames]), abs=0.006), (stage, line)
+            total = float(line.split("stages")[1].split()[0])
+            sort = float(line.split("sort stages")[1].split()[0])
+            assert total == pytest.approx(sum(listed.values()), abs=0.006 * len(listed))
+            assert sort == pytest.approx(sum(v for k, v in listed.items() if k in module.SORT_STAGES),
+                                         abs=0.006 * len(listed))
+
+
 def test_frame_timing_static_sequence(device):
     """The "static" sequence rebuilds the mesh at rest every frame (the paper's resorting of an
     already sorted model): the vertices never move, and the resorted tree is the scratch one."""
