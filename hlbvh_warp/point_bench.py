@@ -9,7 +9,10 @@ points in the same process:
 - ``near``: mesh vertices moved by a normal offset of 1% of the box diagonal, the points a
   collision or a projection step asks about;
 - ``near-bounded``: the same with ``max_dist`` = 5% of the diagonal, as a contact query bounds
-  its search.
+  its search;
+- ``far`` (with ``--far-distance D``): points D box diagonals from the box's centre in random
+  directions, where float32 no longer tells one box's distance from another's and the search
+  takes its float64 walk (``kernels/proximity.py``, `packed_far_point_query`).
 
 Answers are checked first. This package's are checked against a float64 brute force
 (`brute_force_closest`) on an even sample of each set and on every point where ``wp.Mesh``
@@ -28,13 +31,14 @@ printed per run.
 
 from __future__ import annotations
 
+import functools
 import pathlib
 
 import numpy as np
 import warp as wp
 
 from .reference import brute_force_closest, point_triangle_d2
-from .ray_bench import best_times, checked_verdict, mesh_method_parser, run_rows
+from .ray_bench import best_times, checked_verdict, far_distance, mesh_method_parser, run_rows
 
 #: Disagreement with wp.Mesh: distances further apart than this fraction of the box diagonal.
 DISAGREE_RTOL = 1e-5
@@ -79,6 +83,20 @@ def point_sets(rng, vertices: np.ndarray, num_points: int) -> dict:
         "near": (near.astype(np.float32), float("inf")),
         "near-bounded": (near.astype(np.float32), 0.05 * diag),
     }
+
+
+def far_points(rng, vertices: np.ndarray, num_points: int, distance: float) -> np.ndarray:
+    """Points ``distance`` box diagonals from the centre of `bench_box`, in uniformly random
+    directions, as float32 (`ray_bench.far_rays`' origins)."""
+    lo, hi, diag = bench_box(vertices)
+    dirs = rng.normal(size=(num_points, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    with np.errstate(over="ignore"):
+        points = (0.5 * (lo + hi) + distance * diag * dirs).astype(np.float32)
+    if not np.isfinite(points).all():
+        raise ValueError(f"--far-distance {distance:g} puts points past float32's range for a mesh whose box "
+                         f"diagonal is {diag:.3g}")
+    return points
 
 
 def disagreeing(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> np.ndarray:
@@ -135,8 +153,9 @@ def count_wrong(vertices, faces, points, distance, prim, max_dist: float, refere
 
 
 def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method: str, num_points: int, repeats: int,
-        device, seed: int = 0, max_leaf_size: int = 1) -> list[dict]:
-    """One row per point set on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`)."""
+        device, seed: int = 0, max_leaf_size: int = 1, far_distance: float = 0.0) -> list[dict]:
+    """One row per point set on the mesh of ``mesh_path``, read and checked (`cli.read_mesh`); a
+    fourth set, ``far``, from ``far_distance`` diagonals away, when it is positive."""
     from . import api, query
     from .config import BuildConfig
     from .kernels import proximity
@@ -150,7 +169,10 @@ def run(mesh_path: pathlib.Path, vertices: np.ndarray, faces: np.ndarray, method
     _, _, scale = bench_box(vertices)
     rng = np.random.default_rng(seed)
     rows = []
-    for kind, (points, max_dist) in point_sets(rng, vertices, num_points).items():
+    sets = point_sets(rng, vertices, num_points)
+    if far_distance > 0.0:
+        sets["far"] = (far_points(rng, vertices, num_points, far_distance), float("inf"))
+    for kind, (points, max_dist) in sets.items():
         n = points.shape[0]
         pw = wp.array(points, dtype=wp.vec3, device=device)
         ours_out = [wp.empty(n, dtype=wp.vec3, device=device), wp.empty(n, dtype=float, device=device),
@@ -234,8 +256,12 @@ EPILOG = (f"Exit status 1 when one of the points checked (up to {ORACLE_POINTS} 
 def main(argv=None) -> int:
     parser = mesh_method_parser("python -m hlbvh_warp bench-points", __doc__.splitlines()[0], "--points", 200_000,
                                 "points per set (default 200k)", EPILOG)
+    parser.add_argument("--far-distance", type=far_distance, default=0.0,
+                        help="also query points this many bounding-box diagonals from the mesh (default: none). "
+                             "Past 256 box extents the search walks in float64")
     args = parser.parse_args(argv)
-    return run_rows(parser, args, args.points, run, HEADER, format_row,
+    return run_rows(parser, args, args.points, functools.partial(run, far_distance=args.far_distance), HEADER,
+                    format_row,
                     "checked: points checked against the float64 brute force (an even sample and where wp.Mesh "
                     "differs), wrong: ours wrong among them; wp differ: points where wp.Mesh's answer differs from "
                     "ours; ratio = wp.mesh_query_point_no_sign time / ours (> 1: ours is faster); max diff = largest "

@@ -27,9 +27,12 @@ import warp as wp
 from .traversal import (
     INF,
     STACK_SIZE,
+    TRAVERSAL_STACK_SIZE,
     BvhView,
     PackedNode,
     PackedTriangle,
+    inline_func,
+    outline_func,
     prefetch_child,
     query_limit,
     vec64f,
@@ -430,6 +433,112 @@ def packed_point_query(
     return finish(p, s, visited, tested)
 
 
+# A point farther outside the root box than this many times the box's extent takes the float64
+# walk (`packed_far_point_query`). See `point_is_far` for the choice.
+FAR_POINT = wp.constant(256.0)
+vec64d = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.float64)
+
+
+@wp.func
+def point_is_far(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """1 when p lies farther outside the box than `FAR_POINT` times its extent (the test of
+    ``traversal.origin_is_far``, which far rays take); 0 for a NaN or Inf point, which the float32
+    walk refuses."""
+    extent = wp.max(upper[0] - lower[0], wp.max(upper[1] - lower[1], upper[2] - lower[2]))
+    gap = wp.max(wp.max(lower[0] - p[0], p[0] - upper[0]),
+                 wp.max(wp.max(lower[1] - p[1], p[1] - upper[1]), wp.max(lower[2] - p[2], p[2] - upper[2])))
+    return wp.where(gap > FAR_POINT * extent and wp.isfinite(gap), 1, 0)
+
+
+@outline_func
+def packed_far_point_query(
+    nodes: wp.array(dtype=PackedNode),
+    triangles: wp.array(dtype=PackedTriangle),
+    prim_order: wp.array(dtype=wp.int32),
+    root_lower: wp.vec3,
+    root_upper: wp.vec3,
+    root_begin: int,
+    root: int,
+    p: wp.vec3,
+    max_dist: float,
+):
+    """`packed_point_query` for a point far from the mesh: every box distance in float64
+    (`box_distance_sq64`), the deferred ones kept in float64 on the stack.
+
+    Seen from afar, the squared distances of all boxes agree to float32's resolution: the float32
+    walk then orders children by rounding noise and enters every deferred node it pops (its
+    float32 distance cannot be told from the best triangle's), 3-4 times the nodes a point at 1e3
+    mesh sizes visits. In float64 the differences of float32 coordinates are exact, and the
+    order and the pruning are those of a near point (the same branch-and-bound, Ericson 2005,
+    Sec. 5.1.5 for the triangles). Out of line: the float32 walk every near point runs stays as
+    it was; a far query visits hundreds of nodes, next to which a call costs nothing."""
+    s = start_search(max_dist)
+    visited = int(0)
+    tested = int(0)
+    stack = vec64i()
+    stack_begin = vec64i()
+    stack_d = vec64d()
+    top = int(0)
+    node = int(0)
+    begin = int(0)
+    active = int(0)
+    if point_is_valid(p, max_dist) == 1:
+        if box_distance_sq64(p, root_lower, root_upper) * EXACT_LOW <= s.d2:
+            active = 1
+            node = root
+            begin = root_begin
+    while active == 1:
+        visited += 1
+        if node >= 0 and top >= STACK_SIZE:
+            # No room to defer a child: test the node's whole range as one leaf.
+            full = nodes[node]
+            node = -(full.count_a + full.count_b)
+        if node < 0:
+            for k in range(begin, begin - node):
+                tested += 1
+                tri = triangles[k]
+                tp = closest_point_on_triangle(p, tri.a, tri.b, tri.c)
+                if tp.d2 <= s.d2:
+                    s = offer(s, tp, prim_order[k])
+            active = int(0)
+        else:
+            n = nodes[node]
+            begin_b = begin + n.count_a
+            da = box_distance_sq64(p, n.lower_a, n.upper_a)
+            db = box_distance_sq64(p, n.lower_b, n.upper_b)
+            open_a = da * EXACT_LOW <= s.d2
+            open_b = db * EXACT_LOW <= s.d2
+            if open_a and open_b:
+                # Visit the nearer child next, defer the farther one.
+                if da <= db:
+                    stack[top] = n.child_b
+                    stack_begin[top] = begin_b
+                    stack_d[top] = db
+                    node = n.child_a
+                else:
+                    stack[top] = n.child_a
+                    stack_begin[top] = begin
+                    stack_d[top] = da
+                    node = n.child_b
+                    begin = begin_b
+                top += 1
+            elif open_a:
+                node = n.child_a
+            elif open_b:
+                node = n.child_b
+                begin = begin_b
+            else:
+                active = int(0)
+        # Pop the nearest deferred node not farther than the best triangle so far.
+        while top > 0 and active == 0:
+            top -= 1
+            if stack_d[top] * EXACT_LOW <= s.d2:
+                node = stack[top]
+                begin = stack_begin[top]
+                active = 1
+    return finish(p, s, visited, tested)
+
+
 @wp.func
 def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     """`packed_point_query` on the canonical arrays, for a view that carries no traversal layout
@@ -491,7 +600,9 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     return finish(p, s, visited, tested)
 
 
-@wp.func
+# Inlined: it takes the view, which a call out of line would copy per query (`traversal.inline_func`);
+# the far walk it may call stays out of line.
+@inline_func
 def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
     """The closest point on the mesh to ``point`` among triangles within ``max_dist`` (inclusive),
     as a `ClosestPoint` (prim -1 and distance inf when there is none).
@@ -506,8 +617,13 @@ def bvh_closest_point(bvh: BvhView, point: wp.vec3, max_dist: float):
     if bvh.packed_nodes.shape[0] > 0:
         root_begin = bvh.node_begin[0]
         root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
-        return packed_point_query(bvh.packed_nodes, bvh.packed_triangles, bvh.prim_order, bvh.node_lowers[0],
-                                  bvh.node_uppers[0], root_begin, root, point, max_dist)
+        root_lower = bvh.node_lowers[0]
+        root_upper = bvh.node_uppers[0]
+        if point_is_far(point, root_lower, root_upper) == 1:
+            return packed_far_point_query(bvh.packed_nodes, bvh.packed_triangles, bvh.prim_order, root_lower,
+                                          root_upper, root_begin, root, point, max_dist)
+        return packed_point_query(bvh.packed_nodes, bvh.packed_triangles, bvh.prim_order, root_lower, root_upper,
+                                  root_begin, root, point, max_dist)
     return canonical_point_query(bvh, point, max_dist)
 
 

@@ -194,6 +194,46 @@ def test_bench_rays_far_rays_are_checked(tmp_path, capsys):
     assert "past float32's range" in capsys.readouterr().err
 
 
+def test_bench_points_far_points_are_checked(tmp_path, capsys):
+    """``--far-distance`` adds a ``far`` set from that many diagonals away, checked against the
+    float64 brute force like the others (the tests' own, on the run's points: every point found),
+    and its node count shows the float64 walk: as from 1e3 diagonals."""
+    import trimesh
+    from test_proximity import oracle_closest
+
+    from hlbvh_warp import cli, point_bench
+
+    ball = trimesh.creation.icosphere(2)
+    path = tmp_path / "ball.ply"
+    ball.export(path)
+    assert cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1", "--far-distance",
+                     "1e7"]) == 0
+    out = capsys.readouterr().out
+    rows = _rows(out, "ball")
+    assert [r[3] for r in rows] == ["box", "near", "near-bounded", "far"] and rows[3][5:8] == ["64", "64", "0"], out
+    vertices = np.asarray(ball.vertices, np.float32)
+    rng = np.random.default_rng(0)
+    point_bench.point_sets(rng, vertices, 64)  # the run's first sets, drawn from the same generator
+    far = point_bench.far_points(rng, vertices, 64, 1e7)
+    d_ref, prim_ref, _ = oracle_closest(vertices, np.asarray(ball.faces), far)
+    assert (prim_ref >= 0).all() and np.linalg.norm(far.astype(np.float64), axis=1).min() > 1e6
+    # The same directions from 1e3 diagonals (the generator's draws do not depend on the distance):
+    # as many nodes per point, to 10%. The float32 walk opened 1.4 times as many from 1e7.
+    assert cli.main(["bench-points", "--mesh", str(path), "--points", "64", "--repeats", "1", "--far-distance",
+                     "1e3"]) == 0
+    near_rows = _rows(capsys.readouterr().out, "ball")
+    assert float(rows[3][13]) <= 1.1 * float(near_rows[3][13]), (out, near_rows)
+    for bad in ("-1", "0.5", "1e31", "nan"):
+        with pytest.raises(SystemExit):
+            cli.main(["bench-points", "--mesh", str(path), "--far-distance", bad])
+    assert "--far-distance" in capsys.readouterr().err
+    # Within the option's bounds but past float32's range for this mesh: one line naming it.
+    big = tmp_path / "big.ply"
+    trimesh.creation.icosphere(1).apply_scale(1e20).export(big)
+    assert cli.main(["bench-points", "--mesh", str(big), "--points", "16", "--far-distance", "1e30"]) == 2
+    assert "past float32's range" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("scale", [1e-20, 1e30])
 def test_bench_rays_passes_on_tiny_and_huge_meshes_wp_mesh_misses(scale, tmp_path, capsys):
     # A sphere of radius 1e-20 or 1e30 (valid input): wp.Mesh misses every ray, and a verdict

@@ -824,8 +824,13 @@ def test_chain_deeper_than_the_stack(device, rng, deep):
     bvh = caterpillar(verts, faces, device, deep=deep)
     assert bvh.depth == n - 1 > TRAVERSAL_STACK_SIZE
     points = all_points(query_points(rng, verts, faces, n=20))
+    # And from 1e7 sizes away, where the walk is in float64 (`packed_far_point_query`).
+    extent = float(np.ptp(verts, axis=0).max())
+    far = (verts.mean(0) + 1e7 * extent * _far_directions(rng, 4)).astype(np.float32)
+    points = np.concatenate([points, far])
     out = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True)
     check_answers(verts, faces, points, *out)
+    _check_far_answers(verts, faces, far, *(x[-len(far):] for x in out[:3]))
     canonical = run_user_kernel(canonical_view(bvh), points, np.inf, device)
     check_answers(verts, faces, points, *canonical[:5])
 
@@ -1110,6 +1115,102 @@ def test_far_points_prune_with_float64_box_distances(device, rng, where):
     # A near search of this sphere visits tens of nodes; every node is 2N - 1 = 2559.
     assert stats.nodes_visited.mean() < 0.2 * bvh.num_nodes, stats.nodes_visited.mean()
     assert stats.prims_tested.mean() < 0.1 * len(faces), stats.prims_tested.mean()
+
+
+def _ball_and_box():
+    """An icosphere and a box beside it (1,292 triangles): curved and flat parts, boxes of every
+    size. ``(vertices, faces, centre, size)``, size the largest extent of the bounding box."""
+    mesh = trimesh.util.concatenate([trimesh.creation.icosphere(subdivisions=3),
+                                     trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((2, 0, 0))])
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    lo, hi = verts.astype(np.float64).min(0), verts.astype(np.float64).max(0)
+    return verts, faces, 0.5 * (lo + hi), float((hi - lo).max())
+
+
+def _far_directions(rng, n=16):
+    """Unit directions: ``n`` random ones, the six axes and the eight diagonals (a point on an axis
+    lies in the slabs of most boxes, where only one coordinate's gap counts)."""
+    diagonals = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+    dirs = np.concatenate([rng.normal(size=(n, 3)), np.eye(3), -np.eye(3), diagonals])
+    return dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "sweep_sah", "sbvh"])
+def test_far_points_visit_as_many_nodes_as_points_a_thousand_sizes_away(device, rng, method):
+    """From afar the search stays as selective as from 1e3 mesh sizes: the same directions at 1e5,
+    1e7 and 1e9 sizes visit at most 10% more nodes on average. Where float32 cannot tell the
+    boxes' squared distances apart, the float32 walk ordered children by rounding noise and
+    entered every deferred node it popped: 1.75 times the nodes at 1e7, 2.6 at 1e9 on this
+    scene (`hlbvh`), 3.2 at 1e7 on the bunny. Past 256 extents the walk is in float64
+    (`proximity.packed_far_point_query`)."""
+    verts, faces, center, size = _ball_and_box()
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    dirs = _far_directions(rng)
+    nodes = {}
+    for distance in (1e3, 1e5, 1e7, 1e9):
+        points = (center + distance * size * dirs).astype(np.float32)
+        closest, dist, prim, stats = hlbvh_warp.closest_point(bvh, points, stats=True)
+        assert (prim >= 0).all()
+        nodes[distance] = stats.nodes_visited.mean()
+    for distance in (1e5, 1e7, 1e9):
+        assert nodes[distance] <= 1.1 * nodes[1e3], nodes
+
+
+def _check_far_answers(verts, faces, points, closest, distance, prim):
+    """Exactness far from the mesh, beyond `check_answers` (whose tolerance, 1e-6 of the point's
+    coordinates, is ten mesh sizes at 1e7): the triangle returned is a nearest one to 1e-12 of
+    the scale, and the distance is the float64 one rounded to float32 (one float32 ulp).
+
+    Why 1e-12: the kernel takes the float32 coordinates as exact and decides in float64, within a
+    few 1e-16 of the scale (the largest coordinate of the point and the triangles); the oracle's
+    Gram equations are as accurate here, where the point lies far from every triangle. Four
+    orders of margin, and still far below the 0.18 mesh diagonals (median) by which a search
+    deciding in float32 misses the nearest triangle at 1e7 (measured with wp.Mesh on the bunny)."""
+    d_ref, prim_ref, _ = oracle_closest(verts, faces, points)
+    assert (prim >= 0).all() and (prim_ref >= 0).all()
+    pts = points.astype(np.float64)
+    scale = np.maximum(np.abs(pts).max(axis=1), np.abs(verts.astype(np.float64)).max())
+    own = oracle_distance_to(verts, faces, pts, prim)
+    excess = (own - d_ref) / scale
+    assert (np.abs(excess) <= 1e-12).all(), f"a triangle {excess.max():.3g} of the scale farther than the nearest"
+    ulp = np.spacing(d_ref.astype(np.float32)).astype(np.float64)
+    assert (np.abs(distance.astype(np.float64) - d_ref) <= ulp).all(), "distance off by more than a float32 ulp"
+    assert np.array_equal(prim, lowest_duplicate(verts, faces)[prim])
+    return d_ref
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "sweep_sah", "sbvh"])
+def test_far_points_are_exact(device, rng, method):
+    """Points on the surface, near it, at 200 and 300 mesh sizes (either side of where the float64
+    walk takes over) and at 1e3, 1e5 and 1e7, along the axes, the diagonals and at random: the
+    oracle's distance and a nearest triangle, `_check_far_answers`' tolerance where far; the
+    float32 walk over the canonical arrays (which has no far walk) gives the same answers bit for
+    bit; and a ``max_dist`` just below a far point's distance finds nothing, just above it the
+    unbounded answer."""
+    verts, faces, center, size = _ball_and_box()
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    dirs = _far_directions(rng)
+    near = all_points(query_points(rng, verts, faces, n=20))
+    far = {distance: (center + distance * size * dirs).astype(np.float32)
+           for distance in (200.0, 300.0, 1e3, 1e5, 1e7)}
+    points = np.concatenate([near, *far.values()])
+    out = hlbvh_warp.closest_point(bvh, points, return_barycentrics=True)
+    check_answers(verts, faces, points, *out)
+    canonical = run_user_kernel(canonical_view(bvh), points, np.inf, device)
+    for x, y in zip(canonical[:5], out):
+        assert np.array_equal(x, y, equal_nan=True)
+    start = len(near)
+    for distance, pts in far.items():
+        rows = slice(start, start + len(pts))
+        start += len(pts)
+        closest, dist, prim = (x[rows] for x in out[:3])
+        d_ref = _check_far_answers(verts, faces, pts, closest, dist, prim)
+        # Bounds 1e-6 below and above the distance, 16 float32 ulps and more: decided either way.
+        below = hlbvh_warp.closest_point(bvh, pts, max_dist=d_ref * (1.0 - 1e-6))
+        assert (below[2] == -1).all() and np.isposinf(below[1]).all(), distance
+        above = hlbvh_warp.closest_point(bvh, pts, max_dist=d_ref * (1.0 + 1e-6))
+        for x, y in zip(above, (closest, dist, prim)):
+            assert np.array_equal(x, y), distance
 
 
 @pytest.mark.parametrize("height", [1e7, 1e30, 3.0e38])
