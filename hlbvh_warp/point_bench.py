@@ -37,6 +37,7 @@ import pathlib
 import numpy as np
 import warp as wp
 
+from .cli import command_prog
 from .reference import brute_force_closest, point_triangle_d2
 from .ray_bench import best_times, checked_verdict, far_distance, mesh_method_parser, run_rows
 
@@ -254,7 +255,7 @@ EPILOG = (f"Exit status 1 when one of the points checked (up to {ORACLE_POINTS} 
 
 
 def main(argv=None) -> int:
-    parser = mesh_method_parser("python -m hlbvh_warp bench-points", __doc__.splitlines()[0], "--points", 200_000,
+    parser = mesh_method_parser(command_prog("bench-points"), __doc__.splitlines()[0], "--points", 200_000,
                                 "points per set (default 200k)", EPILOG)
     parser.add_argument("--far-distance", type=far_distance, default=0.0,
                         help="also query points this many bounding-box diagonals from the mesh (default: none). "
