@@ -188,7 +188,9 @@ class Builder:
         self.prim_lowers = pipe.prim_lowers
         self.prim_uppers = pipe.prim_uppers
         self.input_order = self.user_codes = None
-        self.gather_parts = None
+        self.gather_parts = self.compare_parts = None
+        self.keeps_topology = False
+        self.may_be_sorted = True
         # How the latest build was fed: "previous tree" or "faces", and the sampled M / N.
         self.last_input: dict = {}
         if self.resort:
@@ -202,6 +204,12 @@ class Builder:
             self.resort_samples = min(n - 1, RESORT_SAMPLES)
             # The gather reads one code at random per primitive: on a multi-core CPU its slices run
             # side by side, each a launch over views made once here.
+            # An hlbvh tree is a function of its sorted codes alone: a frame whose gathered codes
+            # all equal the last tree's keeps its topology (`resort_gather_compare_kernel`). Not
+            # hlbvh_sah's (its cluster tree prices the boxes), and not on the sync-free path,
+            # which reads nothing on the host to choose by.
+            self.keeps_topology = method == "hlbvh" and not self.sync_free
+            self.codes_changed = wp.zeros(1, dtype=wp.int32, device=device)
             threads = threads_module.resolved_threads(config, device)
             if threads > 1 and n >= PARALLEL_MIN_PRIMS:
                 cuts = threads_module.split_bounds(n, threads)
@@ -209,6 +217,11 @@ class Builder:
                     (hi - lo, [self.prim_order[lo:hi], self.user_codes, self.input_order[lo:hi],
                                pipe.morton_codes[lo:hi]])
                     for lo, hi in zip(cuts, cuts[1:])]
+                if self.keeps_topology:
+                    self.compare_parts = [
+                        (hi - lo, [self.prim_order[lo:hi], self.user_codes, pipe.sorted_codes[lo:hi],
+                                   self.input_order[lo:hi], pipe.morton_codes[lo:hi], self.codes_changed])
+                        for lo, hi in zip(cuts, cuts[1:])]
         self.stats = wp.zeros(2, dtype=wp.float64, device=device)  # max displacement, root diagonal
         # The motion measure's maxima, one per slice of vertices run side by side.
         self.motion_threads = threads_module.resolved_threads(config, device) if device.is_cpu else 1
@@ -531,7 +544,20 @@ class Builder:
             pipe.set_input_ids(self.input_order)
             # Resorting: the previous tree's order becomes this build's input order.
             timer.stage("resort_gather")
-            if self.gather_parts is not None:
+            if self.keeps_topology and self.may_be_sorted:
+                self.codes_changed.zero_()
+                if self.compare_parts is not None:
+                    threads_module.launch_parts(dynamic.resort_gather_compare_kernel, device, self.compare_parts,
+                                                len(self.compare_parts))
+                else:
+                    pipe._launch(dynamic.resort_gather_compare_kernel, n,
+                                 [self.prim_order, self.user_codes, pipe.sorted_codes, self.input_order,
+                                  pipe.morton_codes, self.codes_changed])
+                self.last_input["kept_topology"] = int(self.codes_changed.numpy()[0]) == 0
+                if self.last_input["kept_topology"]:
+                    self._keep_topology(timer)
+                    return
+            elif self.gather_parts is not None:
                 threads_module.launch_parts(dynamic.resort_gather_kernel, device, self.gather_parts,
                                             len(self.gather_parts))
             else:
@@ -548,6 +574,21 @@ class Builder:
         else:
             pipe.build(self.method, timer, sync_free=self.sync_free, inputs_ready=ready)
         pipeline_timings.pop("total", None)
+
+    def _keep_topology(self, timer: StageTimer):
+        """The rest of a resorted frame whose codes all equal the last tree's, at the same
+        positions (`dynamic.resort_gather_compare_kernel`): the sort and the emission would make
+        the last tree again (its order is this input's, and its nodes are a function of the sorted
+        codes), so only the boxes are recomputed, bottom-up over the new triangle boxes. The tree
+        is the one a build from scratch makes; the report says ``kept_topology``."""
+        for stage in ("order_check", "run_length_encode", "top_level_sort", "run_length_decode", "voxel_sort",
+                      "hierarchy"):
+            timer.skipped(stage)
+        timer.stage("bbox")
+        bvh = self.bvh
+        compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
+                       bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
+                       self.pipeline.node_visits, bvh.node_lowers, bvh.node_uppers, launch=self.pipeline._launch)
 
     def _resorting_pays(self, timer: StageTimer) -> bool:
         """Whether to feed this frame in the previous tree's order (Pantaleoni & Luebke 2010, 2.2).
@@ -566,6 +607,9 @@ class Builder:
         ``hlbvh_sah`` (which needs the voxels) always compress, so they always resort.
         """
         self.last_input = {"input_order": "previous tree", "sampled_run_fraction": None}
+        # Whether the codes may still be the last tree's, in its order: not once a sampled pair
+        # descends (the last tree's codes ascend), and then the gather compares nothing.
+        self.may_be_sorted = True
         if self.sync_free or self.method == "hlbvh_sah" or self.resort_samples < 1:
             return True
         if self.method == "hlbvh" and self.config.global_sort_runs >= 1.0:
@@ -581,6 +625,7 @@ class Builder:
                      [self.prim_order, pipe.prim_lowers, pipe.prim_uppers, pipe.scene_bounds, bits,
                       self.num_prims, self.resort_samples, 3 * (bits - pipe.coarse_bits), self.run_breaks])
         breaks, descents = (int(x) for x in self.run_breaks.numpy())
+        self.may_be_sorted = descents == 0
         fraction = breaks / self.resort_samples
         self.last_input["sampled_run_fraction"] = fraction
         # No sampled pair descends: the order may be sorted already, and the build's order check

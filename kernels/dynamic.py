@@ -41,6 +41,35 @@ def resort_gather_kernel(
 
 
 @wp.kernel
+def resort_gather_compare_kernel(
+    prim_order: wp.array(dtype=wp.int32),
+    user_codes: wp.array(dtype=wp.int32),
+    last_codes: wp.array(dtype=wp.int32),
+    input_order: wp.array(dtype=wp.int32),
+    morton_codes: wp.array(dtype=wp.int32),
+    changed: wp.array(dtype=wp.int32),
+):
+    """`resort_gather_kernel`, and changed[0] = 1 where a gathered code differs from the last
+    tree's sorted code at its position (`last_codes`, the previous build's sort output).
+
+    No code differs: the input is the last tree's order with the last tree's codes, so it is
+    sorted already, a stable sort leaves it as it is, and the emission (a function of the sorted
+    codes alone, Pantaleoni & Luebke 2010, section 3.2) would make the last tree's topology again.
+    The caller then keeps that topology and recomputes the boxes only. That happens when nothing
+    moved across a Morton cell, such as a mesh at rest or a whole scene translated or scaled,
+    since the grid spans each frame's centroid bounds."""
+    # The compare reads last_codes in order, next to the gather's one random read; a moving
+    # frame's differences only set the flag (one value, so concurrent writes agree).
+    i = wp.tid()
+    f = prim_order[i]
+    code = user_codes[f]
+    input_order[i] = f
+    morton_codes[i] = code
+    if code != last_codes[i]:
+        changed[0] = 1
+
+
+@wp.kernel
 def sample_run_breaks_kernel(
     prim_order: wp.array(dtype=wp.int32),
     prim_lowers: wp.array(dtype=wp.vec3),

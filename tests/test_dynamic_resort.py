@@ -20,7 +20,7 @@ from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.kernels import compress
 from hlbvh_warp.scenes import default_scene
 
-from oracles import brute_overlaps, check_tree_invariants, numpy_node_boxes
+from oracles import brute_overlaps, check_tree_invariants, morton_reference, numpy_node_boxes
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
 
@@ -138,6 +138,55 @@ def test_refit_after_resorted_rebuilds(device, small_scene):
     ref = scratch.build(mesh.vertices, faces).to_numpy()
     for name in TOPOLOGY:
         np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
+
+
+@pytest.mark.parametrize("max_leaf_size", [1, 4])
+def test_a_frame_with_the_last_trees_codes_keeps_its_topology(device, small_scene, max_leaf_size):
+    """A resorted frame whose Morton codes all equal the last tree's keeps its topology and
+    recomputes only the boxes: the same tree as from scratch, every box current. The codes are
+    judged here by the float64 NumPy reference: at rest and scaled by two (exact in float32, the
+    grid scales with the scene) they are the last tree's; bent, they are not, and the frame
+    takes the whole build."""
+    v, f = small_scene
+    # The paper's sort for every build: every resorted frame is fed the previous tree's order, so
+    # the frames whose codes changed are compared too (with the sampled choice, the bent frames
+    # would take the faces' order and never reach the comparison).
+    config = BuildConfig(max_leaf_size=max_leaf_size, global_sort_runs=1.0)
+    scratch = Builder(len(f), config, device=device, resort=False)
+    resorted = Builder(len(f), config, device=device, resort=True, timings=True)
+    scratch.build(v, f)
+    resorted.build(v, f)
+    bent = BendingMesh(v, f, device=device).update(0.3).numpy()
+    kept = []
+    last_codes = morton_reference(*(b.astype(np.float32) for b in numpy_boxes(v, f)), config.bits_per_axis)
+    for vertices in (v, 2.0 * v, bent, bent, v):
+        vertices = np.asarray(vertices, dtype=np.float32)
+        a = scratch.rebuild(vertices).to_numpy()
+        b = resorted.rebuild(vertices).to_numpy()
+        report = resorted.last_report
+        ref_lo, ref_hi = numpy_boxes(vertices, f)
+        codes = morton_reference(ref_lo.astype(np.float32), ref_hi.astype(np.float32), config.bits_per_axis)
+        same = bool(np.array_equal(codes, last_codes))
+        kept.append(report.get("kept_topology", False))
+        assert report["input_order"] == "previous tree"
+        assert kept[-1] == same, (len(kept), report)
+        if same:
+            assert "hierarchy" in report["stages_skipped"] and "hierarchy" not in report["stages_ms"]
+        last_codes = codes
+        for name in TOPOLOGY:
+            np.testing.assert_array_equal(b[name], a[name], err_msg=name)
+        np.testing.assert_array_equal(b["prim_lowers"], ref_lo.astype(np.float32))
+        node_lo, node_hi = numpy_node_boxes(b, ref_lo, ref_hi)
+        np.testing.assert_array_equal(b["node_lowers"], node_lo.astype(np.float32))
+        np.testing.assert_array_equal(b["node_uppers"], node_hi.astype(np.float32))
+        check_tree_invariants(b, len(f), max_leaf_size)
+    # At rest, scaled, bent, bent again, back at rest: the two bent frames share their codes too.
+    assert kept == [True, True, False, True, False]
+    # hlbvh_sah's cluster tree prices the boxes: its topology is never kept.
+    sah = Builder(len(f), device=device, method="hlbvh_sah")
+    sah.build(v, f)
+    sah.rebuild(v)
+    assert "kept_topology" not in sah.last_report
 
 
 def test_resorted_input_is_the_previous_tree_order(small_scene):

@@ -10,6 +10,7 @@ from oracles import (
     assert_hits_match,
     brute_force_closest_hit,
     check_tree_invariants,
+    morton_reference,
     random_rays,
     random_soup,
 )
@@ -21,22 +22,6 @@ from conftest import shared_mesh
 
 
 # --------------------------------------------------------------------------- references
-def morton_reference(lowers, uppers, bits):
-    """3n-bit Morton codes of box centroids, quantized in float64 over the centroid bounds."""
-    c = (np.float32(0.5) * (lowers + uppers)).astype(np.float32)
-    lo, hi = c.min(0).astype(np.float64), c.max(0).astype(np.float64)
-    extent = hi - lo
-    cells = 1 << bits
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(extent > 0, (c.astype(np.float64) - lo) / np.where(extent > 0, extent, 1.0), 0.0)
-    q = np.clip((t * cells).astype(np.int64), 0, cells - 1)
-    code = np.zeros(len(c), dtype=np.int64)
-    for bit in range(bits):
-        for axis in range(3):  # x is the most significant of each triple
-            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
-    return code
-
-
 def radix_tree_reference(codes, max_leaf_size=1):
     """Top-down: split at the highest differing bit; equal codes split at the index median.
 
