@@ -56,3 +56,28 @@ def test_finite_sah_costs_still_price_the_builders_trees(device):
         bvh = hw.build_from_bounds(lowers, uppers, method=method, device=device, config=config)
         expected = _sah(bvh.to_numpy(), 1.2, 0.7)
         assert metrics.sah_cost(bvh, 1.2, 0.7) == pytest.approx(expected, rel=1e-9)
+
+
+@pytest.mark.parametrize("method", [
+    "recursive_sah", "sweep_sah", "binned_sah", "hlbvh",
+    # Not root-caused in review: at 2^123 the sbvh tree differs (SAH 49.54 against 50.48 at unit
+    # scale); its areas are float64, so some float32 step of the clipping or slab binning is not
+    # scale-exact there.
+    pytest.param("sbvh", marks=pytest.mark.xfail(strict=True, reason="sbvh tree changes at 2^123 scale")),
+])
+def test_a_huge_scene_gets_the_tree_of_the_same_scene_at_unit_scale(device, method):
+    # Scaling by a power of two is exact in float32 and leaves every split rule unchanged, so the
+    # SAH of eq. (1) (scale-free) must come out the same. recursive_sah (Wodniok & Goesele 2016)
+    # binned its centroids as num_bins * (c - lower) / extent in float32: at 2^123 (about 1e37,
+    # well inside float32) the product overflowed to inf, every centroid fell into bin 0 and the
+    # tree's SAH was 2.9x that of the unit-scale build.
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    vertices = np.asarray(sphere.vertices, np.float32)
+    faces = np.asarray(sphere.faces)
+    costs = []
+    for scale in (1.0, 2.0 ** 123):
+        bvh = hw.build(vertices * np.float32(scale), faces, method=method, device=device)
+        costs.append(_sah(bvh.to_numpy(), 1.0, 1.0))
+    assert costs[1] == pytest.approx(costs[0], rel=1e-9)
