@@ -38,8 +38,8 @@ class BuildConfig:
             only: its cluster tree splits down to one cluster per node whatever the primitive
             count, so its leaves can be smaller and its nodes more than the other builders' (with
             ``max_leaf_size >= N`` they give one leaf, it gives 2C - 1 nodes over C clusters).
-        sah_traversal_cost: T1 of the paper's SAH cost (eq. 1), per child visited.
-        sah_intersection_cost: T2 of the paper's SAH cost, per primitive in a leaf.
+        sah_traversal_cost: T1 of the paper's SAH cost (eq. 1), per child visited; finite, >= 0.
+        sah_intersection_cost: T2 of the paper's SAH cost, per primitive in a leaf; finite, > 0.
         sah_bins: bins per axis of the ``binned_sah`` builder.
         recursive_sah_bins: bins per axis of the ``recursive_sah`` builder's own splits
             (Wodniok & Goesele 2016: 256 for RBVH, 64 for RBVH*).
@@ -148,8 +148,13 @@ class BuildConfig:
              f"planes_per_pass must be in [1, {MAX_PLANES_PER_PASS}]"),
             (self.block_capacity >= 1, "block_capacity must be >= 1"),
             (1 <= self.max_leaf_size <= 1 << 16, "max_leaf_size must be in [1, 65536]"),
-            (self.sah_traversal_cost >= 0.0, "sah_traversal_cost must be >= 0"),
-            (self.sah_intersection_cost > 0.0, "sah_intersection_cost must be > 0"),
+            # Finite, as metrics.check_costs requires: an infinite constant made every split and
+            # cluster cost infinite (a tree far worse than the default's) and then failed the
+            # first time a Builder priced its tree.
+            (np.isfinite(self.sah_traversal_cost) and self.sah_traversal_cost >= 0.0,
+             "sah_traversal_cost must be finite and >= 0"),
+            (np.isfinite(self.sah_intersection_cost) and self.sah_intersection_cost > 0.0,
+             "sah_intersection_cost must be finite and > 0"),
             (2 <= self.sah_bins <= 256, "sah_bins must be in [2, 256]"),
             (2 <= self.recursive_sah_bins <= 256, "recursive_sah_bins must be in [2, 256]"),
             (2 <= self.recursive_sah_temp_bins <= 32, "recursive_sah_temp_bins must be in [2, 32]"),

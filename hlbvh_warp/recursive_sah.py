@@ -39,8 +39,14 @@ SCRATCH_ITEMS = 1 << 23
 def _bins(centroids: np.ndarray, lower: np.ndarray, extent: np.ndarray, num_bins: int) -> np.ndarray:
     """Bin of every centroid per axis, the float32 expression of the kernel's `bin_of`; an axis of
     zero extent puts everything in bin 0."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scaled = (np.float32(num_bins) * (centroids - lower)) / extent
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        offset = centroids - lower
+        product = np.float32(num_bins) * offset
+        scaled = product / extent
+        # Past about 1e36 the product overflows to inf, whose cast to an integer is undefined
+        # (bin 0 on x86: every centroid in one bin). Dividing first cannot overflow; the float32
+        # expression is kept elsewhere so that the kernel and this host binning agree.
+        scaled = np.where(np.isinf(product), (offset / extent) * np.float32(num_bins), scaled)
     bins = np.where(extent > 0, scaled, 0).astype(np.int64)
     return np.clip(bins, 0, num_bins - 1)
 

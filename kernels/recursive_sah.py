@@ -36,7 +36,14 @@ binned_boxes = wp.types.matrix(shape=(3 * MAX_TEMP_BINS, 3), dtype=wp.float32)
 def bin_of(c: float, lower: float, extent: float, num_bins: int) -> int:
     """Bin of centroid c among `num_bins` equal bins over [lower, lower + extent], clamped."""
     # The host's binning of the main splits uses the same float32 expression.
-    b = int(float(num_bins) * (c - lower) / extent)
+    offset = c - lower
+    product = float(num_bins) * offset
+    b = int(0)
+    if wp.isinf(product):
+        # Overflowed (a scene past about 1e36): divide first, which cannot; int(inf) is undefined.
+        b = int(offset / extent * float(num_bins))
+    else:
+        b = int(product / extent)
     return wp.clamp(b, 0, num_bins - 1)
 
 

@@ -1,0 +1,78 @@
+"""Builder edge cases found in review, each against an oracle written here in float64 NumPy.
+
+The SAH is eq. (1) of Pantaleoni & Luebke 2010 with the configured T1 and T2; the reference
+topology of ``hlbvh``/``lbvh`` is the LBVH radix tree (Lauterbach et al. 2009) over the Morton
+codes of the centroids, split at the highest differing bit, equal codes at the index median.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hlbvh_warp as hw
+
+
+def _area(lo, hi):
+    d = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    return 2.0 * (d[..., 0] * d[..., 1] + d[..., 1] * d[..., 2] + d[..., 2] * d[..., 0])
+
+
+def _sah(tree, t1, t2):
+    """C(root) of eq. (1), bottom-up over the returned tree (children follow their parent)."""
+    left, right = tree["node_left"], tree["node_right"]
+    size = tree["node_end"] - tree["node_begin"]
+    area = _area(tree["node_lowers"], tree["node_uppers"])
+    cost = np.zeros(len(left))
+    for i in range(len(left) - 1, -1, -1):
+        if left[i] < 0:
+            cost[i] = t2 * size[i]
+        elif area[i] > 0:
+            cost[i] = 2 * t1 + (cost[left[i]] * area[left[i]] + cost[right[i]] * area[right[i]]) / area[i]
+        else:
+            cost[i] = 2 * t1 + cost[left[i]] + cost[right[i]]
+    return cost[0]
+
+
+@pytest.mark.parametrize("field", ["sah_traversal_cost", "sah_intersection_cost"])
+def test_infinite_sah_cost_is_refused_by_the_config(field):
+    # metrics.check_costs refuses infinite SAH constants, so a config holding one built (with
+    # every cluster weight and split cost infinite: a recursive_sah tree 5x the SAH of the default)
+    # and then broke Builder(policy="auto") at its first update, when it priced the tree.
+    with pytest.raises(ValueError, match=field):
+        hw.BuildConfig(**{field: float("inf")})
+
+
+def test_finite_sah_costs_still_price_the_builders_trees(device):
+    # The other side of the check above: finite non-default constants stay accepted, and the cost
+    # metrics.sah_cost reports for each builder's tree is eq. (1) with those constants.
+    from hlbvh_warp import metrics
+
+    rng = np.random.default_rng(3)
+    centres = rng.random((40, 3))
+    lowers, uppers = centres - 0.05, centres + 0.05
+    config = hw.BuildConfig(sah_traversal_cost=1.2, sah_intersection_cost=0.7)
+    for method in ("sweep_sah", "recursive_sah", "hlbvh_sah"):
+        bvh = hw.build_from_bounds(lowers, uppers, method=method, device=device, config=config)
+        expected = _sah(bvh.to_numpy(), 1.2, 0.7)
+        assert metrics.sah_cost(bvh, 1.2, 0.7) == pytest.approx(expected, rel=1e-9)
+
+
+@pytest.mark.parametrize("method", ["recursive_sah", "sbvh", "sweep_sah", "binned_sah", "hlbvh"])
+def test_a_huge_scene_gets_the_tree_of_the_same_scene_at_unit_scale(device, method):
+    # Scaling by a power of two is exact in float32 and leaves every split rule unchanged, so the
+    # SAH of eq. (1) (scale-free) must come out the same. recursive_sah (Wodniok & Goesele 2016)
+    # binned its centroids as num_bins * (c - lower) / extent in float32: at 2^123 (about 1e37,
+    # well inside float32) the product overflowed to inf, every centroid fell into bin 0 and the
+    # tree's SAH was 2.9x that of the unit-scale build; sbvh (Stich et al. 2009) shares that
+    # binning for its temporary builds and changed too.
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    vertices = np.asarray(sphere.vertices, np.float32)
+    faces = np.asarray(sphere.faces)
+    costs = []
+    for scale in (1.0, 2.0 ** 123):
+        bvh = hw.build(vertices * np.float32(scale), faces, method=method, device=device)
+        costs.append(_sah(bvh.to_numpy(), 1.0, 1.0))
+    assert costs[1] == pytest.approx(costs[0], rel=1e-9)
