@@ -1,4 +1,5 @@
-"""Builder edge cases found in review, each against an oracle written here in float64 NumPy.
+"""Builders at the edges of their inputs (SAH constants the config must refuse, scenes near
+float32's range), each against an oracle written here in float64 NumPy.
 
 The SAH is eq. (1) of Pantaleoni & Luebke 2010 with the configured T1 and T2; the reference
 topology of ``hlbvh``/``lbvh`` is the LBVH radix tree (Lauterbach et al. 2009) over the Morton
