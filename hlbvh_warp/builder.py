@@ -527,7 +527,8 @@ class Builder:
         reads in the emission) and mapping the ids back afterwards cost about 2 ms more of a
         19 ms frame on the exploding 100k-triangle armadillo on the CPU; gathering the triangles
         themselves, more again. Both kinds of frame reduce the centroid bounds in the pass that
-        computes the triangle boxes.
+        computes the triangle boxes. A resorted ``hlbvh`` frame whose codes all equal the last
+        tree's keeps its topology and recomputes only the boxes (`_keep_topology`).
         """
         n, device, pipe = self.num_prims, self.device, self.pipeline
         # Triangle boxes in the user's face order, and the centroid bounds in the same pass (for
