@@ -183,14 +183,23 @@ def test_bench_rays_far_rays_are_checked(tmp_path, capsys):
     o, d = ray_bench.far_rays(rng, vertices, 64, 1e7)
     _, prim = brute_force_closest_hit(vertices, np.asarray(ball.faces), o, d)
     assert int((prim >= 0).sum()) == int(rows[2][5]) > 0
+    _check_far_distance_errors("bench-rays", "--rays", path, tmp_path, capsys)
+
+
+def _check_far_distance_errors(command: str, count_option: str, path, tmp_path, capsys):
+    """``--far-distance`` out of its bounds is an argument error; within them but past float32's
+    range for the mesh, one line naming it (exit 2), not a row of NaN queries."""
+    import trimesh
+
+    from hlbvh_warp import cli
+
     for bad in ("-1", "0.5", "1e31", "nan"):
         with pytest.raises(SystemExit):
-            cli.main(["bench-rays", "--mesh", str(path), "--far-distance", bad])
+            cli.main([command, "--mesh", str(path), "--far-distance", bad])
     assert "--far-distance" in capsys.readouterr().err
-    # Within the option's bounds but past float32's range for this mesh: one line naming it.
     big = tmp_path / "big.ply"
     trimesh.creation.icosphere(1).apply_scale(1e20).export(big)
-    assert cli.main(["bench-rays", "--mesh", str(big), "--rays", "16", "--far-distance", "1e30"]) == 2
+    assert cli.main([command, "--mesh", str(big), count_option, "16", "--far-distance", "1e30"]) == 2
     assert "past float32's range" in capsys.readouterr().err
 
 
@@ -223,15 +232,7 @@ def test_bench_points_far_points_are_checked(tmp_path, capsys):
                      "1e3"]) == 0
     near_rows = _rows(capsys.readouterr().out, "ball")
     assert float(rows[3][13]) <= 1.1 * float(near_rows[3][13]), (out, near_rows)
-    for bad in ("-1", "0.5", "1e31", "nan"):
-        with pytest.raises(SystemExit):
-            cli.main(["bench-points", "--mesh", str(path), "--far-distance", bad])
-    assert "--far-distance" in capsys.readouterr().err
-    # Within the option's bounds but past float32's range for this mesh: one line naming it.
-    big = tmp_path / "big.ply"
-    trimesh.creation.icosphere(1).apply_scale(1e20).export(big)
-    assert cli.main(["bench-points", "--mesh", str(big), "--points", "16", "--far-distance", "1e30"]) == 2
-    assert "past float32's range" in capsys.readouterr().err
+    _check_far_distance_errors("bench-points", "--points", path, tmp_path, capsys)
 
 
 @pytest.mark.parametrize("scale", [1e-20, 1e30])
