@@ -134,3 +134,33 @@ def test_ranged_ray_calls_in_a_users_struct_and_func_match_a_brute_force(device)
         else:
             assert out[i, 0] == np.inf and out[i, 4] == np.inf
     assert checked > 0.9 * len(rows)
+
+
+@wp.kernel
+def _view_kernel(bvh: hb.BvhView, out: wp.array(dtype=wp.int32)):
+    out[0] = hb.bvh_closest_hit(bvh, wp.vec3(0.0, 0.0, -5.0), wp.vec3(0.0, 0.0, 1.0), 1.0e30).prim
+
+
+@wp.kernel
+def _wide_view_kernel(view: wide.WideView, out: wp.array(dtype=wp.int32)):
+    out[0] = wide.bvh_wide_closest_hit(view, wp.vec3(0.0, 0.0, -5.0), wp.vec3(0.0, 0.0, 1.0), 1.0e30).prim
+
+
+def test_a_tree_passed_where_a_kernel_takes_its_view_names_the_mistake(device):
+    # The likeliest slip of a user kernel's launch: the tree itself in place of its view. Warp
+    # packs a struct argument by calling the value's __ctype__, and the tree had none: the launch
+    # failed with "'Bvh' object has no attribute '__ctype__'", which names nothing the user wrote.
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    bvh = hb.build(mesh, device=device)
+    w = wide.collapse(bvh, 4)
+    out = wp.full(1, -7, dtype=wp.int32, device=device)
+    with pytest.raises(TypeError, match=r"bvh\.view\(\)"):
+        wp.launch(_view_kernel, dim=1, inputs=[bvh, out], device=device)
+    with pytest.raises(TypeError, match=r"wide\.view\(w\)"):
+        wp.launch(_wide_view_kernel, dim=1, inputs=[w, out], device=device)
+    assert out.numpy()[0] == -7  # refused before anything ran
+    # The views themselves launch, and the ray down the z axis hits the sphere.
+    wp.launch(_view_kernel, dim=1, inputs=[bvh.view(), out], device=device)
+    assert out.numpy()[0] >= 0
