@@ -188,6 +188,13 @@ class Bvh:
 
         return view(self)
 
+    def __ctype__(self):
+        """Refuse to be a kernel argument, naming the view to pass instead. Warp packs a struct
+        argument by calling its value's ``__ctype__``: without this, a tree passed where a kernel
+        takes its `BvhView` failed with an AttributeError that named nothing the user wrote."""
+        raise TypeError("a Warp kernel takes the tree's view, not the Bvh: pass bvh.view() "
+                        "(hlbvh_warp.view(bvh)) as the BvhView argument")
+
     def invalidate(self):
         """Forget host copies after the device arrays changed (refit, rebuild).
 

@@ -93,6 +93,11 @@ class WideBvh:
         """A `WideView` struct of this tree for user kernels (``bvh_wide_closest_hit``)."""
         return view(self)
 
+    def __ctype__(self):
+        """Refuse to be a kernel argument, naming the view to pass instead (see `Bvh.__ctype__`)."""
+        raise TypeError("a Warp kernel takes the wide tree's view, not the WideBvh: pass wide.view(w) "
+                        "(w.view()) as the WideView argument")
+
     @property
     def device(self):
         """The device of the binary tree it was collapsed from."""
