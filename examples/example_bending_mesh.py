@@ -10,18 +10,10 @@ import argparse
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
-from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh,
-                            scene_tris)
+from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_float,
+                            positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, BendingMesh
 from hlbvh_warp.scenes import scene
-
-
-def sah_growth_limit(text: str) -> float:
-    """argparse type: the auto policy's SAH growth limit, a number >= 0."""
-    value = float(text)
-    if not value >= 0.0:
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
-    return value
 
 
 class Example:
@@ -57,7 +49,7 @@ def main(argv=None):
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="auto")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
-    parser.add_argument("--sah-growth-limit", type=sah_growth_limit, default=0.10)
+    parser.add_argument("--sah-growth-limit", type=non_negative_float, default=0.10)
     parser.add_argument("--image-size", type=positive_int, default=256)
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
     args = parser.parse_args(argv)

@@ -18,8 +18,8 @@ import warp as wp
 
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_int,
-                            positive_int, read_mesh, scene_tris)
+from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_float,
+                            non_negative_int, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import scene, subdivide
@@ -66,7 +66,7 @@ def _cell(value: float, width: int, spec: str) -> str:
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
                  headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide_times=0,
-                 stages=False):
+                 stages=False, global_sort_runs=None):
         vertices, faces = subdivide(*scene(mesh, num_tris), subdivide_times)
         if face_order == "shuffled":
             # Scanned meshes list their faces in scan order, already about as coherent as a Morton
@@ -96,6 +96,8 @@ class Example:
             else:
                 raise ValueError(f"unknown sequence {name!r}")
             config = BuildConfig(cpu_threads=cpu_threads)
+            if global_sort_runs is not None:
+                config = config.replace(global_sort_runs=global_sort_runs)
             if fixed_grid:
                 # One Morton grid for the whole sequence: the bounds of every frame's centroids.
                 config = config.replace(morton_bounds=sequence_bounds(anim, param, self.num_frames))
@@ -240,6 +242,9 @@ def main(argv=None):
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
     parser.add_argument("--subdivide", type=non_negative_int, default=0,
                         help="Split every triangle into four this many times (a mesh at the paper's sizes).")
+    parser.add_argument("--global-sort-runs", type=non_negative_float, default=None,
+                        help="BuildConfig.global_sort_runs of the Builders (default: the library's); 1 gives "
+                             "every build the paper's compress-sort-decompress, as the paper compares resorting.")
     parser.add_argument("--stages", action="store_true",
                         help="Time every stage of the Builders' frames and print their means and the share "
                              "of the sort stages (a clock read per stage).")
@@ -260,7 +265,7 @@ def main(argv=None):
         example = Example(mesh, args.num_tris, args.num_frames, args.sequences.split(","),
                           args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads,
                           fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide_times=args.subdivide,
-                          stages=args.stages)
+                          stages=args.stages, global_sort_runs=args.global_sort_runs)
         for _ in range(args.num_frames):
             example.step()
             example.render()

@@ -157,6 +157,18 @@ def finite_float(text: str) -> float:
     return value
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type: a number >= 0, inf included (a limit that never binds); NaN and negatives
+    refused, which every comparison with them would get wrong."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not value >= 0.0:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return value
+
+
 @contextlib.contextmanager
 def argument_errors(parser: argparse.ArgumentParser):
     """A ValueError of the checks inside (an output path, a mesh file) ends the program as

@@ -484,6 +484,29 @@ def test_example_scripts_refuse_counts_below_their_least(name, option, value, me
     assert message in argument_error(name, [*TINY_ARGS[name], f"{option}={value}"], capsys, monkeypatch)
 
 
+@pytest.mark.parametrize("value", ["-1", "nan", "-inf", "x"])
+def test_frame_timing_refuses_a_global_sort_threshold_below_zero(value, capsys, monkeypatch):
+    # The BuildConfig refused it only after the arguments were accepted, as a traceback.
+    err = argument_error("example_frame_timing", [*TINY_ARGS["example_frame_timing"], f"--global-sort-runs={value}"],
+                         capsys, monkeypatch)
+    assert "argument --global-sort-runs: must be a number" in err, err
+
+
+def test_frame_timing_gives_its_builders_the_global_sort_threshold(device):
+    """``--global-sort-runs 1``: every build takes the paper's compress-sort-decompress, the
+    setting the paper compares resorting in (the stages say which sort ran)."""
+    module = load_example("example_frame_timing")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=1000, num_frames=1, sequences=("bend",),
+                                 modes=["hlbvh scratch", "hlbvh resorted"], headless=True, stages=True,
+                                 global_sort_runs=1.0)
+        example.step()
+    for label, runner in example.sequences["bend"]["runners"].items():
+        assert runner.config.global_sort_runs == 1.0
+        stages = example.sequences["bend"]["stages"][label][0]
+        assert "global_sort" not in stages and "run_length_decode" in stages, (label, stages)
+
+
 @pytest.mark.parametrize("widths", ["1", "2,32", "2,x", "", "2,,4", "4,-8"])
 def test_camera_orbit_checks_its_widths_first(widths, capsys, monkeypatch):
     # Only branching factors the wide trees have (2 to 16), every word of the list one of them
