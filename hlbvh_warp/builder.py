@@ -48,6 +48,7 @@ from .config import BuildConfig
 from .hlbvh import PARALLEL_MIN_PRIMS, HlbvhPipeline, StageTimer, compute_bounds
 from .launches import RecordedLaunches
 from .kernels import compress, dynamic, morton
+from .kernels.bounds import bounds_sweep_kernel
 
 POLICIES = ("rebuild", "refit", "auto")
 
@@ -227,6 +228,8 @@ class Builder:
         self.motion_threads = threads_module.resolved_threads(config, device) if device.is_cpu else 1
         self.largest_move = wp.zeros(max(self.motion_threads, 1), dtype=wp.float32, device=device)
         self.largest_move_views = [self.largest_move[j : j + 1] for j in range(self.largest_move.shape[0])]
+        # The sums of a refit's sweeps side by side, one per run and one for the nodes above.
+        self.sweep_costs = wp.zeros(pipe.emit_counters.shape[0] + 1, dtype=wp.float64, device=device)
         # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
         self.sah_scratch = wp.empty(metrics.sah_scratch_size(pipe.node_left.shape[0], device), dtype=wp.float64,
                                     device=device)
@@ -586,10 +589,37 @@ class Builder:
                       "hierarchy"):
             timer.skipped(stage)
         timer.stage("bbox")
-        bvh = self.bvh
-        compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
-                       bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
-                       self.pipeline.node_visits, bvh.node_lowers, bvh.node_uppers, launch=self.pipeline._launch)
+        self._sweep_boxes(False)
+
+    def _sweep_boxes(self, price: bool) -> float | None:
+        """Every node box over the current primitive boxes, bottom-up, the topology kept; with
+        `price` (the CPU's sweep), also the sum of the nodes' SAH terms x area, returned.
+
+        On a multi-core CPU, a tree whose emission ran its seeds side by side is swept the same
+        way (`HlbvhPipeline.sweep_parts`): each run's nodes have their children in that run, so
+        the runs' sweeps run side by side and the few nodes above them are swept after. Other
+        trees take one sweep (the CPU) or the climb (CUDA)."""
+        bvh, pipe, cfg = self.bvh, self.pipeline, self.config
+        costs = (cfg.sah_traversal_cost, cfg.sah_intersection_cost)
+        parts = pipe.sweep_parts if self.device.is_cpu else None
+        if parts is None:
+            priced = (*costs, self.sah_scratch) if price else None
+            compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
+                           bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
+                           pipe.node_visits, bvh.node_lowers, bvh.node_uppers, "sweep" if priced else None, priced,
+                           launch=pipe._launch)
+            return float(self.sah_scratch[0:1].numpy()[0]) if price else None
+        top, runs = parts
+        arrays = [bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_begin, bvh.node_end, bvh.prim_order,
+                  bvh.prim_lowers, bvh.prim_uppers, int(price), wp.float64(costs[0]), wp.float64(costs[1]),
+                  bvh.node_lowers, bvh.node_uppers, self.sweep_costs]
+        # Plain launches side by side (recorded ones made or replayed on the worker threads
+        # crashed the process; see `hlbvh_warp.launches`), then the top in the recorded one.
+        threads_module.launch_parts(bounds_sweep_kernel, self.device,
+                                    [(1, [lo, stop, j + 1] + arrays) for j, (lo, stop) in enumerate(runs)],
+                                    len(runs))
+        pipe._launch(bounds_sweep_kernel, 1, [0, top, 0] + arrays)
+        return float(self.sweep_costs.numpy()[:len(runs) + 1].sum()) if price else None
 
     def _resorting_pays(self, timer: StageTimer) -> bool:
         """Whether to feed this frame in the previous tree's order (Pantaleoni & Luebke 2010, 2.2).
@@ -643,18 +673,13 @@ class Builder:
             self.pipeline._launch(morton.triangle_bounds_kernel, self.num_prims,
                                   [self.vertices, self.faces, self.prim_lowers, self.prim_uppers])
         timer.stage("refit")
-        bvh, pipe, cfg = self.bvh, self.pipeline, self.config
-        costs = (cfg.sah_traversal_cost, cfg.sah_intersection_cost)
-        # The CPU refit ends in one serial sweep over the nodes; it sums the SAH terms as it goes,
-        # where pricing afterwards took a second pass (about 1.5 ms on 100k triangles).
-        priced = (*costs, self.sah_scratch) if price and self.device.is_cpu else None
-        compute_bounds(self.device, bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_parent,
-                       bvh.node_begin, bvh.node_end, bvh.prim_order, bvh.prim_lowers, bvh.prim_uppers,
-                       pipe.node_visits, bvh.node_lowers, bvh.node_uppers, "sweep" if priced else None, priced,
-                       launch=pipe._launch)
-        if priced is not None:
-            total = float(self.sah_scratch[0:1].numpy()[0])
-            return metrics.cost_from_sum(bvh, total, bvh.num_nodes, *costs)
+        # The CPU refit sweeps the nodes; it sums the SAH terms as it goes, where pricing
+        # afterwards took a second pass (about 1.5 ms on 100k triangles).
+        total = self._sweep_boxes(price and self.device.is_cpu)
+        if total is not None:
+            cfg = self.config
+            return metrics.cost_from_sum(self.bvh, total, self.bvh.num_nodes, cfg.sah_traversal_cost,
+                                         cfg.sah_intersection_cost)
         if not price:
             return None
         timer.stage("sah")

@@ -93,6 +93,7 @@ class HlbvhPipeline:
         self.prim_lowers = self.prim_uppers = None
         # Views over the boxes and over the tree's ids, which now belong to the caller.
         self._morton_parts = self._leaf_box_parts = None
+        self.sweep_parts = None
         memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self,
                                  self.held_bytes())
 
@@ -183,6 +184,9 @@ class HlbvhPipeline:
             self.leaf_lowers = memory.empty(n, dtype=wp.vec3, device=device)
             self.leaf_uppers = memory.empty(n, dtype=wp.vec3, device=device)
         self._leaf_box_parts = None
+        # Node ranges a refit may sweep side by side, from the last depth-first emission that ran
+        # its seeds side by side: (first node below the top, [(first, stop) per run]); else None.
+        self.sweep_parts = None
         self.node_lowers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_uppers = memory.empty(num_node_slots, dtype=wp.vec3, device=device)
         self.node_left = ints(num_node_slots)
@@ -557,6 +561,8 @@ class HlbvhPipeline:
         threads = min(threads_module.resolved_threads(cfg, self.device), self.emit_counters.shape[0])
         parallel = threads > 1 and cfg.max_leaf_size == 1 and n >= PARALLEL_MIN_PRIMS
         top_split = False
+        root_seeds = seed_starts is None
+        self.sweep_parts = None
         if seed_starts is None:
             seed_starts, seed_count, first_seed_node, num_seeds = self.root_seed_start, self.root_seed_count, 0, 1
             if parallel:
@@ -588,15 +594,21 @@ class HlbvhPipeline:
         cuts = np.searchsorted(starts, np.arange(1, threads) * (n / threads), side="left")
         bounds = np.unique(np.concatenate([[0], cuts, [num_seeds]]))
         counters = self.emit_counters.numpy()
-        jobs = []
+        jobs, lows = [], []
         for j, (s0, s1) in enumerate(zip(bounds[:-1], bounds[1:])):
             # Seeds before s0 hold starts[s0] primitives and own 2 * starts[s0] - 2 * s0 nodes.
             counters[j] = first_free + 2 * int(starts[s0]) - 2 * int(s0)
+            lows.append(int(counters[j]))
             counter = self.emit_counter_views[j]
             jobs.append(lambda s0=int(s0), s1=int(s1), counter=counter: self._launch(
                 treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0, serial]))
         threads_module.run(jobs, threads)
-        self.node_count.fill_(first_free + 2 * (n - int(starts[0])) - 2 * num_seeds)
+        end = first_free + 2 * (n - int(starts[0])) - 2 * num_seeds
+        self.node_count.fill_(end)
+        if root_seeds:
+            # Each run's nodes (its seeds' descendants, allocated from its own counter) have their
+            # children in that run: a refit can sweep the runs side by side, then the nodes above.
+            self.sweep_parts = (first_free, list(zip(lows, lows[1:] + [end])))
         if top_split:
             self._launch(treelets.finish_top_kernel, 1,
                          [self.top_seed_count, self.node_left, self.node_right, self.node_parent, self.node_lowers,
@@ -788,7 +800,7 @@ def compute_bounds(device, node_count, node_left, node_right, node_parent, node_
     if strategy == "sweep":
         t_traversal, t_intersect, cost_sum = priced if priced is not None else (0.0, 0.0, None)
         launch(bounds.bounds_sweep_kernel, 1,
-               [node_count, node_left, node_right, node_begin, node_end, prim_order, prim_lowers, prim_uppers,
+               [0, -1, 0, node_count, node_left, node_right, node_begin, node_end, prim_order, prim_lowers, prim_uppers,
                 int(priced is not None), wp.float64(t_traversal), wp.float64(t_intersect), node_lowers, node_uppers,
                 cost_sum])
         return

@@ -127,6 +127,9 @@ def node_bounds_kernel(
 
 @wp.kernel
 def bounds_sweep_kernel(
+    first: int,
+    stop: int,
+    cost_slot: int,
     node_count: wp.array(dtype=wp.int32),
     node_left: wp.array(dtype=wp.int32),
     node_right: wp.array(dtype=wp.int32),
@@ -142,8 +145,12 @@ def bounds_sweep_kernel(
     node_uppers: wp.array(dtype=wp.vec3),
     cost_sum: wp.array(dtype=wp.float64),
 ):
-    """Node boxes in one thread, one reverse sweep over the nodes; with `price`, also the sum of
-    every node's SAH term x area into cost_sum[0]."""
+    """Node boxes in one thread, one reverse sweep over the nodes [first, stop) (`stop` < 0: to
+    node_count[0]); with `price`, also the sum of their SAH terms x area into cost_sum[cost_slot].
+
+    A range whose nodes' children all lie in it can be swept beside another such range: the
+    runs of seeds the depth-first emission made side by side (`HlbvhPipeline.sweep_parts`),
+    with the nodes above them swept after."""
     # One thread: children are numbered after their parents, so a reverse sweep sees both
     # children finished, a leaf's box computed from its primitives as the sweep reaches it. Used
     # on the CPU device, which runs a launch's threads one after another anyway: the sweep does
@@ -152,9 +159,11 @@ def bounds_sweep_kernel(
     # With `price`, it also sums every node's SAH term as its box becomes final (the one-pass form
     # of Pantaleoni & Luebke 2010, eq. 1, that metrics.sah_cost divides by the root's area), so a
     # refit frame of the auto policy prices its tree without a second pass over the nodes.
-    node = node_count[0] - 1
+    node = stop - 1
+    if stop < 0:
+        node = node_count[0] - 1
     total = wp.float64(0.0)
-    while node >= 0:
+    while node >= first:
         left = node_left[node]
         if left >= 0:
             right = node_right[node]
@@ -167,4 +176,4 @@ def bounds_sweep_kernel(
                                    t_traversal, t_intersect)
         node -= 1
     if price != 0:
-        cost_sum[0] = total
+        cost_sum[cost_slot] = total

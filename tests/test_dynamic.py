@@ -13,8 +13,8 @@ from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import default_scene
 
-from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants, random_rays,
-                     random_soup)
+from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants,
+                     numpy_node_boxes, random_rays, random_soup)
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
 
@@ -107,6 +107,31 @@ def test_refit_keeps_topology_and_bounds(device, small_scene, rng, method):
     check_tree_invariants(tree, len(f))
     check_rays(builder.bvh, bent.numpy(), f, rng)
     assert builder.last_report["decision"] == "refit"
+
+
+def test_refit_sweeps_the_emissions_runs_side_by_side(device):
+    """On a multi-core CPU a tree whose emission ran its seeds side by side is refit the same way:
+    each run's nodes swept beside the other's, then the nodes above them. Every node box equals
+    the float64 NumPy union of its primitives' boxes, and the SAH a priced refit sums (auto's)
+    equals NumPy's eq. (1) over the refit tree."""
+    v, f = default_scene(12000)  # past the size from which the emission runs side by side
+    mesh = BendingMesh(v, f, device=device)
+    builder = Builder(len(f), BuildConfig(cpu_threads=2), device=device, policy="auto", timings=True)
+    builder.build(mesh.vertices, f)
+    parts = builder.pipeline.sweep_parts
+    if wp.get_device(device).is_cpu:
+        top, runs = parts
+        # Two runs of nodes, back to back from the end of the top to the last node.
+        assert len(runs) == 2 and top == runs[0][0] and runs[0][1] == runs[1][0], parts
+        assert runs[1][0] < runs[1][1] == builder.bvh.num_nodes, parts
+    builder.update(mesh.update(0.02))  # small motion: a priced refit
+    assert builder.last_report["decision"] == "refit", builder.last_report["reason"]
+    tree = builder.bvh.to_numpy()
+    corners = mesh.vertices.numpy().astype(np.float64)[f]
+    node_lo, node_hi = numpy_node_boxes(tree, corners.min(axis=1), corners.max(axis=1))
+    np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
+    np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
+    assert builder.last_report["sah_refit"] == pytest.approx(numpy_sah(tree), rel=1e-9)
 
 
 @pytest.mark.parametrize("method", ["hlbvh", "hlbvh_sah"])
