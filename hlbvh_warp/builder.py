@@ -203,14 +203,14 @@ class Builder:
             pipe.set_input_ids(self.input_order)
             self.run_breaks = wp.zeros(2, dtype=wp.int32, device=device)
             self.resort_samples = min(n - 1, RESORT_SAMPLES)
-            # The gather reads one code at random per primitive: on a multi-core CPU its slices run
-            # side by side, each a launch over views made once here.
             # An hlbvh tree is a function of its sorted codes alone: a frame whose gathered codes
             # all equal the last tree's keeps its topology (`resort_gather_compare_kernel`). Not
             # hlbvh_sah's (its cluster tree prices the boxes), and not on the sync-free path,
             # which reads nothing on the host to choose by.
             self.keeps_topology = method == "hlbvh" and not self.sync_free
             self.codes_changed = wp.zeros(1, dtype=wp.int32, device=device)
+            # The gather reads one code at random per primitive: on a multi-core CPU its slices run
+            # side by side, each a launch over views made once here.
             threads = threads_module.resolved_threads(config, device)
             if threads > 1 and n >= PARALLEL_MIN_PRIMS:
                 cuts = threads_module.split_bounds(n, threads)
