@@ -192,6 +192,10 @@ class Builder:
         self.gather_parts = self.compare_parts = None
         self.keeps_topology = False
         self.may_be_sorted = True
+        # Whether `pipe.sorted_codes` holds the sorted codes of the tree now in the node arrays:
+        # not before a mesh's first build (they are uninitialized memory then, maybe a recycled
+        # block, maybe zeros, which equal the codes of a mesh collapsed to a point).
+        self.has_last_codes = False
         # How the latest build was fed: "previous tree" or "faces", and the sampled M / N.
         self.last_input: dict = {}
         if self.resort:
@@ -460,6 +464,8 @@ class Builder:
 
     def _first_build(self, vertices, faces) -> Bvh:
         self.snapshot_valid = False
+        # A mesh's first build is one from scratch: there is no last tree to keep.
+        self.has_last_codes = False
         if self.resort:
             wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
         pipe = self.pipeline
@@ -548,7 +554,7 @@ class Builder:
             pipe.set_input_ids(self.input_order)
             # Resorting: the previous tree's order becomes this build's input order.
             timer.stage("resort_gather")
-            if self.keeps_topology and self.may_be_sorted:
+            if self.keeps_topology and self.may_be_sorted and self.has_last_codes:
                 self.codes_changed.zero_()
                 if self.compare_parts is not None:
                     threads_module.launch_parts(dynamic.resort_gather_compare_kernel, device, self.compare_parts,
@@ -573,10 +579,14 @@ class Builder:
             pipe.set_input_ids(None)
         pipeline_timings = timer.timings
         ready = "codes" if resorted else "bounds"
+        # The sort overwrites the codes before the emission rewrites the tree: until it returns,
+        # the two may disagree.
+        self.has_last_codes = False
         if self.method == "hlbvh_sah":
             pipe.build_sah(timer, inputs_ready=ready)
         else:
             pipe.build(self.method, timer, sync_free=self.sync_free, inputs_ready=ready)
+        self.has_last_codes = True
         pipeline_timings.pop("total", None)
 
     def _keep_topology(self, timer: StageTimer):
