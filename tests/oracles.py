@@ -460,3 +460,14 @@ def morton_reference(lowers, uppers, bits):
         for axis in range(3):  # x is the most significant of each triple
             code |= ((q[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
     return code
+
+
+def numpy_sah(tree: dict, t1: float = 1.0, t2: float = 1.0) -> float:
+    """The paper's SAH cost (eq. 1) in float64 from the node arrays, unrolled over the nodes."""
+    lo = tree["node_lowers"].astype(np.float64)
+    hi = tree["node_uppers"].astype(np.float64)
+    d = np.maximum(hi - lo, 0.0)
+    area = 2.0 * (d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0])
+    leaf = tree["node_left"] < 0
+    cost = np.where(leaf, t2 * (tree["node_end"] - tree["node_begin"]), 2.0 * t1)
+    return float((cost * area).sum() / area[0])

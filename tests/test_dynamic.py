@@ -14,20 +14,9 @@ from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import default_scene
 
 from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants,
-                     numpy_node_boxes, random_rays, random_soup)
+                     numpy_node_boxes, numpy_sah, random_rays, random_soup)
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
-
-
-def numpy_sah(tree: dict, t1: float = 1.0, t2: float = 1.0) -> float:
-    """The paper's SAH cost (eq. 1) in float64 from the node arrays, unrolled over the nodes."""
-    lo = tree["node_lowers"].astype(np.float64)
-    hi = tree["node_uppers"].astype(np.float64)
-    d = np.maximum(hi - lo, 0.0)
-    area = 2.0 * (d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0])
-    leaf = tree["node_left"] < 0
-    cost = np.where(leaf, t2 * (tree["node_end"] - tree["node_begin"]), 2.0 * t1)
-    return float((cost * area).sum() / area[0])
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.hlbvh import PARALLEL_MIN_PRIMS
 from hlbvh_warp.scenes import default_scene
 
-from oracles import check_tree_invariants, morton_reference, numpy_node_boxes
+from oracles import check_tree_invariants, morton_reference, numpy_node_boxes, numpy_sah
 
 TOPOLOGY = ("node_left", "node_right", "node_begin", "node_end")
 ALL = TOPOLOGY + ("node_parent", "prim_order", "node_lowers", "node_uppers", "prim_lowers", "prim_uppers")
@@ -32,16 +32,6 @@ ALL = TOPOLOGY + ("node_parent", "prim_order", "node_lowers", "node_uppers", "pr
 def numpy_boxes(vertices, faces):
     corners = np.asarray(vertices, dtype=np.float64)[faces]
     return corners.min(axis=1), corners.max(axis=1)
-
-
-def numpy_sah(tree: dict, t1: float = 1.0, t2: float = 1.0) -> float:
-    lo = tree["node_lowers"].astype(np.float64)
-    hi = tree["node_uppers"].astype(np.float64)
-    d = np.maximum(hi - lo, 0.0)
-    area = 2.0 * (d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0])
-    leaf = tree["node_left"] < 0
-    cost = np.where(leaf, t2 * (tree["node_end"] - tree["node_begin"]), 2.0 * t1)
-    return float((cost * area).sum() / area[0])
 
 
 def soup(num_tris: int):
