@@ -561,7 +561,6 @@ class HlbvhPipeline:
         threads = min(threads_module.resolved_threads(cfg, self.device), self.emit_counters.shape[0])
         parallel = threads > 1 and cfg.max_leaf_size == 1 and n >= PARALLEL_MIN_PRIMS
         top_split = False
-        root_seeds = seed_starts is None
         self.sweep_parts = None
         if seed_starts is None:
             seed_starts, seed_count, first_seed_node, num_seeds = self.root_seed_start, self.root_seed_count, 0, 1
@@ -605,10 +604,10 @@ class HlbvhPipeline:
         threads_module.run(jobs, threads)
         end = first_free + 2 * (n - int(starts[0])) - 2 * num_seeds
         self.node_count.fill_(end)
-        if root_seeds:
-            # Each run's nodes (its seeds' descendants, allocated from its own counter) have their
-            # children in that run: a refit can sweep the runs side by side, then the nodes above.
-            self.sweep_parts = (first_free, list(zip(lows, lows[1:] + [end])))
+        # Each run's nodes (its seeds' descendants, allocated from its own counter) have their
+        # children in that run: a refit can sweep the runs side by side, then the nodes above
+        # (the top of the tree, or hlbvh_sah's cluster tree, and the seeds' roots).
+        self.sweep_parts = (first_free, list(zip(lows, lows[1:] + [end])))
         if top_split:
             self._launch(treelets.finish_top_kernel, 1,
                          [self.top_seed_count, self.node_left, self.node_right, self.node_parent, self.node_lowers,

@@ -199,17 +199,21 @@ def test_kept_frames_equal_a_builder_that_never_keeps(device, num_tris, threads,
         assert {"scaled", "point2", "flat2", "traded"} <= set(kept_any), kept_any
 
 
-@pytest.mark.parametrize("num_tris", [PARALLEL_MIN_PRIMS - 1, PARALLEL_MIN_PRIMS, PARALLEL_MIN_PRIMS + 1, 12000])
-@pytest.mark.parametrize("threads", [2, 3, 8])
-def test_the_sweep_side_by_side_equals_the_one_sweep(device, num_tris, threads):
+@pytest.mark.parametrize("method,num_tris,threads", [
+    *[("hlbvh", n, t) for n in (PARALLEL_MIN_PRIMS - 1, PARALLEL_MIN_PRIMS, PARALLEL_MIN_PRIMS + 1, 12000)
+      for t in (2, 3, 8)],
+    # hlbvh_sah's emission runs its clusters' treelets side by side under its cluster tree.
+    *[("hlbvh_sah", n, t) for n in (PARALLEL_MIN_PRIMS, 12000) for t in (2, 3)],
+])
+def test_the_sweep_side_by_side_equals_the_one_sweep(device, method, num_tris, threads):
     """auto's priced refits, forced refits and kept frames of a tree whose emission ran side by
     side against a builder whose every sweep is the one serial sweep: equal boxes (NumPy's),
     equal SAH (NumPy's), equal decisions."""
     v, f = soup(num_tris)
     n = len(f)
     config = BuildConfig(cpu_threads=threads)
-    side = Builder(n, config, device=device, policy="auto")
-    one = Builder(n, config, device=device, policy="auto")
+    side = Builder(n, config, device=device, method=method, policy="auto")
+    one = Builder(n, config, device=device, method=method, policy="auto")
     side.build(v, f)
     one.build(v, f)
     parallel = wp.get_device(device).is_cpu and n >= PARALLEL_MIN_PRIMS
@@ -244,15 +248,14 @@ def test_the_sweep_side_by_side_equals_the_one_sweep(device, num_tris, threads):
 
 @pytest.mark.parametrize("method", ["lbvh", "hlbvh_sah"])
 def test_other_methods_keep_no_topology_and_sweep_their_own_way(device, method):
-    """lbvh and hlbvh_sah frames never keep a topology; lbvh's parallel emission (refit side by
-    side on the CPU) and hlbvh_sah's seeded one (one sweep) refit to NumPy's boxes."""
+    """lbvh and hlbvh_sah frames never keep a topology; their parallel emissions (refit side by
+    side on the CPU) refit to NumPy's boxes."""
     v, f = soup(PARALLEL_MIN_PRIMS + 400)
     config = BuildConfig(cpu_threads=2, global_sort_runs=1.0)
     builder = Builder(len(f), config, device=device, method=method, policy="auto")
     builder.build(v, f)
     assert not builder.keeps_topology
-    if method == "hlbvh_sah":
-        assert builder.pipeline.sweep_parts is None
+    assert (builder.pipeline.sweep_parts is not None) == wp.get_device(device).is_cpu
     for vertices in (v, np.float32(2.0) * v, np.float32(2.0) * v + np.float32(0.001)):
         builder.rebuild(vertices)
         assert "kept_topology" not in builder.last_report
