@@ -234,6 +234,7 @@ class Builder:
         self.largest_move_views = [self.largest_move[j : j + 1] for j in range(self.largest_move.shape[0])]
         # The sums of a refit's sweeps side by side, one per run and one for the nodes above.
         self.sweep_costs = wp.zeros(pipe.emit_counters.shape[0] + 1, dtype=wp.float64, device=device)
+        self._sweep_args = None
         # Scratch of metrics.sah_cost, so the per-frame SAH check allocates nothing.
         self.sah_scratch = wp.empty(metrics.sah_scratch_size(pipe.node_left.shape[0], device), dtype=wp.float64,
                                     device=device)
@@ -620,15 +621,20 @@ class Builder:
                            launch=pipe._launch)
             return float(self.sah_scratch[0:1].numpy()[0]) if price else None
         top, runs = parts
-        arrays = [bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_begin, bvh.node_end, bvh.prim_order,
-                  bvh.prim_lowers, bvh.prim_uppers, int(price), wp.float64(costs[0]), wp.float64(costs[1]),
-                  bvh.node_lowers, bvh.node_uppers, self.sweep_costs]
+        key = (parts, bool(price), bvh.node_lowers.ptr)
+        if self._sweep_args is None or self._sweep_args[0] != key:
+            # The arguments of each run's launch, made once per emission layout (as the gather's
+            # views are), not every frame.
+            arrays = [bvh.node_count, bvh.node_left, bvh.node_right, bvh.node_begin, bvh.node_end, bvh.prim_order,
+                      bvh.prim_lowers, bvh.prim_uppers, int(price), wp.float64(costs[0]), wp.float64(costs[1]),
+                      bvh.node_lowers, bvh.node_uppers, self.sweep_costs]
+            self._sweep_args = (key, [(1, [lo, stop, j + 1] + arrays) for j, (lo, stop) in enumerate(runs)],
+                                [0, top, 0] + arrays)
+        _, run_args, top_args = self._sweep_args
         # Plain launches side by side (recorded ones made or replayed on the worker threads
         # crashed the process; see `hlbvh_warp.launches`), then the top in the recorded one.
-        threads_module.launch_parts(bounds_sweep_kernel, self.device,
-                                    [(1, [lo, stop, j + 1] + arrays) for j, (lo, stop) in enumerate(runs)],
-                                    len(runs))
-        pipe._launch(bounds_sweep_kernel, 1, [0, top, 0] + arrays)
+        threads_module.launch_parts(bounds_sweep_kernel, self.device, run_args, len(runs))
+        pipe._launch(bounds_sweep_kernel, 1, top_args)
         return float(self.sweep_costs.numpy()[:len(runs) + 1].sum()) if price else None
 
     def _resorting_pays(self, timer: StageTimer) -> bool:
