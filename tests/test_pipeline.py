@@ -286,11 +286,61 @@ def test_global_sort_when_runs_do_not_compress(device, rng, clusters):
         skipped = timer.timings.get("skipped", [])
         if global_path:
             assert {"top_level_sort", "run_length_decode", "voxel_sort"} <= set(skipped), skipped
+            # The CPU's sample saw the runs would not compress: no encoding either.
+            assert ("run_length_encode" in skipped) == pipe.device.is_cpu, skipped
         else:
             assert "run_length_decode" in timer.timings and "run_length_decode" not in skipped
         orders[fraction] = pipe.sorted_prim_ids.numpy()[: len(lo)].copy()
         np.testing.assert_array_equal(orders[fraction], np.argsort(codes, kind="stable"))
     assert (runs > len(lo) // 2) != clusters
+
+
+def sampled_pair_ends(n: int, samples: int = 1024) -> np.ndarray:
+    """The second position of each adjacent pair the CPU build samples before encoding the runs
+    (`HlbvhPipeline.sampled_run_fraction`): evenly spaced over [1, n)."""
+    samples = min(n - 1, samples)
+    return 1 + np.arange(samples, dtype=np.int64) * (n - 1) // samples
+
+
+@pytest.mark.parametrize("breaks_at", ["sampled_pairs_only", "all_but_sampled_pairs"])
+def test_run_sample_decides_before_encoding(device, rng, breaks_at):
+    """On the CPU a sample of adjacent pairs decides whether the runs compress before any pass
+    over all the codes. Inputs whose coarse voxel changes exactly at the sampled pairs (few
+    runs, but a sample of all breaks) or everywhere else (many runs, a sample of none) fool it
+    both ways: the first takes the global sort without encoding, the second encodes, finds the
+    runs do not compress and takes the global sort after all. The order is NumPy's stable
+    argsort of the codes either way. CUDA always encodes and decides on the exact count."""
+    n = 4096
+    ends = sampled_pair_ends(n)
+    change = np.zeros(n, dtype=bool)
+    change[ends] = True
+    if breaks_at == "all_but_sampled_pairs":
+        change[1:] = ~change[1:]
+    # Alternate between two coarse voxels of a fixed unit grid (m = 6: cells of 1/64) at each
+    # change, with a different fine cell for every point.
+    voxel = np.cumsum(change) % 2
+    corner = np.where(voxel[:, None] == 1, 0.75, 0.25)
+    pts = corner + rng.integers(0, 16, (n, 3)) / 1024.0 + 0.5 / 1024.0
+    lo = hi = pts.astype(np.float32)
+    config = dict(coarse_bits=6, morton_bounds=((0, 0, 0), (1, 1, 1)), global_sort_runs=0.3)
+    pipe = make_pipeline(lo, hi, device, **config)
+    timer = StageTimer(pipe.device, True)
+    pipe.build("hlbvh", timer)
+    codes = pipe.morton_codes.numpy().astype(np.int64)
+    coarse = codes >> 12
+    # The input is what the test meant: the coarse voxel changes exactly where planned.
+    np.testing.assert_array_equal(coarse[1:] != coarse[:-1], change[1:])
+    runs = 1 + int(np.count_nonzero(change[1:]))
+    sampled = float(np.mean(coarse[ends] != coarse[ends - 1]))
+    assert (sampled, runs > 0.3 * n) == ((1.0, False) if breaks_at == "sampled_pairs_only" else (0.0, True))
+    skipped = set(timer.timings.get("skipped", []))
+    encoded = "run_length_encode" not in skipped
+    assert encoded == (not pipe.device.is_cpu or breaks_at == "all_but_sampled_pairs"), skipped
+    # The sample (CPU), or the encoding's exact count, chose the global sort.
+    assert ("global_sort" in timer.timings) == (pipe.device.is_cpu or runs > 0.3 * n), timer.timings
+    if pipe.device.is_cpu:
+        assert pipe.sampled_run_fraction() == sampled
+    np.testing.assert_array_equal(pipe.sorted_prim_ids.numpy()[:n], np.argsort(codes, kind="stable"))
 
 
 @pytest.mark.parametrize("case", ["sorted", "last_pair_swapped", "first_pair_swapped"])
