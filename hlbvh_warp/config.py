@@ -86,11 +86,13 @@ class BuildConfig:
             the same order (both are stable sorts of the codes) for less work; its timings list
             ``global_sort`` and the three skipped stages. On the CPU, a sample of 1024 adjacent
             pairs of the codes (`HlbvhPipeline.sampled_run_fraction`) decides first, and a sample past
-            this limit skips the encoding as well (its timings list all four skipped). Default 0.3: on the CPU, with its
-            serial radix sort at about 25 ns a key in any order, the paper's stages cost less
-            only below about a third of a run per primitive (bending and exploding 70k-400k-
-            triangle meshes, in one process: 0.3 took up to 13% less time a frame than 0.5,
-            scratch or resorted, and never more than 2% more, within the noise).
+            this limit skips the encoding as well (its timings list all four skipped). Default
+            0.1: on the CPU, Warp's radix sort of the full codes beat the paper's stages at every
+            M / N from 0.12 to 1 on 70k-100k-triangle meshes, in any face order (2.2-3.2 ms
+            against 1.5-1.8 for the armadillo's sort stages), and only near-sorted input of
+            400k triangles (a resorted frame, M / N about 0.1) sorted faster their way. At 0.3
+            a resorting `Builder` took the paper's sort on a smoothly bending mesh (240 frames,
+            M / N 0.2-0.27 in the previous order) and spent 13-15% more a frame than from scratch.
             1 keeps the paper's pipeline for every build, resorting included (`Builder`).
             Not for builds that need the voxels (``hlbvh_sah``'s clusters) or keep their counts
             on the device (sync-free CUDA).
@@ -117,7 +119,7 @@ class BuildConfig:
     emission: str = "auto"
     cpu_threads: int = 0
     morton_bounds: tuple | None = None
-    global_sort_runs: float = 0.3
+    global_sort_runs: float = 0.1
 
     def __post_init__(self):
         # Types first, so a wrong one raises a ValueError naming the field, not a TypeError from a
