@@ -88,11 +88,13 @@ class BuildConfig:
             pairs of the codes (`HlbvhPipeline.sampled_run_fraction`) decides first, and a sample past
             this limit skips the encoding as well (its timings list all four skipped). Default
             0.1: on the CPU, Warp's radix sort of the full codes beat the paper's stages at every
-            M / N from 0.12 to 1 on 70k-100k-triangle meshes, in any face order (2.2-3.2 ms
-            against 1.5-1.8 for the armadillo's sort stages), and only near-sorted input of
-            400k triangles (a resorted frame, M / N about 0.1) sorted faster their way. At 0.3
-            a resorting `Builder` took the paper's sort on a smoothly bending mesh (240 frames,
-            M / N 0.2-0.27 in the previous order) and spent 13-15% more a frame than from scratch.
+            M / N from 0.2 to 1 on the 100k-triangle armadillo, in any face order (1.2 ms
+            against 2.4-3.8 for the sort stages), and at 400k triangles down to a resorted
+            frame's M / N of 0.1 (5.6 against 6.2 ms); only near-sorted input at M / N 0.03
+            sorted faster the paper's way (5.4 against 5.7). At 0.3 a resorting `Builder` took
+            the paper's sort on smoothly bending meshes (240 frames at 70k-100k triangles, 48
+            at 400k; M / N 0.1-0.27 in the previous order) and spent 12-22% more a frame than
+            from scratch; at 0.1, 0-2% more.
             1 keeps the paper's pipeline for every build, resorting included (`Builder`).
             Not for builds that need the voxels (``hlbvh_sah``'s clusters) or keep their counts
             on the device (sync-free CUDA).
