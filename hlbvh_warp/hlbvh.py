@@ -24,6 +24,9 @@ PARALLEL_MIN_PRIMS = 8192
 #: Primitives per thread of the centroid-bounds reduction on the CPU device.
 CPU_REDUCTION_CHUNK = 4096
 
+#: Primitives per thread of the Morton pass on the CPU device (`compute_morton_codes`).
+CPU_MORTON_CHUNK = 4096
+
 #: Adjacent pairs of the input codes a CPU build samples to estimate its run count before
 #: encoding (`HlbvhPipeline.sampled_run_fraction`): a standard error of at most 0.016 in M / N.
 RUN_SAMPLES = 1024
@@ -234,7 +237,9 @@ class HlbvhPipeline:
             self._launch(morton.triangle_bounds_kernel, n, [vertices, faces, lowers, uppers])
             self._set_fixed_bounds()
             return
-        self._reduce_centroid_bounds(morton.triangle_bounds_centroids_kernel, [vertices, faces, lowers, uppers])
+        kernel = morton.triangle_bounds_centroids_cpu_kernel if self.device.is_cpu \
+            else morton.triangle_bounds_centroids_kernel
+        self._reduce_centroid_bounds(kernel, [vertices, faces, lowers, uppers])
 
     def compute_centroid_bounds(self):
         """The scene's centroid bounds from `prim_lowers` / `prim_uppers` (or the fixed grid of
@@ -276,22 +281,34 @@ class HlbvhPipeline:
         codes = self.morton_codes if codes is None else codes
         if not bounds_ready:
             self.compute_centroid_bounds()
+        if not self.device.is_cpu:
+            self._launch(
+                morton.morton_codes_kernel,
+                n,
+                [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, codes],
+            )
+            return
         threads = threads_module.resolved_threads(self.config, self.device)
+        chunk = CPU_MORTON_CHUNK
+        # Shared by every pipeline on the device, so not among the arrays this one holds.
+        spread = morton.spread_table(self.device)
         if threads > 1 and n >= PARALLEL_MIN_PRIMS:
             # Slices side by side on a multi-core CPU; the views are made once per set of boxes.
             key = (self.prim_lowers.ptr, self.prim_uppers.ptr, codes.ptr, threads)
             if self._morton_parts is None or self._morton_parts[0] != key:
                 cuts = threads_module.split_bounds(n, threads)
-                parts = [(hi - lo, [self.prim_lowers[lo:hi], self.prim_uppers[lo:hi], self.scene_bounds,
-                                    self.config.bits_per_axis, codes[lo:hi]])
+                parts = [((hi - lo + chunk - 1) // chunk,
+                          [hi - lo, chunk, self.prim_lowers[lo:hi], self.prim_uppers[lo:hi], self.scene_bounds,
+                           self.config.bits_per_axis, spread, codes[lo:hi]])
                          for lo, hi in zip(cuts, cuts[1:])]
                 self._morton_parts = (key, parts)
-            threads_module.launch_parts(morton.morton_codes_kernel, self.device, self._morton_parts[1], threads)
+            threads_module.launch_parts(morton.morton_codes_cpu_kernel, self.device, self._morton_parts[1], threads)
             return
         self._launch(
-            morton.morton_codes_kernel,
-            n,
-            [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, codes],
+            morton.morton_codes_cpu_kernel,
+            (n + chunk - 1) // chunk,
+            [n, chunk, self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis,
+             spread, codes],
         )
 
     def run_length_encode(self, sync_free: bool = False) -> int:
