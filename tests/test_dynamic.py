@@ -934,3 +934,37 @@ def test_a_policy_set_after_construction_is_checked(small_scene, rng):
     builder.policy = "refit"
     assert builder.update(moved * np.float32(1.0001))["decision"] == "refit"
     check_rays(builder.bvh, moved * np.float32(1.0001), faces, rng)
+
+
+@pytest.mark.parametrize("nan_at", [None, "first", "after_the_largest", "last"])
+def test_load_and_measure_kernel_against_float64(device, rng, nan_at):
+    """The motion measure (`dynamic.load_and_measure_kernel`) against NumPy in float64: the
+    largest move of any vertex, rounded up to float32, a NaN coordinate counting as an infinite
+    move wherever it sits in a chunk, and the frame loaded. Chunks of 64 over 1000 vertices, two
+    launches from different first chunks, as the CPU's cores run them."""
+    from hlbvh_warp.kernels import dynamic
+
+    n, chunk = 1000, 64
+    old = rng.normal(size=(n, 3)).astype(np.float32)
+    new = old.copy()
+    moved = rng.choice(n, 40, replace=False)
+    new[moved] += rng.normal(scale=1e-3, size=(40, 3)).astype(np.float32)
+    largest_index = int(moved[np.argmax(np.linalg.norm((new - old)[moved].astype(np.float64), axis=1))])
+    if nan_at is not None:
+        where = {"first": 0, "after_the_largest": min(largest_index + 1, n - 1), "last": n - 1}[nan_at]
+        new[where, 2] = np.nan
+    dest = wp.array(old, dtype=wp.vec3, device=device)
+    source = wp.array(new, dtype=wp.vec3, device=device)
+    maxima = wp.zeros(2, dtype=wp.float32, device=device)
+    num_chunks = (n + chunk - 1) // chunk
+    half = num_chunks // 2
+    for first, count, slot in ((0, half, 0), (half, num_chunks - half, 1)):
+        wp.launch(dynamic.load_and_measure_kernel, dim=count,
+                  inputs=[n, chunk, first, source, dest, maxima[slot:slot + 1]], device=device)
+    got = float(maxima.numpy().max())
+    if nan_at is not None:
+        assert got == np.inf
+    else:
+        expected = float(np.sqrt(np.max(np.sum((new.astype(np.float64) - old) ** 2, axis=1))))
+        assert got >= expected and got == pytest.approx(expected, rel=1e-6)
+    np.testing.assert_array_equal(dest.numpy(), new)
