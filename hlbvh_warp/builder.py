@@ -232,6 +232,8 @@ class Builder:
         self.motion_threads = threads_module.resolved_threads(config, device) if device.is_cpu else 1
         self.largest_move = wp.zeros(max(self.motion_threads, 1), dtype=wp.float32, device=device)
         self.largest_move_views = [self.largest_move[j : j + 1] for j in range(self.largest_move.shape[0])]
+        # Whether a frame of the auto policy's chaotic wait moved at all (`_load_and_compare`).
+        self.frame_changed = wp.zeros(1, dtype=wp.int32, device=device)
         # The sums of a refit's sweeps side by side, one per run and one for the nodes above.
         self.sweep_costs = wp.zeros(pipe.emit_counters.shape[0] + 1, dtype=wp.float64, device=device)
         self._sweep_args = None
@@ -395,28 +397,52 @@ class Builder:
         self.largest_move.zero_()
         used = 1
         for source, dest in pairs:
-            count = dest.shape[0]
-            chunk = MOTION_CHUNK_CPU if self.device.is_cpu else 1
-            num_chunks = (count + chunk - 1) // chunk
-            threads = min(self.motion_threads, num_chunks)
-            if threads > 1 and count >= PARALLEL_MIN_PRIMS:
-                # Slices of chunks side by side on a multi-core CPU, each with its own maximum (atomics
-                # on the CPU device are not atomic across threads): 1.7 ms on two cores for 1.2M
-                # vertices against 3.2 ms on one (the plain copy every policy makes: 0.8 ms).
-                cuts = threads_module.split_bounds(num_chunks, threads)
-                parts = [(hi - lo, [count, chunk, lo, source, dest, self.largest_move_views[j]])
-                         for j, (lo, hi) in enumerate(zip(cuts, cuts[1:]))]
-                threads_module.launch_parts(dynamic.load_and_measure_kernel, self.device, parts, threads)
-                used = max(used, threads)
-            else:
-                args = [count, chunk, 0, source, dest, self.largest_move]
-                if self.pipeline.launches is None:
-                    wp.launch(dynamic.load_and_measure_kernel, dim=num_chunks, inputs=args, device=self.device)
-                else:
-                    # The source is often the caller's array, a new one every frame: swapped into one
-                    # record, not recorded anew (each record kept its array alive with the builder).
-                    self.pipeline.launches.launch(dynamic.load_and_measure_kernel, num_chunks, args, vary=(3,))
+            used = max(used, self._launch_chunks(dynamic.load_and_measure_kernel, source, dest, self.largest_move_views))
         self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_move, used, self.stats])
+
+    def _launch_chunks(self, kernel, source: wp.array, dest: wp.array, outputs: list) -> int:
+        """Launch a load kernel of `dynamic` (``count, chunk, first_chunk, source, dest, out``) over
+        chunks of the vertices: on a multi-core CPU slices of chunks side by side, slice j writing
+        ``outputs[j]``. Returns the number of slices."""
+        count = dest.shape[0]
+        chunk = MOTION_CHUNK_CPU if self.device.is_cpu else 1
+        num_chunks = (count + chunk - 1) // chunk
+        threads = min(self.motion_threads, num_chunks, len(outputs))
+        if threads > 1 and count >= PARALLEL_MIN_PRIMS:
+            # Slices of chunks side by side on a multi-core CPU, each with its own output (atomics
+            # on the CPU device are not atomic across threads): 1.7 ms on two cores for 1.2M
+            # vertices against 3.2 ms on one (the plain copy every policy makes: 0.8 ms).
+            cuts = threads_module.split_bounds(num_chunks, threads)
+            parts = [(hi - lo, [count, chunk, lo, source, dest, outputs[j]])
+                     for j, (lo, hi) in enumerate(zip(cuts, cuts[1:]))]
+            threads_module.launch_parts(kernel, self.device, parts, threads)
+            return threads
+        args = [count, chunk, 0, source, dest, outputs[0]]
+        if self.pipeline.launches is None:
+            wp.launch(kernel, dim=num_chunks, inputs=args, device=self.device)
+        else:
+            # The source is often the caller's array, a new one every frame: swapped into one
+            # record, not recorded anew (each record kept its array alive with the builder).
+            self.pipeline.launches.launch(kernel, num_chunks, args, vary=(3,))
+        return 1
+
+    def _comparable(self, sources: list | None) -> bool:
+        """Whether `_load_and_compare` can take this frame: arrays of this device, float32, none of
+        them one of the builder's buffers (those frames are measured against a snapshot)."""
+        return sources is not None and all(
+            src.device == self.device and src.dtype == wp.vec3 and src.ptr != buf.ptr
+            for src, buf in zip(sources, self._buffers()))
+
+    def _load_and_compare(self, sources: list) -> bool:
+        """Load the frame and tell whether anything moved since the previous one, without measuring
+        how far (`dynamic.load_and_compare_kernel`): for the frames of the auto policy's chaotic
+        wait, which rebuild whatever moved. `sources` pass `_comparable`."""
+        self.snapshot_valid = False
+        self.frame_changed.zero_()
+        for src, buf in zip(sources, self._buffers()):
+            # One flag for every slice: they only ever set it, all to 1.
+            self._launch_chunks(dynamic.load_and_compare_kernel, src, buf, [self.frame_changed] * self.motion_threads)
+        return int(self.frame_changed.numpy()[0]) != 0
 
     # ---------------------------------------------------------------- build
     @_one_call_at_a_time
@@ -790,17 +816,26 @@ class Builder:
         start = time.perf_counter()
         timer = StageTimer(self.device, self.timings)
         timer.stage("motion")
-        # Load the vertices and measure the largest displacement on the device, in one pass.
-        measured = self._load_and_measure(sources)
-        self.pipeline._launch(dynamic.root_diagonal_kernel, 1, [self.bvh.node_lowers, self.bvh.node_uppers, self.stats])
-        moved, diagonal = (float(x) for x in self.stats.numpy())
-        if 0.0 < diagonal < math.inf:
-            relative = moved / diagonal
+        compare_only = self.chaotic_frames > 0 and self._comparable(sources)
+        if compare_only:
+            # A frame of the chaotic wait is rebuilt if anything moved, however far: only whether
+            # it did is needed, which costs about half the measure (the motion stage of the
+            # exploding armadillo took 0.6 against 1.2 ms a frame on two cores).
+            measured, extra = True, {"motion": "compared, not measured (chaotic wait)"}
+            moved, relative = (None if self._load_and_compare(sources) else 0.0), None
         else:
-            # A zero-size scene, or a last tree boxed over NaN or Inf (a device frame that blew
-            # up): any motion counts as large, and the tree is rebuilt.
-            relative = 0.0 if moved == 0.0 else math.inf
-        extra = {"max_displacement": moved, "relative_motion": relative} if measured else {}
+            # Load the vertices and measure the largest displacement on the device, in one pass.
+            measured = self._load_and_measure(sources)
+            self.pipeline._launch(dynamic.root_diagonal_kernel, 1,
+                                  [self.bvh.node_lowers, self.bvh.node_uppers, self.stats])
+            moved, diagonal = (float(x) for x in self.stats.numpy())
+            if 0.0 < diagonal < math.inf:
+                relative = moved / diagonal
+            else:
+                # A zero-size scene, or a last tree boxed over NaN or Inf (a device frame that blew
+                # up): any motion counts as large, and the tree is rebuilt.
+                relative = 0.0 if moved == 0.0 else math.inf
+            extra = {"max_displacement": moved, "relative_motion": relative} if measured else {}
         skipped = []
         large = False
         if not measured:
@@ -811,7 +846,7 @@ class Builder:
             what = "vertex" if self.kind == "triangles" else "box"
             decision, reason = "none", f"no {what} moved since the previous frame"
             skipped = ["prim_bounds", "refit", "rebuild"]
-        elif relative > self.large_motion:
+        elif relative is not None and relative > self.large_motion:
             decision = "rebuild"
             reason = (f"large motion: a vertex moved {relative:.1%} of the scene diagonal "
                       f"(limit {self.large_motion:.1%})")

@@ -968,3 +968,40 @@ def test_load_and_measure_kernel_against_float64(device, rng, nan_at):
         expected = float(np.sqrt(np.max(np.sum((new.astype(np.float64) - old) ** 2, axis=1))))
         assert got >= expected and got == pytest.approx(expected, rel=1e-6)
     np.testing.assert_array_equal(dest.numpy(), new)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_chaotic_wait_compares_frames_exactly(device, threads):
+    """A frame of `auto`'s chaotic wait is rebuilt if anything moved, however little, and skipped
+    if nothing did, by a comparison, not a measure (`dynamic.load_and_compare_kernel`): one
+    vertex moved by float32's smallest step (a subnormal one near zero), in whichever slice of
+    the CPU's cores, must be rebuilt, and the tree must then be the scratch build's over the
+    frame; an equal frame in a new array is no work. A frame written in place keeps the measure."""
+    rng = np.random.default_rng(3)
+    num_vertices = 3 * 12000
+    faces = np.arange(num_vertices, dtype=np.int32).reshape(-1, 3)
+    vertices = rng.random((num_vertices, 3)).astype(np.float32)
+    vertices[num_vertices // 2] = 0.0  # a vertex at the origin: its smallest step is subnormal
+    config = BuildConfig(cpu_threads=threads)
+    builder = Builder(len(faces), config, device=device, policy="auto")
+    builder.build(vertices, faces)
+    builder.chaotic_frames = 10  # as after a refit that failed on its first frame
+    report = builder.update(vertices.copy())
+    assert report["decision"] == "none" and builder.chaotic_frames == 10, report
+    for where in (num_vertices - 1, num_vertices // 2, 0):
+        moved = vertices.copy()
+        moved[where, 1] = np.nextafter(moved[where, 1], np.float32(np.inf))
+        report = builder.update(moved)
+        assert report["decision"] == "rebuild" and report["reason"].startswith("chaotic motion"), (where, report)
+        assert "max_displacement" not in report and report["motion"].startswith("compared"), report
+        np.testing.assert_array_equal(builder.vertices.numpy(), moved)
+        scratch = Builder(len(faces), config, device=device)
+        scratch.build(moved, faces)
+        tree, ref = builder.bvh.to_numpy(), scratch.bvh.to_numpy()
+        for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order", "node_lowers", "node_uppers"):
+            np.testing.assert_array_equal(tree[name], ref[name], err_msg=name)
+        vertices = moved
+    # Written into the builder's own buffer: measured against the snapshot, as before.
+    builder.vertices.assign(vertices + np.float32(0.5))
+    report = builder.update()
+    assert "motion" not in report and report["decision"] == "rebuild", report
