@@ -397,7 +397,8 @@ class Builder:
         self.largest_move.zero_()
         used = 1
         for source, dest in pairs:
-            used = max(used, self._launch_chunks(dynamic.load_and_measure_kernel, source, dest, self.largest_move_views))
+            slices = self._launch_chunks(dynamic.load_and_measure_kernel, source, dest, self.largest_move_views)
+            used = max(used, slices)
         self.pipeline._launch(dynamic.finish_motion_kernel, 1, [self.largest_move, used, self.stats])
 
     def _launch_chunks(self, kernel, source: wp.array, dest: wp.array, outputs: list) -> int:
