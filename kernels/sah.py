@@ -99,9 +99,17 @@ def init_top_down_kernel(
 
 
 @wp.func
-def bin_of(c: float, cmin: float, scale: float, num_bins: int) -> int:
+def bin_of(c: float, cmin: float, scale: wp.float64, num_bins: int) -> int:
     """Bin of centroid c: floor((c - cmin) * scale), clamped to [0, num_bins - 1]."""
-    return wp.clamp(int((c - cmin) * scale), 0, num_bins - 1)
+    # In float64, with `scale` = num_bins / extent: over a centroid extent near float32's smallest
+    # normal (about 1e-38) the float32 scale overflowed to infinity and every item fell in one
+    # bin (a valid but poor tree). Clamped before the conversion, which is undefined past int32.
+    x = (wp.float64(c) - wp.float64(cmin)) * scale
+    if x >= wp.float64(num_bins - 1):
+        return num_bins - 1
+    if x > wp.float64(0.0):
+        return int(x)
+    return 0
 
 
 # Sweeps over per-bin boxes kept in a thread's local arrays (Wald 2007), shared by the recursive-SAH
@@ -243,7 +251,7 @@ def binned_split_presorted(b: int, e: int, inputs: SplitInputs):
         cmax = item_centroid(item_lowers, item_uppers, order[base + e - 1], a)
         if not (cmax > cmin):
             continue
-        scale = float(num_bins) / (cmax - cmin)
+        scale = wp.float64(num_bins) / (wp.float64(cmax) - wp.float64(cmin))
         for j in range(num_bins):
             bin_count[b + j] = 0
         item = order[base + b]
@@ -376,13 +384,13 @@ def choose_split(b: int, e: int, inputs: SplitInputs):
         base = a * num_items
         cmin = item_centroid(item_lowers, item_uppers, order[base + b], a)
         cmax = item_centroid(item_lowers, item_uppers, order[base + e - 1], a)
-        scale = float(0.0)
+        scale = wp.float64(0.0)
         if mode == MODE_BINNED:
             # Binned SAH (Wald 2007) prices only the bin boundaries; with the items presorted a
             # boundary is where two neighbours fall into different bins.
             if not (cmax > cmin):
                 continue
-            scale = float(num_bins) / (cmax - cmin)
+            scale = wp.float64(num_bins) / (wp.float64(cmax) - wp.float64(cmin))
 
         # Right to left: area * weight of every suffix [i, e), one stored product per position.
         item = order[base + e - 1]

@@ -296,8 +296,8 @@ def binned_root_split_reference(lo, hi, num_bins):
         cmin, cmax = c[:, axis].min(), c[:, axis].max()
         if not cmax > cmin:
             continue
-        scale = np.float32(num_bins) / (cmax - cmin)
-        bins = np.clip(((c[:, axis] - cmin) * scale).astype(np.int64), 0, num_bins - 1)
+        scale = np.float64(num_bins) / (np.float64(cmax) - np.float64(cmin))
+        bins = np.clip(((c[:, axis].astype(np.float64) - cmin) * scale).astype(np.int64), 0, num_bins - 1)
         for j in range(1, num_bins):
             left = bins < j
             k = int(left.sum())
@@ -328,6 +328,32 @@ def test_binned_root_split_matches_numpy(device, num_bins, seed):
     tree = hw.build_from_bounds(lo, hi, method="binned_sah", device=device,
                                 config=hw.BuildConfig(sah_bins=num_bins)).to_numpy()
     assert_root_split(tree, lo, hi, *binned_root_split_reference(lo, hi, num_bins)[1:])
+
+
+@pytest.mark.parametrize("num_bins", [16, 64])
+def test_binned_sah_near_the_smallest_normal(device, num_bins):
+    """Centroids spread over about 2e-38, near float32's smallest normal: num_bins / extent is past
+    float32's range (a float32 scale put every item in one bin). The root split is NumPy's in
+    float64, and the whole tree is the one over the same boxes scaled up by 2^125 (exact: a power
+    of two, every value normal)."""
+    rng = np.random.default_rng(7)
+    n = 300
+    # In [1, 2): a power-of-two scale is exact.
+    unit_lo = (1.0 + 0.9 * rng.random((n, 3))).astype(np.float32)
+    unit_hi = unit_lo + (rng.random((n, 3)) * 0.05).astype(np.float32)
+    tiny = np.float32(2.0**-125)
+    lo, hi = unit_lo * tiny, unit_hi * tiny
+    centroids = np.float32(0.5) * (lo + hi)
+    extents = centroids.max(axis=0) - centroids.min(axis=0)
+    with np.errstate(over="ignore"):
+        assert np.isinf(np.float32(num_bins) / extents).all()  # the scene does what the test means
+    config = hw.BuildConfig(sah_bins=num_bins)
+    tree = hw.build_from_bounds(lo, hi, method="binned_sah", device=device, config=config).to_numpy()
+    assert_root_split(tree, lo, hi, *binned_root_split_reference(lo, hi, num_bins)[1:])
+    unit = hw.build_from_bounds(unit_lo, unit_hi, method="binned_sah", device=device, config=config).to_numpy()
+    for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order"):
+        np.testing.assert_array_equal(tree[name], unit[name], err_msg=name)
+    check_tree_invariants(tree, n)
 
 
 @pytest.mark.parametrize("num_bins", [4, 32])
