@@ -16,7 +16,7 @@ from . import memory
 from . import threads as threads_module
 from .bvh import Bvh
 from .config import BuildConfig
-from .kernels import block_sort, bounds, compress, morton, treelets
+from .kernels import block_sort, bounds, compress, merge, morton, treelets
 
 #: Below this many primitives the depth-first emission stays in one thread (see `emit_depth_first`).
 PARALLEL_MIN_PRIMS = 8192
@@ -26,6 +26,17 @@ CPU_REDUCTION_CHUNK = 4096
 
 #: Primitives per thread of the Morton pass on the CPU device (`compute_morton_codes`).
 CPU_MORTON_CHUNK = 4096
+
+#: Below this many primitives the CPU's global sort stays one radix sort in one thread (see
+#: `HlbvhPipeline.global_sort`): the halves' handoffs between threads and the merge cost about
+#: what the second core saves up to about 150k codes (the armadillo's, two cores, old and new
+#: sorts alternating in one process: 0.83x at 100k, 1.08x at 200k, 1.14x at 260k, 1.48x at 400k).
+PARALLEL_SORT_MIN_PRIMS = 1 << 18
+
+#: Whether Warp's CPU radix sort may run in several threads at once: Warp 1.19 keeps its digit
+#: histogram per thread (``thread_local`` in its sort.cpp); earlier releases kept static tables,
+#: which two sorts at once would corrupt.
+SORTS_SIDE_BY_SIDE = tuple(int(x) for x in wp.config.version.split(".")[:2]) >= (1, 19)
 
 #: Adjacent pairs of the input codes a CPU build samples to estimate its run count before
 #: encoding (`HlbvhPipeline.sampled_run_fraction`): a standard error of at most 0.016 in M / N.
@@ -218,6 +229,8 @@ class HlbvhPipeline:
         self.sync_free = False
         # The Morton pass's slices for the CPU's cores (`compute_morton_codes`), made on first use.
         self._morton_parts = None
+        # The global sort's two halves on the CPU's cores (`global_sort`), made on first use.
+        self._sort_halves = None
 
     # ------------------------------------------------------------------ stages
     def _launch(self, kernel, dim, inputs):
@@ -449,8 +462,13 @@ class HlbvhPipeline:
     def global_sort(self, sort: bool = True):
         """The LBVH baseline (Lauterbach et al. 2009; the LBVH column of Pantaleoni & Luebke 2010,
         Table 1): one radix sort over all 3n bits; without `sort`, the codes and ids copied as they
-        are (input already in order)."""
+        are (input already in order). On a multi-core CPU the two halves of the codes are sorted
+        side by side and merged (`_global_sort_halves`), with the same result."""
         n = self.num_prims
+        threads = threads_module.resolved_threads(self.config, self.device)
+        if sort and threads > 1 and n >= PARALLEL_SORT_MIN_PRIMS and SORTS_SIDE_BY_SIDE and not self.sync_free:
+            self._global_sort_halves(threads)
+            return
         wp.copy(self.sorted_codes, self.morton_codes, count=n)
         if self.input_ids.shape[0] > 0:
             wp.copy(self.sorted_prim_ids, self.input_ids, count=n)
@@ -459,6 +477,40 @@ class HlbvhPipeline:
         if sort:
             wp.utils.radix_sort_pairs(self.sorted_codes, self.sorted_prim_ids, n,
                                       end_bit=3 * self.config.bits_per_axis)
+
+    def _global_sort_halves(self, threads: int):
+        """The global sort on two cores: each half of the codes (with its ids) gathered and radix
+        sorted in its own thread, then the sorted halves merged into `sorted_codes` /
+        `sorted_prim_ids` by Merge Path (Green, McColgan & Yalamanchili 2012; Odeh et al. 2012),
+        cut into `threads` parts side by side. The merge takes ties from the first half, so
+        codes and ids come out exactly as the stable sort of all N gives them, which the tree
+        depends on. Two halves, whatever the thread count: more would need a k-way merge, and
+        below `PARALLEL_SORT_MIN_PRIMS` even two do not pay."""
+        n = self.num_prims
+        bits = 3 * self.config.bits_per_axis
+        first_count = n // 2
+        second_count = n - first_count
+        if self._sort_halves is None:
+            # The radix sort needs twice its count of room, the second half its scratch: the
+            # halves take run_codes / run_ids whole, which the global sort leaves unused.
+            self._sort_halves = [
+                (0, first_count, self.run_codes[: 2 * first_count], self.run_ids[: 2 * first_count]),
+                (first_count, second_count, self.run_codes[2 * first_count :], self.run_ids[2 * first_count :]),
+            ]
+        # Loaded here, once: compiled from two threads at once, both wrote the same cache files.
+        merge.gather_half_kernel.module.load(self.device, 1)
+        codes, input_ids, device = self.morton_codes, self.input_ids, self.device
+
+        # Plain launches in every job: recorded ones made or replayed on worker threads crashed
+        # the process (`hlbvh_warp.launches`).
+        def sort_half(first, count, half_codes, half_ids):
+            wp.launch(merge.gather_half_kernel, count, [codes, input_ids, first, half_codes, half_ids], device=device)
+            wp.utils.radix_sort_pairs(half_codes, half_ids, count, end_bit=bits)
+
+        threads_module.run([lambda half=half: sort_half(*half) for half in self._sort_halves], threads)
+        parts = [(1, [self.run_codes, self.run_ids, first_count, 2 * first_count, second_count, threads, part,
+                      self.sorted_codes, self.sorted_prim_ids]) for part in range(threads)]
+        threads_module.launch_parts(merge.merge_halves_kernel, device, parts, threads)
 
     def _host_count(self, count: wp.array, bound: int) -> int:
         """Launch size for a per-segment stage: the exact count where reading it is free (the CPU

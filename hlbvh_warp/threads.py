@@ -7,8 +7,10 @@ kernel runs, and each launch carries its own argument block. Work given to `run`
 disjoint memory and must not rely on ``wp.atomic_*`` between launches (on the CPU device those
 are plain read-modify-writes, atomic only within one serial launch).
 
-Library calls stay in the calling thread: Warp's CPU radix sort keeps its digit tables in static
-storage, so two sorts at once would corrupt each other.
+Library calls stay in the calling thread, but for the radix sorts of the global sort's two halves
+(`HlbvhPipeline.global_sort`): Warp 1.19's CPU radix sort keeps its digit histogram per thread,
+where earlier releases kept static tables that two sorts at once would corrupt
+(`hlbvh.SORTS_SIDE_BY_SIDE`). Its scans and run-length encoding are not made for that.
 
 The thread count comes from ``BuildConfig.cpu_threads``: 0 (the default) uses the cores this
 process may run on; 1 keeps everything in the calling thread.
