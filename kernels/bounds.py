@@ -48,7 +48,7 @@ def leaf_box_in_order(
     node_lowers: wp.array(dtype=wp.vec3),
     node_uppers: wp.array(dtype=wp.vec3),
 ):
-    """`leaf_box` over primitive boxes already in tree order (`gather_boxes_kernel`)."""
+    """`leaf_box` over primitive boxes already in tree order (`gather_boxes_kernel`); returns the box."""
     # Position k's box is leaf_lowers[k], read without going through prim_order.
     lower = leaf_lowers[node_begin[node]]
     upper = leaf_uppers[node_begin[node]]
@@ -57,7 +57,7 @@ def leaf_box_in_order(
         upper = wp.max(upper, leaf_uppers[k])
     node_lowers[node] = lower
     node_uppers[node] = upper
-    return 0
+    return lower, upper
 
 
 @wp.kernel
