@@ -16,7 +16,7 @@ import warp as wp
 
 from conftest import REPO_ROOT
 
-KERNEL_MODULES = ["block_sort", "bounds", "collide", "compress", "dynamic", "metrics", "morton", "proximity",
+KERNEL_MODULES = ["block_sort", "bounds", "collide", "compress", "dynamic", "merge", "metrics", "morton", "proximity",
                   "recursive_sah", "sah", "spatial_split", "traversal", "treelets", "upper_sah", "wide"]
 # The examples and tests with kernels of their own: users' kernels calling the library's queries.
 SCRIPT_MODULES = ["examples/example_user_kernel.py", "examples/example_particle_collisions.py",
