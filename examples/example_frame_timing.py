@@ -16,7 +16,7 @@ import time
 import numpy as np
 import warp as wp
 
-from hlbvh_warp.bench import WarpBvhPeer, collector_paused
+from hlbvh_warp.bench import WarpBvhPeer, collector_paused, turn_order
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_float,
                             non_negative_int, positive_int, read_mesh, scene_tris)
@@ -121,11 +121,9 @@ class Example:
         self.frame += 1
         for seq in self.sequences.values():
             vertices = seq["anim"].update(seq["param"](self.frame))
-            # The modes take turns going first: the first build after the animation writes the
-            # vertices ran measurably slower (about 4% here on the CPU) than the ones after it.
-            labels = list(seq["runners"])
-            shift = self.frame % len(labels)
-            labels = labels[shift:] + labels[:shift]
+            # Each mode runs first, and right after every other mode, equally often: what ran
+            # just before a build sets its caches (`turn_order`).
+            labels = turn_order(seq["runners"], self.frame)
             # A full garbage collection (75-160 ms here) would land in one random mode's frame.
             with collector_paused():
                 for label in labels:

@@ -20,7 +20,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import memory
-from hlbvh_warp.bench import WarpBvhPeer, collector_paused
+from hlbvh_warp.bench import WarpBvhPeer, collector_paused, turn_order
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import argument_errors, device_name, mesh_file, non_negative_int, positive_int, read_mesh
 from hlbvh_warp.scenes import scene
@@ -86,8 +86,8 @@ class Example:
         angle = 0.25 * (self.frame + 1)
         for obj in self.objects:
             self._move(obj, angle)
-        # The modes take turns going first, as in the frame-timing example.
-        order = MODES[self.frame % len(MODES):] + MODES[: self.frame % len(MODES)]
+        # Each mode runs first, and right after every other mode, equally often (`turn_order`).
+        order = turn_order(MODES, self.frame)
         with collector_paused():
             for mode in order:
                 wp.synchronize()

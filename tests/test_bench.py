@@ -616,3 +616,26 @@ def test_point_bench_wrong_answers_are_counted():
     assert wrong([1.0, 2.0, np.inf], [0, 0, -1], max_dist=1.5) == 1
     assert wrong([1.0, 2.0, np.inf], [0, 0, -1], max_dist=2.0 - 0.5 * tol) == 0  # at the bound: either way
     assert wrong([1.0, np.inf, np.inf], [0, -1, -1], max_dist=2.0 + 0.5 * tol) == 0
+
+
+@pytest.mark.parametrize("count", range(1, 9))
+def test_turn_order_balances_what_runs_first_and_before(count):
+    """Over one cycle of turns (count turns, 2 count for an odd count) every mode runs first
+    equally often and right after every other mode equally often, each turn a permutation:
+    counted here, pair by pair, from the orders themselves."""
+    from collections import Counter
+
+    from hlbvh_warp.bench import turn_order
+
+    labels = [f"mode {i}" for i in range(count)]
+    cycle = count if count % 2 == 0 else 2 * count
+    firsts, pairs = Counter(), Counter()
+    for turn in range(cycle):
+        order = turn_order(labels, turn)
+        assert sorted(order) == sorted(labels)
+        assert order == turn_order(labels, turn + cycle)  # the cycle repeats
+        firsts[order[0]] += 1
+        pairs.update(zip(order, order[1:]))
+    assert set(firsts) == set(labels) and len(set(firsts.values())) == 1
+    if count > 1:
+        assert len(pairs) == count * (count - 1) and len(set(pairs.values())) == 1, pairs
