@@ -21,6 +21,7 @@ from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_float,
                             non_negative_int, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.config import BuildConfig
+from hlbvh_warp import host_morton
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
 from hlbvh_warp.scenes import scene, subdivide
 
@@ -57,6 +58,26 @@ def sequence_bounds(anim, param, num_frames):
     return (tuple(lower), tuple(upper))
 
 
+def frame_codes(anim) -> np.ndarray:
+    """The 30-bit Morton codes (Morton 1966) of the current frame's triangle-box centroids over their
+    bounds, in face order, computed on the host (`hlbvh_warp.host_morton`)."""
+    tri = anim.vertices.numpy()[anim.faces]
+    return host_morton.morton_codes(0.5 * (tri.min(axis=1) + tri.max(axis=1)))
+
+
+def order_disorder(codes: np.ndarray, last_codes: np.ndarray) -> tuple:
+    """How far from sorted `codes` are in the order that sorts `last_codes` (the input a resorted
+    frame feeds its sort, Pantaleoni & Luebke 2010, section 2.2): the fraction of adjacent pairs
+    that descend, and the median, mean and 99th percentile of the number of places each primitive
+    sits from its place in the stable sorted order."""
+    fed = codes[np.argsort(last_codes, kind="stable")]
+    descending = float(np.mean(fed[1:] < fed[:-1])) if len(fed) > 1 else 0.0
+    place = np.empty(len(fed), dtype=np.int64)
+    place[np.argsort(fed, kind="stable")] = np.arange(len(fed))
+    distance = np.abs(place - np.arange(len(fed)))
+    return descending, float(np.median(distance)), float(distance.mean()), float(np.percentile(distance, 99))
+
+
 def _cell(value: float, width: int, spec: str) -> str:
     """A table cell, or "-" where a ratio has no reference in this run (no scratch or resorted
     mode of that method was asked for): a NaN column reads as a failure."""
@@ -66,7 +87,7 @@ def _cell(value: float, width: int, spec: str) -> str:
 class Example:
     def __init__(self, mesh=None, num_tris=60000, num_frames=24, sequences=("explode", "bend"), modes=None,
                  headless=False, cpu_threads=0, fixed_grid=False, face_order="file", subdivide_times=0,
-                 stages=False, global_sort_runs=None):
+                 stages=False, global_sort_runs=None, order_stats=False):
         vertices, faces = subdivide(*scene(mesh, num_tris), subdivide_times)
         if face_order == "shuffled":
             # Scanned meshes list their faces in scan order, already about as coherent as a Morton
@@ -78,6 +99,7 @@ class Example:
         self.num_frames = max(int(num_frames), 1)
         self.headless = headless
         self.stages = bool(stages)
+        self.order_stats = bool(order_stats)
         self.frame = 0
         device = wp.get_device()
         self.sequences = {}
@@ -114,13 +136,20 @@ class Example:
                                     "ms": {label: [] for label in runners}, "sah": {label: [] for label in runners},
                                     "decisions": {label: [] for label in runners},
                                     "inputs": {label: [] for label in runners},
-                                    "stages": {label: [] for label in runners}}
+                                    "stages": {label: [] for label in runners},
+                                    "order": [], "last_codes": frame_codes(anim) if self.order_stats else None}
 
     def step(self):
         """One frame of every sequence, every mode timed on the same vertices (synchronized)."""
         self.frame += 1
         for seq in self.sequences.values():
             vertices = seq["anim"].update(seq["param"](self.frame))
+            if self.order_stats:
+                # Outside the timed region: how far from sorted this frame's codes are in the
+                # order of the last frame's (what resorting would feed the sort).
+                codes = frame_codes(seq["anim"])
+                seq["order"].append(order_disorder(codes, seq["last_codes"]))
+                seq["last_codes"] = codes
             # Each mode runs first, and right after every other mode, equally often: what ran
             # just before a build sets its caches (`turn_order`).
             labels = turn_order(seq["runners"], self.frame)
@@ -172,6 +201,18 @@ class Example:
                              f"{_cell(ms.mean() / base, 10, '.2f')}  {_cell(ratio, 20, '.3f')}  {decisions}")
         lines.append("vs scratch: average over the same method's scratch average (hlbvh scratch for a method "
                      "run no other way, such as wp.Bvh); worst SAH vs rebuild: against that method resorted")
+        return "\n".join(lines)
+
+    def order_table(self) -> str:
+        """Per sequence, the mean over its frames of `order_disorder` (`--order-stats`)."""
+        lines = [f"{'sequence':8}  {'descending pairs':>16}  {'median distance':>15}  {'mean distance':>13}  "
+                 f"{'99th percentile':>15}"]
+        for name, seq in self.sequences.items():
+            if seq["order"]:
+                mean = np.mean(np.asarray(seq["order"], dtype=np.float64), axis=0)
+                lines.append(f"{name:8}  {mean[0]:16.3f}  {mean[1]:15.1f}  {mean[2]:13.1f}  {mean[3]:15.1f}")
+        lines.append("the last frame's tree order fed this frame's codes: the fraction of adjacent codes that "
+                     "descend, and how many places a primitive sits from its sorted place (means over the frames)")
         return "\n".join(lines)
 
     def stage_table(self) -> str:
@@ -243,6 +284,9 @@ def main(argv=None):
     parser.add_argument("--global-sort-runs", type=non_negative_float, default=None,
                         help="BuildConfig.global_sort_runs of the Builders (default: the library's); 1 gives "
                              "every build the paper's compress-sort-decompress, as the paper compares resorting.")
+    parser.add_argument("--order-stats", action="store_true",
+                        help="Also print how far from sorted each frame's Morton codes are in the last frame's "
+                             "order, the input a resorted frame sorts (computed on the host, not timed).")
     parser.add_argument("--stages", action="store_true",
                         help="Time every stage of the Builders' frames and print their means and the share "
                              "of the sort stages (a clock read per stage).")
@@ -263,13 +307,16 @@ def main(argv=None):
         example = Example(mesh, args.num_tris, args.num_frames, args.sequences.split(","),
                           args.modes.split(","), headless=args.headless, cpu_threads=args.cpu_threads,
                           fixed_grid=args.fixed_grid, face_order=args.face_order, subdivide_times=args.subdivide,
-                          stages=args.stages, global_sort_runs=args.global_sort_runs)
+                          stages=args.stages, global_sort_runs=args.global_sort_runs,
+                          order_stats=args.order_stats)
         for _ in range(args.num_frames):
             example.step()
             example.render()
         print(example.table())
         if args.stages:
             print(example.stage_table())
+        if args.order_stats:
+            print(example.order_table())
         print(f"wrote {example.plot(os.path.join(args.out, 'frame_timing.png'))}")
 
 

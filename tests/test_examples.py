@@ -552,3 +552,35 @@ def test_example_scripts_refuse_a_scene_too_small_to_generate(name, capsys, monk
     at = args.index("--num-tris")
     last = argument_error(name, args[:at] + ["--num-tris", "5"] + args[at + 2:], capsys, monkeypatch)
     assert "--num-tris: must be at least 18" in last, last
+
+
+def test_order_disorder_against_a_plain_count():
+    """`--order-stats`' measure against a count in plain Python: the codes of this frame fed in
+    the stable order of the last frame's, their descending adjacent pairs, and each primitive's
+    distance from its place among them sorted (stably, ties kept in fed order)."""
+    module = load_example("example_frame_timing")
+    rng = np.random.default_rng(5)
+    last = rng.integers(0, 40, 300)
+    codes = last + rng.integers(-6, 7, 300)
+    fed = [int(codes[i]) for i in sorted(range(300), key=lambda i: (last[i], i))]
+    descending = sum(b < a for a, b in zip(fed, fed[1:])) / 299
+    ranked = sorted(range(300), key=lambda i: (fed[i], i))
+    distance = [abs(ranked.index(i) - i) for i in range(300)]
+    got = module.order_disorder(codes, last)
+    assert got[0] == pytest.approx(descending) and got[1] == pytest.approx(np.median(distance))
+    assert got[2] == pytest.approx(np.mean(distance)) and got[3] == pytest.approx(np.percentile(distance, 99))
+    assert module.order_disorder(codes, codes) == (0.0, 0.0, 0.0, 0.0)
+
+
+def test_frame_timing_order_stats(device):
+    """At rest the last frame's order is this frame's sorted order; an explosion scrambles it."""
+    module = load_example("example_frame_timing")
+    with wp.ScopedDevice(device):
+        example = module.Example(num_tris=1000, num_frames=2, sequences=("static", "explode"),
+                                 modes=["hlbvh scratch"], headless=True, order_stats=True)
+        for _ in range(2):
+            example.step()
+    assert example.sequences["static"]["order"] == [(0.0, 0.0, 0.0, 0.0)] * 2
+    assert all(row[0] > 0.0 and row[2] > 0.0 for row in example.sequences["explode"]["order"])
+    lines = example.order_table().splitlines()
+    assert lines[1].split()[0] == "static" and float(lines[1].split()[1]) == 0.0
