@@ -158,6 +158,23 @@ def load_and_measure_kernel(
 
 
 @wp.kernel
+def sample_changes_kernel(
+    num_vertices: int,
+    num_samples: int,
+    source: wp.array(dtype=wp.vec3),
+    dest: wp.array(dtype=wp.vec3),
+    changed: wp.array(dtype=wp.int32),
+):
+    """changed[0] = 1 if one of `num_samples` evenly spaced vertices of source differs from dest
+    (as `load_and_compare_kernel` tells it); nothing is loaded."""
+    t = wp.tid()
+    i = wp.int32(wp.int64(t) * wp.int64(num_vertices) // wp.int64(num_samples))
+    d = source[i] - dest[i]
+    if wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2]) != 0.0:
+        changed[0] = 1
+
+
+@wp.kernel
 def load_and_compare_kernel(
     num_vertices: int,
     chunk: int,

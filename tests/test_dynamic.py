@@ -981,14 +981,20 @@ def test_chaotic_wait_compares_frames_exactly(device, threads):
     num_vertices = 3 * 12000
     faces = np.arange(num_vertices, dtype=np.int32).reshape(-1, 3)
     vertices = rng.random((num_vertices, 3)).astype(np.float32)
-    vertices[num_vertices // 2] = 0.0  # a vertex at the origin: its smallest step is subnormal
+    vertices[num_vertices // 2] = 0.0  # vertices at the origin: their smallest step is subnormal
+    vertices[num_vertices // 2 + 1] = 0.0
     config = BuildConfig(cpu_threads=threads)
     builder = Builder(len(faces), config, device=device, policy="auto")
     builder.build(vertices, faces)
     builder.chaotic_frames = 10  # as after a refit that failed on its first frame
     report = builder.update(vertices.copy())
     assert report["decision"] == "none" and builder.chaotic_frames == 10, report
-    for where in (num_vertices - 1, num_vertices // 2, 0):
+    # The wait samples 1024 evenly spaced vertices first (the first and the middle one among
+    # them), and compares every vertex when none of those moved (the last, and the one after the
+    # middle).
+    sampled = set((np.arange(1024, dtype=np.int64) * num_vertices // 1024).tolist())
+    assert {0, num_vertices // 2} <= sampled and not {num_vertices - 1, num_vertices // 2 + 1} & sampled
+    for where in (num_vertices - 1, num_vertices // 2, 0, num_vertices // 2 + 1):
         moved = vertices.copy()
         moved[where, 1] = np.nextafter(moved[where, 1], np.float32(np.inf))
         report = builder.update(moved)
