@@ -369,3 +369,33 @@ def test_auto_reports_motion_relative_to_the_root_diagonal(device, rng):
     nudged[7] += np.float32(1e-3)
     report = builder.update(bounds=(nudged, nudged))
     assert report["relative_motion"] == np.inf and report["decision"] == "rebuild", report
+
+
+@pytest.mark.parametrize("moved", ["lower", "upper"])
+def test_chaotic_wait_compares_both_box_arrays(device, moved):
+    """A boxes `Builder` in `auto`'s chaotic wait compares the lowers and the uppers: equal boxes
+    in new arrays are no work, and one corner moved by float32's smallest step in a box no sample
+    reads (of either array) is rebuilt, its tree boxing the new corner (NumPy's float64 unions)."""
+    rng = np.random.default_rng(11)
+    n = 20000
+    lowers = rng.random((n, 3)).astype(np.float32)
+    uppers = lowers + np.float32(0.01)
+    builder = Builder(n, device=device, policy="auto")
+    builder.build_from_bounds(lowers, uppers)
+    builder.chaotic_frames = 6
+    report = builder.update(bounds=(lowers.copy(), uppers.copy()))
+    assert report["decision"] == "none" and builder.chaotic_frames == 6, report
+    where = n // 2 + 1  # the samples are i * n // 1024: not this one
+    assert where not in set((np.arange(1024) * n // 1024).tolist())
+    lo, hi = lowers.copy(), uppers.copy()
+    if moved == "lower":
+        lo[where, 0] = np.nextafter(lo[where, 0], np.float32(-np.inf))
+    else:
+        hi[where, 2] = np.nextafter(hi[where, 2], np.float32(np.inf))
+    report = builder.update(bounds=(lo, hi))
+    assert report["decision"] == "rebuild" and report["motion"].startswith("compared"), report
+    tree = builder.bvh.to_numpy()
+    check_tree_invariants(tree, n)
+    node_lo, node_hi = numpy_node_boxes(tree, lo, hi)
+    np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
+    np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
