@@ -10,8 +10,10 @@ per-frame policy finds the full rebuild unnecessary:
 - ``policy="auto"``: nothing moved -> no work; small motion -> refit while the SAH cost has
   grown by at most ``sah_growth_limit`` over its lowest value since the last rebuild, for at
   most ``max_refits`` frames in a row; large motion, too much SAH growth (or growth on course
-  past the limit by the next refit), or too many refits -> full (resorted) rebuild. Each
-  decision and its reason land in ``Builder.last_report``.
+  past the limit by the next refit), or too many refits -> full (resorted) rebuild. A refit
+  that fails on its first frame starts a chaotic wait (rebuilds, a refit retried after
+  ``max_refits`` frames, twice as long after each retry that fails), whose frames only check
+  whether anything moved. Each decision and its reason land in ``Builder.last_report``.
 
 The primitives are a triangle mesh (`Builder.build(vertices, faces)`, then new vertices each
 frame) or arbitrary primitives given by their boxes (`Builder.build_from_bounds(lowers, uppers)`,
