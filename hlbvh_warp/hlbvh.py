@@ -7,6 +7,7 @@ one commented step per stage, named as the stage's timing label.
 
 from __future__ import annotations
 
+import bisect
 import time
 
 import numpy as np
@@ -110,7 +111,7 @@ class HlbvhPipeline:
         `Bvh` and are replaced before the pipeline builds again."""
         self.prim_lowers = self.prim_uppers = None
         # Views over the boxes and over the tree's ids, which now belong to the caller.
-        self._morton_parts = self._leaf_box_parts = None
+        self._morton_parts = None
         self.sweep_parts = None
         memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self,
                                  self.held_bytes())
@@ -202,7 +203,6 @@ class HlbvhPipeline:
         if self.emission == "depth_first":
             self.leaf_lowers = memory.empty(n, dtype=wp.vec3, device=device)
             self.leaf_uppers = memory.empty(n, dtype=wp.vec3, device=device)
-        self._leaf_box_parts = None
         # Node ranges a refit may sweep side by side, from the last depth-first emission that ran
         # its seeds side by side: (first node below the top, [(first, stop) per run]); else None.
         self.sweep_parts = None
@@ -666,10 +666,15 @@ class HlbvhPipeline:
                     first_seed_node = top_seeds - 1
                     top_split = True
             self.node_count.fill_(first_seed_node + num_seeds)
-        self.gather_leaf_boxes(threads)
         serial = int(self.device.is_cpu)
+        # On the CPU each seed gathers its own boxes as it starts (the kernel's `gather_boxes`):
+        # a separate gather was one more launch, and on several cores one more handoff
+        # between threads for 0.3 ms of work.
+        if not serial:
+            self.gather_leaf_boxes()
         shared = [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
-                  self.leaf_lowers, self.leaf_uppers]
+                  self.leaf_lowers, self.leaf_uppers, serial, self.sorted_prim_ids, self.prim_lowers,
+                  self.prim_uppers]
         tail = [self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
                 self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
                 wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost]
@@ -678,20 +683,22 @@ class HlbvhPipeline:
             return
         # Runs of seeds with about n / threads primitives each; run j allocates from its own counter.
         first_free = int(self.node_count.numpy()[0])
-        starts = seed_starts.numpy()[:num_seeds].astype(np.int64)
-        cuts = np.searchsorted(starts, np.arange(1, threads) * (n / threads), side="left")
-        bounds = np.unique(np.concatenate([[0], cuts, [num_seeds]]))
+        # Python lists and `bisect`: NumPy's calls on a handful of seeds cost more than the search.
+        starts = seed_starts.numpy()[:num_seeds].tolist()
+        cuts = [bisect.bisect_left(starts, j * (n / threads)) for j in range(1, threads)]
+        bounds = sorted({0, *cuts, num_seeds})
         counters = self.emit_counters.numpy()
         jobs, lows = [], []
         for j, (s0, s1) in enumerate(zip(bounds[:-1], bounds[1:])):
             # Seeds before s0 hold starts[s0] primitives and own 2 * starts[s0] - 2 * s0 nodes.
-            counters[j] = first_free + 2 * int(starts[s0]) - 2 * int(s0)
-            lows.append(int(counters[j]))
+            low = first_free + 2 * starts[s0] - 2 * s0
+            counters[j] = low
+            lows.append(low)
             counter = self.emit_counter_views[j]
-            jobs.append(lambda s0=int(s0), s1=int(s1), counter=counter: self._launch(
+            jobs.append(lambda s0=s0, s1=s1, counter=counter: self._launch(
                 treelets.emit_depth_first_kernel, s1 - s0, shared + [counter] + tail + [s0, serial]))
         threads_module.run(jobs, threads)
-        end = first_free + 2 * (n - int(starts[0])) - 2 * num_seeds
+        end = first_free + 2 * (n - starts[0]) - 2 * num_seeds
         self.node_count.fill_(end)
         # Each run's nodes (its seeds' descendants, allocated from its own counter) have their
         # children in that run: a refit can sweep the runs side by side, then the nodes above
@@ -702,25 +709,12 @@ class HlbvhPipeline:
                          [self.top_seed_count, self.node_left, self.node_right, self.node_parent, self.node_lowers,
                           self.node_uppers])
 
-    def gather_leaf_boxes(self, threads: int):
-        """The primitive boxes in tree order (`leaf_lowers`/`leaf_uppers`) for the depth-first
-        walk, which then reads them in order (see `bounds.gather_boxes_kernel` for the measure)."""
-        n = self.num_prims
-        args = [self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.leaf_lowers, self.leaf_uppers]
-        if threads > 1 and n >= PARALLEL_MIN_PRIMS:
-            # The ids are an output, renewed for every one-shot build, and the caller may refill
-            # the same box arrays between builds: views kept over an older id array would gather
-            # the boxes in that build's order.
-            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, self.sorted_prim_ids.ptr, threads)
-            if self._leaf_box_parts is None or self._leaf_box_parts[0] != key:
-                cuts = threads_module.split_bounds(n, threads)
-                parts = [(hi - lo, [self.sorted_prim_ids[lo:hi], self.prim_lowers, self.prim_uppers,
-                                    self.leaf_lowers[lo:hi], self.leaf_uppers[lo:hi]])
-                         for lo, hi in zip(cuts, cuts[1:])]
-                self._leaf_box_parts = (key, parts)
-            threads_module.launch_parts(bounds.gather_boxes_kernel, self.device, self._leaf_box_parts[1], threads)
-            return
-        self._launch(bounds.gather_boxes_kernel, n, args)
+    def gather_leaf_boxes(self):
+        """The primitive boxes in tree order (`leaf_lowers`/`leaf_uppers`) for CUDA's depth-first
+        walk, which then reads them in order (see `bounds.gather_boxes_kernel` for the measure);
+        the CPU's walk gathers each seed's boxes itself."""
+        self._launch(bounds.gather_boxes_kernel, self.num_prims,
+                     [self.sorted_prim_ids, self.prim_lowers, self.prim_uppers, self.leaf_lowers, self.leaf_uppers])
 
     def compute_node_bounds(self):
         """Boxes of all nodes bottom-up (`compute_bounds`): the "bbox computation" of Pantaleoni &

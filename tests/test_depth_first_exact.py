@@ -229,6 +229,41 @@ def test_runs_side_by_side_match_the_oracle(device, rng, case):
     check_boxes(device, tree, lowers, uppers)
 
 
+@pytest.mark.parametrize("n", [PARALLEL_MIN_PRIMS - 1, PARALLEL_MIN_PRIMS, PARALLEL_MIN_PRIMS + 1,
+                               PARALLEL_MIN_PRIMS + 1234])
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_each_walk_gathers_the_boxes_of_this_build(device, rng, n, threads):
+    # On the CPU every seed gathers its own primitive boxes in tree order: refilled boxes in the
+    # same arrays, and a gather buffer left holding NaN, must give this build's boxes at every
+    # node, the one-thread tree's nodes, and runs cut where a search of the seed starts cuts them.
+    lowers, uppers = scene_boxes(rng, "soup", n)
+    pipe = build(device, lowers, uppers, cpu_threads=threads)
+    lowers, uppers = scene_boxes(rng, "equal_runs", n)
+    pipe.prim_lowers.assign(lowers)
+    pipe.prim_uppers.assign(uppers)
+    pipe.leaf_lowers.fill_(wp.vec3(np.nan, np.nan, np.nan))
+    pipe.leaf_uppers.fill_(wp.vec3(np.nan, np.nan, np.nan))
+    pipe.build()
+    tree = tree_of(pipe)
+    check_boxes(device, tree, lowers, uppers)
+    one = tree_of(build(device, lowers, uppers, cpu_threads=1))
+    np.testing.assert_array_equal(tree["prim_order"], one["prim_order"])
+    key = lambda t: sorted(zip(t["node_begin"], t["node_end"], t["node_left"] < 0))  # noqa: E731
+    assert key(tree) == key(one)
+    parallel = wp.get_device(device).is_cpu and threads > 1 and n >= PARALLEL_MIN_PRIMS
+    assert (pipe.sweep_parts is not None) == parallel
+    if not parallel:
+        for name in ("node_left", "node_right", "node_parent", "node_begin", "node_end"):
+            np.testing.assert_array_equal(tree[name], one[name], err_msg=name)
+        return
+    seeds = int(pipe.top_seed_count.numpy()[0])
+    starts = pipe.top_seed_starts.numpy()[:seeds].astype(np.int64)
+    cuts = np.unique(np.concatenate([[0], np.searchsorted(starts, np.arange(1, threads) * (n / threads)), [seeds]]))
+    first_free = 2 * seeds - 1
+    lows = [first_free + 2 * int(starts[s]) - 2 * int(s) for s in cuts[:-1]]
+    assert pipe.sweep_parts == (first_free, list(zip(lows, lows[1:] + [len(tree["node_left"])])))
+
+
 @pytest.mark.parametrize("case", ["mesh", "degenerate", "equal_runs"])
 @pytest.mark.parametrize("leaf", [1, 2])
 def test_node_costs_of_the_walk(device, rng, case, leaf):
