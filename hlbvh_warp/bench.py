@@ -124,8 +124,9 @@ def collector_paused():
 
 def turn_order(labels, turn: int) -> list:
     """The order in which timed modes run in turn `turn` (a frame): the rows of a Williams Latin
-    square (Williams 1949), so that over ``len(labels)`` turns (twice that for an odd count) each
-    mode runs first once and right after every other mode once.
+    square (Williams 1949), so that each mode runs first, and right after every other mode,
+    equally often: once each over ``len(labels)`` turns for an even count, twice each over twice
+    that many for an odd one (whose square needs its mirrored rows too).
 
     What runs just before a build sets its caches: the first after the animation wrote the
     vertices ran about 4% slower here, and one right after ``wp.Bvh`` (which sweeps megabytes)

@@ -21,7 +21,7 @@ then new ``bounds=(lowers, uppers)`` each frame: particles, spheres or capsules 
 simulation's broad phase).
 
 ``"auto"`` reads values back to the host every frame (the displacement, the SAH cost of the
-trees a refit may compare with): it has to, to decide. ``refit`` given device arrays never
+trees a refit may compare with): it has to, to decide, so its `update` refuses a capture. ``refit`` given device arrays never
 synchronizes. An ``"hlbvh"`` or ``"lbvh"`` ``rebuild`` on CUDA runs the pipeline's ``sync_free``
 build: it never synchronizes either and can be captured in a CUDA graph (``wp.ScopedCapture``).
 Other rebuilds read small counts on the host (the runs, the resort sample, ``"hlbvh_sah"``'s
@@ -812,7 +812,14 @@ class Builder:
         elif self.policy == "refit":
             self.refit(vertices, bounds=bounds)
         else:
-            self._auto(self._frame_sources(vertices, bounds))
+            sources = self._frame_sources(vertices, bounds)
+            # `auto` chooses each frame on the host from its motion measure (or its chaotic wait's
+            # comparison), on every device: a capture runs nothing while it records, so the choice
+            # would read stale numbers and bake them into the graph.
+            if self.device.is_capturing:
+                raise RuntimeError(f"the 'auto' policy reads its motion measure on the host and cannot be captured "
+                                   f"in a graph on {self.device}; capture rebuild() or refit() instead")
+            self._auto(sources)
         return self.last_report
 
     # ----------------------------------------------------------------- auto

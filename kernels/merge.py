@@ -67,8 +67,10 @@ def merge_halves_kernel(
     b_count) (ids alongside) into out_keys / out_ids: one thread, output slice found by `co_rank`.
     Launched once per part, so that each part can run on its own core."""
     total = a_count + b_count
-    begin = total * part // parts
-    end = total * (part + 1) // parts
+    # In int64: total * parts passes int32 from 2^31 (34M codes in 64 parts), where the bounds
+    # wrapped negative and parts of the output were never written.
+    begin = int(wp.int64(total) * wp.int64(part) // wp.int64(parts))
+    end = int(wp.int64(total) * wp.int64(part + 1) // wp.int64(parts))
     i = co_rank(keys, a_count, b_first, b_count, begin)
     j = begin - i
     # A branch, not a select: the halves of a mesh's codes interleave in long stretches, where

@@ -435,6 +435,32 @@ def test_cpu_rebuild_refuses_graph_capture(method, rng):
     check_rays(builder.bvh, moved, f, rng)
 
 
+@pytest.mark.parametrize("chaotic", [False, True])
+def test_auto_update_refuses_graph_capture(device, rng, chaotic):
+    # `auto` decides each frame on the host from its motion measure (or, in its chaotic wait, its
+    # comparison): a capture runs nothing while it records, so the decision read stale numbers
+    # ("no vertex moved", on the CPU) and the frame was reported done with nothing loaded. A
+    # clear error instead, before any launch, and the builder goes on as if it never happened.
+    v, f = default_scene(2000)
+    builder = Builder(len(f), device=device, policy="auto")
+    builder.build(v, f)
+    builder.chaotic_frames = 3 if chaotic else 0
+    moved = (v * np.float32(1.25)).astype(np.float32)
+    source = wp.array(moved, dtype=wp.vec3, device=device)
+    frame, reports = builder.frame, len(builder.reports)
+    with pytest.raises(RuntimeError, match="captured in a graph"):
+        with wp.ScopedCapture(device):
+            builder.update(source)
+    assert builder.frame == frame and len(builder.reports) == reports
+    assert builder.chaotic_frames == (3 if chaotic else 0)
+    np.testing.assert_array_equal(builder.vertices.numpy(), v)
+    report = builder.update(source)
+    assert report["decision"] == "rebuild", report
+    np.testing.assert_array_equal(builder.vertices.numpy(), moved)
+    check_tree_invariants(builder.bvh.to_numpy(), len(f))
+    check_rays(builder.bvh, moved, f, rng)
+
+
 def test_replayed_rebuild_with_invalidate_answers_queries_of_each_frame(rng):
     # The README's graph-capture procedure, checked on Warp's CPU graph capture with the builder
     # in its CUDA per-frame mode (sync-free, treelet passes). A replay runs no Python: the tree's

@@ -121,3 +121,35 @@ def test_lbvh_tree_the_same_with_one_thread_and_two(device, rng, small_threshold
              for t in (1, 2)]
     for key in ("prim_order", "node_begin", "node_end", "node_left", "node_right"):
         np.testing.assert_array_equal(trees[0][key], trees[1][key])
+
+
+def test_merge_parts_of_a_large_merge_cover_it_exactly(device, rng):
+    """`merge.merge_halves_kernel` cut into many parts: part p of P starts at total * p / P, a
+    product past int32 from total * P >= 2^31 (34M codes on a 64-core CPU, one part per core),
+    where the parts' bounds wrapped negative and the end of the output was never written. Here
+    1.5M codes in 2048 parts, each part launched as the CPU's cores launch it, against NumPy's
+    stable merge."""
+    from hlbvh_warp.kernels import merge
+
+    total, parts = 3 * (1 << 19) + 7, 2048
+    assert total * parts >= 1 << 31
+    a_count = total // 2
+    b_count = total - a_count
+    halves = [np.sort(rng.integers(0, 1 << 12, count)) for count in (a_count, b_count)]
+    # The halves sit where the global sort leaves them: the first at 0, the second at 2 a_count.
+    keys = np.zeros(2 * total, dtype=np.int32)
+    keys[:a_count] = halves[0]
+    keys[2 * a_count:2 * a_count + b_count] = halves[1]
+    ids = np.arange(2 * total, dtype=np.int32)
+    keys_wp = wp.array(keys, dtype=wp.int32, device=device)
+    ids_wp = wp.array(ids, dtype=wp.int32, device=device)
+    out_keys = wp.full(total, -1, dtype=wp.int32, device=device)
+    out_ids = wp.full(total, -1, dtype=wp.int32, device=device)
+    for part in range(parts):
+        wp.launch(merge.merge_halves_kernel, dim=1,
+                  inputs=[keys_wp, ids_wp, a_count, 2 * a_count, b_count, parts, part, out_keys, out_ids],
+                  device=device)
+    merged_ids = np.concatenate([np.arange(a_count), 2 * a_count + np.arange(b_count)])
+    order = np.argsort(np.concatenate(halves), kind="stable")
+    np.testing.assert_array_equal(out_keys.numpy(), np.concatenate(halves)[order])
+    np.testing.assert_array_equal(out_ids.numpy(), merged_ids[order])
