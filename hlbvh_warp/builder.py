@@ -23,10 +23,10 @@ simulation's broad phase).
 ``"auto"`` reads values back to the host every frame (the displacement, the SAH cost of the
 trees a refit may compare with): it has to, to decide, so its `update` refuses a capture.
 ``refit`` given device arrays never synchronizes. An ``"hlbvh"`` or ``"lbvh"`` ``rebuild`` on
-CUDA runs the pipeline's ``sync_free`` build: it never synchronizes either and can be captured in a CUDA graph (``wp.ScopedCapture``).
-Other rebuilds read small counts on the host (the runs, the resort sample, ``"hlbvh_sah"``'s
-cluster count) and refuse a capture. A replay runs no Python:
-call ``builder.bvh.invalidate()`` after each ``wp.capture_launch``, before host reads of the tree
+CUDA runs the pipeline's ``sync_free`` build: it never synchronizes either and can be captured
+in a CUDA graph (``wp.ScopedCapture``). Other rebuilds read small counts on the host (the runs,
+the resort sample, ``"hlbvh_sah"``'s cluster count) and refuse a capture. A replay runs no
+Python: call ``builder.bvh.invalidate()`` after each ``wp.capture_launch``, before host reads of the tree
 or ray queries (their host copies and, unless made before the capture, the traversal layout are
 refreshed there, not by the graph).
 """
