@@ -141,6 +141,29 @@ def set_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3), lower: wp.vec3, upp
 
 
 @wp.kernel
+def reset_partial_bounds_kernel(partials: wp.array(dtype=wp.vec3)):
+    """Empty bounds t (partials[2t] and [2t + 1]) as `reset_bounds_kernel` does, one per thread."""
+    t = wp.tid()
+    big = 3.4e38
+    partials[2 * t] = wp.vec3(big, big, big)
+    partials[2 * t + 1] = wp.vec3(-big, -big, -big)
+
+
+@wp.kernel
+def combine_bounds_kernel(partials: wp.array(dtype=wp.vec3), count: int, scene_bounds: wp.array(dtype=wp.vec3)):
+    """scene_bounds = the union of the first `count` partial bounds, in their order."""
+    # In order, each a wp.min / wp.max that keeps the value it has on a tie, as the serial
+    # reduction's atomics do over the chunks: the same bits, the sign of a zero included.
+    lower = partials[0]
+    upper = partials[1]
+    for j in range(1, count):
+        lower = wp.min(lower, partials[2 * j])
+        upper = wp.max(upper, partials[2 * j + 1])
+    scene_bounds[0] = lower
+    scene_bounds[1] = upper
+
+
+@wp.kernel
 def centroid_bounds_kernel(
     num_prims: int,
     chunk: int,
