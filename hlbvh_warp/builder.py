@@ -49,7 +49,7 @@ from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import PARALLEL_MIN_PRIMS, HlbvhPipeline, StageTimer, compute_bounds
 from .launches import RecordedLaunches
-from .kernels import compress, dynamic, morton
+from .kernels import compress, dynamic
 from .kernels.bounds import bounds_sweep_kernel
 
 POLICIES = ("rebuild", "refit", "auto")
@@ -732,8 +732,7 @@ class Builder:
         """Refit every box; with `price`, also return the refit tree's SAH cost (`sah_cost`)."""
         if self.kind == "triangles":
             timer.stage("prim_bounds")
-            self.pipeline._launch(morton.triangle_bounds_kernel, self.num_prims,
-                                  [self.vertices, self.faces, self.prim_lowers, self.prim_uppers])
+            self.pipeline.compute_triangle_boxes(self.vertices, self.faces, self.prim_lowers, self.prim_uppers)
         timer.stage("refit")
         # The CPU refit sweeps the nodes; it sums the SAH terms as it goes, where pricing
         # afterwards took a second pass (about 1.5 ms on 100k triangles).

@@ -117,7 +117,7 @@ class HlbvhPipeline:
         `Bvh` and are replaced before the pipeline builds again."""
         self.prim_lowers = self.prim_uppers = None
         # Views over the boxes and over the tree's ids, which now belong to the caller.
-        self._morton_parts = self._bounds_parts = None
+        self._morton_parts = self._bounds_parts = self._box_parts = None
         self.sweep_parts = None
         memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self,
                                  self.held_bytes())
@@ -155,7 +155,7 @@ class HlbvhPipeline:
         # the CPU device are not atomic across threads), combined in order after.
         self.partial_bounds = wp.empty(2 * 64, dtype=wp.vec3, device=device)
         self.partial_bounds_views = [self.partial_bounds[2 * j : 2 * j + 2] for j in range(64)]
-        self._bounds_parts = None
+        self._bounds_parts = self._box_parts = None
         self.morton_codes = ints(n)
         self.coarse_codes = ints(n)
         # Run-length encoding and the radix sort, whose buffers need 2x the key count.
@@ -254,16 +254,41 @@ class HlbvhPipeline:
                                 uppers: wp.array | None = None):
         """Triangle boxes (into `prim_lowers`/`prim_uppers` unless given), and in the same pass the
         scene's centroid bounds that `compute_morton_codes(bounds_ready=True)` then uses."""
-        n = self.num_prims
         lowers = self.prim_lowers if lowers is None else lowers
         uppers = self.prim_uppers if uppers is None else uppers
         if self.config.morton_bounds is not None:
-            self._launch(morton.triangle_bounds_kernel, n, [vertices, faces, lowers, uppers])
+            self.compute_triangle_boxes(vertices, faces, lowers, uppers)
             self._set_fixed_bounds()
             return
         kernel = morton.triangle_bounds_centroids_cpu_kernel if self.device.is_cpu \
             else morton.triangle_bounds_centroids_kernel
         self._reduce_centroid_bounds(kernel, [vertices, faces, lowers, uppers], per_prim=(1, 2, 3))
+
+    def compute_triangle_boxes(self, vertices: wp.array, faces: wp.array, lowers: wp.array | None = None,
+                               uppers: wp.array | None = None):
+        """Triangle boxes alone (into `prim_lowers`/`prim_uppers` unless given): a refit, or a build
+        over a fixed Morton grid, needs no centroid bounds. On the CPU, chunks of triangles per
+        thread (`morton.triangle_bounds_cpu_kernel`), in slices side by side on several cores
+        from `PARALLEL_BOUNDS_MIN_PRIMS` triangles; the same boxes to the bit either way."""
+        n = self.num_prims
+        lowers = self.prim_lowers if lowers is None else lowers
+        uppers = self.prim_uppers if uppers is None else uppers
+        if not self.device.is_cpu:
+            self._launch(morton.triangle_bounds_kernel, n, [vertices, faces, lowers, uppers])
+            return
+        chunk = CPU_REDUCTION_CHUNK
+        num_chunks = (n + chunk - 1) // chunk
+        threads = min(threads_module.resolved_threads(self.config, self.device), num_chunks)
+        if threads > 1 and n >= PARALLEL_BOUNDS_MIN_PRIMS:
+            key = (vertices.ptr, faces.ptr, lowers.ptr, uppers.ptr, threads)
+            if self._box_parts is None or self._box_parts[0] != key:
+                cuts = threads_module.split_bounds(n, threads)
+                self._box_parts = (key, [((hi - lo + chunk - 1) // chunk,
+                                          [hi - lo, chunk, vertices, faces[lo:hi], lowers[lo:hi], uppers[lo:hi]])
+                                         for lo, hi in zip(cuts, cuts[1:])])
+            threads_module.launch_parts(morton.triangle_bounds_cpu_kernel, self.device, self._box_parts[1], threads)
+            return
+        self._launch(morton.triangle_bounds_cpu_kernel, num_chunks, [n, chunk, vertices, faces, lowers, uppers])
 
     def compute_centroid_bounds(self):
         """The scene's centroid bounds from `prim_lowers` / `prim_uppers` (or the fixed grid of

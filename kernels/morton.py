@@ -94,6 +94,25 @@ def triangle_box_cpu(a: wp.vec3, b: wp.vec3, c: wp.vec3):
 
 
 @wp.kernel
+def triangle_bounds_cpu_kernel(
+    num_prims: int,
+    chunk: int,
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    prim_lowers: wp.array(dtype=wp.vec3),
+    prim_uppers: wp.array(dtype=wp.vec3),
+):
+    """`triangle_bounds_kernel` for the CPU device, `chunk` triangles per thread, with the same
+    boxes to the bit (`triangle_box_cpu`): a refit's boxes, or a fixed grid's."""
+    begin = wp.tid() * chunk
+    end = wp.min(begin + chunk, num_prims)
+    for i in range(begin, end):
+        box_lower, box_upper = triangle_box_cpu(vertices[faces[i, 0]], vertices[faces[i, 1]], vertices[faces[i, 2]])
+        prim_lowers[i] = box_lower
+        prim_uppers[i] = box_upper
+
+
+@wp.kernel
 def triangle_bounds_centroids_cpu_kernel(
     num_prims: int,
     chunk: int,

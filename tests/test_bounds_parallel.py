@@ -77,3 +77,52 @@ def test_parallel_bounds_give_the_one_thread_tree(device):
                                               tree["node_lowers"][:count], tree["node_uppers"][:count]))
 
     assert nodes(trees[0]) == nodes(trees[1])
+
+
+@pytest.mark.parametrize("offset", [-1, 0, 4097])
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_triangle_boxes_alone_equal_the_generic_kernel(device, offset, threads):
+    """The boxes-only pass (a refit's, or a fixed grid's: `compute_triangle_boxes`) on any number
+    of cores gives `morton.triangle_bounds_kernel`'s boxes to the bit, NaN, infinite and signed-zero
+    vertices included."""
+    from hlbvh_warp.kernels import morton
+
+    n = hlbvh.PARALLEL_BOUNDS_MIN_PRIMS + offset
+    vertices, faces = _scene(n, seed=offset + 20)
+    vertices[3 * (n - 1)] = np.float32(np.inf)  # the last triangle, in the last slice
+    vertices[3 * (n // 2) + 2] = np.float32(-0.0)
+    v = wp.array(vertices, dtype=wp.vec3, device=device)
+    f = wp.array(faces, dtype=wp.int32, device=device)
+    pipe = HlbvhPipeline(n, hw.BuildConfig(cpu_threads=threads), device)
+    pipe.prim_lowers.fill_(np.float32(7.0))  # stale values the pass must overwrite
+    pipe.compute_triangle_boxes(v, f)
+    lo = wp.empty(n, dtype=wp.vec3, device=device)
+    hi = wp.empty(n, dtype=wp.vec3, device=device)
+    wp.launch(morton.triangle_bounds_kernel, dim=n, inputs=[v, f, lo, hi], device=device)
+    np.testing.assert_array_equal(pipe.prim_lowers.numpy().view(np.uint32), lo.numpy().view(np.uint32))
+    np.testing.assert_array_equal(pipe.prim_uppers.numpy().view(np.uint32), hi.numpy().view(np.uint32))
+    # And NumPy's values where no vertex is NaN.
+    tri = vertices[faces]
+    finite = ~np.isnan(tri).any(axis=(1, 2))
+    np.testing.assert_array_equal(pipe.prim_lowers.numpy()[finite], tri.min(axis=1)[finite])
+    np.testing.assert_array_equal(pipe.prim_uppers.numpy()[finite], tri.max(axis=1)[finite])
+
+
+def test_a_refit_on_several_cores_boxes_the_moved_triangles(device):
+    """A `Builder`'s refit computes its triangle boxes on several cores: every node box is NumPy's
+    float64 union of the moved triangles' boxes."""
+    from hlbvh_warp.builder import Builder
+    from oracles import numpy_node_boxes
+
+    n = hlbvh.PARALLEL_BOUNDS_MIN_PRIMS + 500
+    vertices, faces = _scene(n, seed=5)
+    vertices = np.nan_to_num(vertices)
+    builder = Builder(n, hw.BuildConfig(cpu_threads=2), device=device, policy="refit")
+    builder.build(vertices, faces)
+    moved = vertices + np.float32(0.003) * np.sin(np.arange(vertices.size, dtype=np.float32)).reshape(-1, 3)
+    builder.update(moved)
+    tree = builder.bvh.to_numpy()
+    tri = moved[faces]
+    node_lo, node_hi = numpy_node_boxes(tree, tri.min(axis=1), tri.max(axis=1))
+    np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
+    np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
