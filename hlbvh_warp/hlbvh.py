@@ -117,7 +117,7 @@ class HlbvhPipeline:
         `Bvh` and are replaced before the pipeline builds again."""
         self.prim_lowers = self.prim_uppers = None
         # Views over the boxes and over the tree's ids, which now belong to the caller.
-        self._morton_parts = self._bounds_parts = self._box_parts = None
+        self._slices = {}
         self.sweep_parts = None
         memory.give_back_scratch((type(self), self.num_prims, self.config, self.device.alias), self,
                                  self.held_bytes())
@@ -155,7 +155,6 @@ class HlbvhPipeline:
         # the CPU device are not atomic across threads), combined in order after.
         self.partial_bounds = wp.empty(2 * 64, dtype=wp.vec3, device=device)
         self.partial_bounds_views = [self.partial_bounds[2 * j : 2 * j + 2] for j in range(64)]
-        self._bounds_parts = self._box_parts = None
         self.morton_codes = ints(n)
         self.coarse_codes = ints(n)
         # Run-length encoding and the radix sort, whose buffers need 2x the key count.
@@ -238,8 +237,8 @@ class HlbvhPipeline:
         self.emit_counters = wp.zeros(64, dtype=wp.int32, device=device)
         self.emit_counter_views = [self.emit_counters[j : j + 1] for j in range(self.emit_counters.shape[0])]
         self.sync_free = False
-        # The Morton pass's slices for the CPU's cores (`compute_morton_codes`), made on first use.
-        self._morton_parts = None
+        # The CPU's chunked passes cut into slices for its cores (`_cpu_slices`), made on first use.
+        self._slices = {}
         # The global sort's two halves on the CPU's cores (`global_sort`), made on first use.
         self._sort_halves = None
 
@@ -280,13 +279,8 @@ class HlbvhPipeline:
         num_chunks = (n + chunk - 1) // chunk
         threads = min(threads_module.resolved_threads(self.config, self.device), num_chunks)
         if threads > 1 and n >= PARALLEL_BOUNDS_MIN_PRIMS:
-            key = (vertices.ptr, faces.ptr, lowers.ptr, uppers.ptr, threads)
-            if self._box_parts is None or self._box_parts[0] != key:
-                cuts = threads_module.split_bounds(n, threads)
-                self._box_parts = (key, [((hi - lo + chunk - 1) // chunk,
-                                          [hi - lo, chunk, vertices, faces[lo:hi], lowers[lo:hi], uppers[lo:hi]])
-                                         for lo, hi in zip(cuts, cuts[1:])])
-            threads_module.launch_parts(morton.triangle_bounds_cpu_kernel, self.device, self._box_parts[1], threads)
+            parts = self._cpu_slices("boxes", threads, chunk, [vertices, faces, lowers, uppers], per_prim=(1, 2, 3))
+            threads_module.launch_parts(morton.triangle_bounds_cpu_kernel, self.device, parts, threads)
             return
         self._launch(morton.triangle_bounds_cpu_kernel, num_chunks, [n, chunk, vertices, faces, lowers, uppers])
 
@@ -314,24 +308,34 @@ class HlbvhPipeline:
         threads = min(threads_module.resolved_threads(self.config, self.device), num_chunks,
                       len(self.partial_bounds_views))
         if self.device.is_cpu and threads > 1 and n >= PARALLEL_BOUNDS_MIN_PRIMS:
-            key = (kernel.key, tuple(x.ptr for x in inputs), threads)
-            if self._bounds_parts is None or self._bounds_parts[0] != key:
-                # The views are made once per set of arrays (a Builder's stay the same).
-                cuts = [chunk * c for c in threads_module.split_bounds(num_chunks, threads)]
-                cuts[-1] = n
-                parts = []
-                for j, (lo, hi) in enumerate(zip(cuts, cuts[1:])):
-                    args = [x[lo:hi] if i in per_prim else x for i, x in enumerate(inputs)]
-                    parts.append(((hi - lo + chunk - 1) // chunk,
-                                  [hi - lo, chunk, *args, self.partial_bounds_views[j]]))
-                self._bounds_parts = (key, parts)
-            parts = self._bounds_parts[1]
+            parts = self._cpu_slices(kernel.key, threads, chunk, inputs, per_prim, self.partial_bounds_views)
             self._launch(morton.reset_partial_bounds_kernel, len(parts), [self.partial_bounds])
             threads_module.launch_parts(kernel, self.device, parts, threads)
             self._launch(morton.combine_bounds_kernel, 1, [self.partial_bounds, len(parts), self.scene_bounds])
             return
         self._launch(morton.reset_bounds_kernel, 1, [self.scene_bounds])
         self._launch(kernel, num_chunks, [n, chunk, *inputs, self.scene_bounds])
+
+    def _cpu_slices(self, name: str, threads: int, chunk: int, inputs: list, per_prim: tuple,
+                    per_slice: list | None = None) -> list:
+        """The ``(dim, inputs)`` parts of a chunked CPU pass ``kernel(count, chunk, *inputs[, out])``
+        over the N primitives cut into up to `threads` slices of whole chunks, for
+        `threads_module.launch_parts`: the arrays at the positions `per_prim` (one row per
+        primitive) cut to each slice, and slice j given ``per_slice[j]`` last where there is one
+        (its own output: atomics on the CPU device are not atomic across threads). Made once per
+        set of arrays and kept under `name` (a Builder's arrays stay the same every frame)."""
+        key = (tuple(x.ptr if isinstance(x, wp.array) else x for x in inputs), threads, chunk)
+        cached = self._slices.get(name)
+        if cached is None or cached[0] != key:
+            n = self.num_prims
+            cuts = [min(chunk * c, n) for c in threads_module.split_bounds((n + chunk - 1) // chunk, threads)]
+            parts = []
+            for j, (lo, hi) in enumerate(zip(cuts, cuts[1:])):
+                args = [x[lo:hi] if i in per_prim else x for i, x in enumerate(inputs)]
+                tail = [per_slice[j]] if per_slice is not None else []
+                parts.append(((hi - lo + chunk - 1) // chunk, [hi - lo, chunk, *args, *tail]))
+            cached = self._slices[name] = (key, parts)
+        return cached[1]
 
     def _set_fixed_bounds(self):
         lower, upper = self.config.morton_bounds
@@ -368,16 +372,10 @@ class HlbvhPipeline:
         # Shared by every pipeline on the device, so not among the arrays this one holds.
         spread = morton.spread_table(self.device)
         if threads > 1 and n >= PARALLEL_MIN_PRIMS:
-            # Slices side by side on a multi-core CPU; the views are made once per set of boxes.
-            key = (self.prim_lowers.ptr, self.prim_uppers.ptr, codes.ptr, threads)
-            if self._morton_parts is None or self._morton_parts[0] != key:
-                cuts = threads_module.split_bounds(n, threads)
-                parts = [((hi - lo + chunk - 1) // chunk,
-                          [hi - lo, chunk, self.prim_lowers[lo:hi], self.prim_uppers[lo:hi], self.scene_bounds,
-                           self.config.bits_per_axis, spread, codes[lo:hi]])
-                         for lo, hi in zip(cuts, cuts[1:])]
-                self._morton_parts = (key, parts)
-            threads_module.launch_parts(morton.morton_codes_cpu_kernel, self.device, self._morton_parts[1], threads)
+            # Slices side by side on a multi-core CPU.
+            inputs = [self.prim_lowers, self.prim_uppers, self.scene_bounds, self.config.bits_per_axis, spread, codes]
+            parts = self._cpu_slices("morton", threads, chunk, inputs, per_prim=(0, 1, 5))
+            threads_module.launch_parts(morton.morton_codes_cpu_kernel, self.device, parts, threads)
             return
         self._launch(
             morton.morton_codes_cpu_kernel,
@@ -559,8 +557,9 @@ class HlbvhPipeline:
                 (0, first_count, self.run_codes[: 2 * first_count], self.run_ids[: 2 * first_count]),
                 (first_count, second_count, self.run_codes[2 * first_count :], self.run_ids[2 * first_count :]),
             ]
-        # Loaded here, once: compiled from two threads at once, both wrote the same cache files.
-        merge.gather_half_kernel.module.load(self.device, 1)
+            # Loaded here, before the threads: compiled from two threads at once, both wrote the
+            # same cache files.
+            merge.gather_half_kernel.module.load(self.device, 1)
         codes, input_ids, device = self.morton_codes, self.input_ids, self.device
 
         # Plain launches in every job: recorded ones made or replayed on worker threads crashed
