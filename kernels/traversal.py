@@ -579,10 +579,13 @@ def ray_box_entry(  # noqa: F811  (a Warp overload, chosen by argument count)
 
 @wp.func
 def box_overlap(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: wp.vec3):
-    """Closed boxes overlap (touching counts); a NaN bound overlaps nothing."""
+    """Closed boxes overlap (touching counts); a NaN bound overlaps nothing, and neither does an
+    empty box a (lower > upper on an axis: a query box; the tree's own boxes are never empty)."""
     ok = int(1)
     for k in range(3):
-        if not (lower_a[k] <= upper_b[k] and lower_b[k] <= upper_a[k]):
+        # Each bound of a against the opposite bound of b alone lets an inverted a whose bounds
+        # both lie inside b's range on that axis (x in [0.5, 0.4] against [0, 1]) meet b.
+        if not (lower_a[k] <= upper_b[k] and lower_b[k] <= upper_a[k] and lower_a[k] <= upper_a[k]):
             ok = 0
     return ok
 

@@ -562,6 +562,34 @@ def test_box_queries_count_touching_boxes(device, rng, max_leaf_size):
     assert np.array_equal(out.numpy(), ref.sum(1))
 
 
+@pytest.mark.parametrize("boxes_only", [False, True])
+def test_an_inverted_query_box_overlaps_nothing(device, boxes_only):
+    """A query box with lowers > uppers on one axis is empty (query_aabb's contract): it overlaps
+    nothing, even where its bounds both lie inside a primitive's box on that axis. The closed-box
+    test compared each query bound only with the other box's opposite bound, so a box inverted by
+    less than a primitive's width met it: a triangle spanning x in [0, 1] overlapped x in [0.5, 0.4]."""
+    verts = np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [2, 2, 2], [3, 2, 2],
+                        [2, 3, 3]])
+    faces = np.int32([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    tri = verts[faces]
+    if boxes_only:
+        bvh = hlbvh_warp.build_from_bounds(tri.min(1), tri.max(1), device=device)
+    else:
+        bvh = hlbvh_warp.build(verts, faces, device=device)
+    q_lo = np.float32([[0.5, 0.2, -1.0], [-1.0, 0.5, -1.0], [-1.0, -1.0, 0.7], [0.1, 0.1, -0.1], [2.5, 2.5, 2.5]])
+    q_hi = np.float32([[0.4, 0.3, 2.0], [2.0, 0.4, 2.0], [2.0, 2.0, 0.6], [0.2, 0.2, 0.1], [2.4, 2.6, 2.6]])
+    ref = brute_overlaps(tri.min(1), tri.max(1), q_lo, q_hi) & (q_lo <= q_hi).all(-1)[:, None]
+    assert ref.sum(1).tolist() == [0, 0, 0, 1, 0]  # every box but the fourth is inverted on one axis
+    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(counts, ref.sum(1))
+    assert np.array_equal(pairs, np.argwhere(ref))
+    out = wp.zeros(len(q_lo), dtype=int, device=device)
+    wp.launch(_box_count_kernel, dim=len(q_lo), device=device,
+              inputs=[query.view(bvh), wp.array(q_lo, dtype=wp.vec3, device=device),
+                      wp.array(q_hi, dtype=wp.vec3, device=device), out])
+    assert np.array_equal(out.numpy(), ref.sum(1))
+
+
 def test_occluded_takes_one_t_max_for_every_ray(device):
     verts, faces = _stacked_triangles([1.0, 2.0])
     bvh = hlbvh_warp.build(verts, faces, device=device)
