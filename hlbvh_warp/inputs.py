@@ -138,7 +138,10 @@ def query_array(values, name: str) -> np.ndarray:
         arr = arr.reshape(1, 3)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
-    return np.ascontiguousarray(arr, dtype=np.float32)
+    # A wider coordinate past float32's range rounds to the infinity a query takes (an unbounded
+    # box side, a ray or point that finds nothing), quietly, as a huge t_max or max_dist does.
+    with np.errstate(over="ignore"):
+        return np.ascontiguousarray(arr, dtype=np.float32)
 
 
 def ray_arrays(origins, directions) -> tuple[np.ndarray, np.ndarray]:

@@ -758,6 +758,22 @@ def test_huge_t_max_is_unbounded_without_a_warning(device, scene, rng):
                                   np.flatnonzero(unbounded >= 0))
 
 
+def test_query_coordinates_past_float32_are_infinite_without_a_warning(device, scene):
+    """Float64 query coordinates past float32's range are read as the infinities they round to,
+    quietly, as a huge t_max or max_dist is: a box bound of -+1e39 is unbounded, a ray or a point
+    at 1e39 finds nothing (as one at inf does). The cast to float32 warned of an overflow."""
+    verts, faces = scene
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    huge = np.array([[-1e39, -1e39, -1e39], [-np.inf, -np.inf, -np.inf]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert query.query_aabb(bvh, huge, -huge).tolist() == [len(faces), len(faces)]
+        t, prim = query.intersect(bvh, np.array([[1e39, 0.0, 0.0], [5.0, 0.0, 0.0]]), np.array([-1.0, 0.0, 0.0]))
+        assert prim[0] == -1 and prim[1] >= 0
+        assert query.occluded(bvh, np.array([[0.0, 0.0, 0.0]]), np.array([[1e39, 1.0, 0.0]])).tolist() == [False]
+        assert query.closest_point(bvh, np.array([[0.0, 1e39, 0.0], [0.0, 0.0, 0.0]]))[2][0] == -1
+
+
 def test_a_ray_with_no_t_range_walks_nothing(device, scene):
     # t_max 0, negative or NaN: no t in (0, t_max), so the ray misses without entering the tree.
     verts, faces = scene
