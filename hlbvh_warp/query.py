@@ -582,7 +582,9 @@ def _point_order(points: np.ndarray, device):
     starts = np.linspace(0, n - 2, num=min(n - 1, 1024)).astype(np.int64)
     with np.errstate(invalid="ignore", over="ignore"):
         steps = np.linalg.norm(points[starts + 1].astype(np.float64) - points[starts], axis=1)
-    if not np.nanmedian(steps) > 0.05 * extent:
+    # Every sampled step may meet a NaN point (every other point NaN): no step to judge by, and
+    # np.nanmedian of them all would warn of an all-NaN slice.
+    if np.isnan(steps).all() or not np.nanmedian(steps) > 0.05 * extent:
         return None
     return morton_order(points)
 

@@ -1025,6 +1025,23 @@ def test_points_in_morton_order_give_the_callers_answers(device, rng, monkeypatc
     check_answers(verts, faces, points, *sorted_run[:5])
 
 
+def test_a_batch_whose_sampled_steps_all_meet_a_nan_point_answers_quietly(device, rng):
+    """NaN points are valid queries (they find nothing). In a large batch where every other point
+    is NaN, every consecutive step the query order samples meets one: the median of those steps
+    raised NumPy's 'All-NaN slice' RuntimeWarning before the batch was answered (as given)."""
+    import warnings
+
+    verts, faces = random_soup(rng, 50)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    points = rng.uniform(-0.5, 1.5, (query.SORT_QUERIES_FROM + 2, 3)).astype(np.float32)
+    points[::2] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, distance, prim = hlbvh_warp.closest_point(bvh, points)
+    assert (prim[::2] == -1).all() and np.isinf(distance[::2]).all()
+    assert np.array_equal(prim[1::2], hlbvh_warp.closest_point(bvh, points[1::2])[2])
+
+
 def test_query_order_leaves_coherent_or_small_batches_alone(rng):
     cpu = wp.get_device("cpu")
     sphere = trimesh.creation.icosphere(subdivisions=5)  # 10242 vertices, listed coherently
