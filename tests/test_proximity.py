@@ -58,22 +58,23 @@ def _dot(x, y):
 def oracle_point_triangle(p, a, b, c):
     """Squared distance and closest point of triangle(s) abc to point(s) p, float64, broadcast.
 
-    The unconstrained minimum of |a + s ab + t ac - p|^2 solves the normal equations
-    [[ab.ab, ab.ac], [ab.ac, ac.ac]] (s, t) = (ap.ab, ap.ac); when (s, t) lies in the triangle it
-    is a candidate. The three edges' clamped projections always are. The answer is the nearest
-    candidate: every candidate is a point of the triangle, and the true closest point is either
-    the interior minimum or on an edge, so the minimum is exact. A degenerate triangle (segment,
-    point: zero Gram determinant) is its edges alone; a zero-length edge is its start point.
+    The unconstrained minimum of |a + s ab + t ac - p|^2 is p's projection on the plane, with
+    s = (ap x ac).n / n.n and t = (ab x ap).n / n.n for the normal n = ab x ac; when (s, t) lies
+    in the triangle it is a candidate. The three edges' clamped projections always are. The answer
+    is the nearest candidate: every candidate is a point of the triangle, and the true closest
+    point is either the interior minimum or on an edge, so the minimum is exact. A degenerate
+    triangle (segment, point: n = 0) is its edges alone; a zero-length edge is its start point.
+    n.n from n, not the Gram determinant |ab|^2 |ac|^2 - (ab.ac)^2, which cancels on a sliver
+    (`test_the_oracles_are_exact_on_slivers`).
     """
     p, a, b, c = (np.asarray(x, dtype=np.float64) for x in (p, a, b, c))
     ab, ac, ap = b - a, c - a, p - a
     with np.errstate(all="ignore"):
-        g00, g01, g11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
-        r0, r1 = _dot(ap, ab), _dot(ap, ac)
-        det = g00 * g11 - g01 * g01
-        s = (g11 * r0 - g01 * r1) / det
-        t = (g00 * r1 - g01 * r0) / det
-        interior = (det > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+        n = np.cross(ab, ac)
+        nn = _dot(n, n)
+        s = _dot(np.cross(ap, ac), n) / nn
+        t = _dot(np.cross(ab, ap), n) / nn
+        interior = (nn > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
         face = a + s[..., None] * ab + t[..., None] * ac
         candidates = [np.where(interior[..., None], face, np.nan)]
         for origin, edge in ((a, ab), (a, ac), (b, c - b)):
@@ -278,6 +279,67 @@ def test_oracle_on_hand_computed_cases():
     assert d2 == pytest.approx(1.0) and np.allclose(q, [1, 0, 0])
     d2, q = oracle_point_triangle(np.array([1.0, 2.0, 2.0]), a, a, a)
     assert d2 == pytest.approx(9.0) and np.allclose(q, a)
+
+
+def _exact_point_triangle_d2(p, a, b, c):
+    """The squared distance in exact rational arithmetic: the plane projection where it lies in
+    the triangle, else the nearest clamped edge projection (a third oracle, sharing no rounding)."""
+    from fractions import Fraction
+
+    p, a, b, c = ([Fraction(float(x)) for x in v] for v in (p, a, b, c))
+
+    def sub(u, v):
+        return [x - y for x, y in zip(u, v)]
+
+    def dot(u, v):
+        return sum(x * y for x, y in zip(u, v))
+
+    def cross(u, v):
+        return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+
+    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
+    n = cross(ab, ac)
+    nn = dot(n, n)
+    if nn > 0:
+        s, t = dot(cross(ap, ac), n) / nn, dot(cross(ab, ap), n) / nn
+        if s >= 0 and t >= 0 and s + t <= 1:
+            return dot(ap, n) ** 2 / nn
+    best = None
+    for origin, end in ((a, b), (a, c), (b, c)):
+        edge = sub(end, origin)
+        length2 = dot(edge, edge)
+        w = min(max(dot(sub(p, origin), edge) / length2, Fraction(0)), Fraction(1)) if length2 else Fraction(0)
+        off = sub([o + w * e for o, e in zip(origin, edge)], p)
+        best = dot(off, off) if best is None else min(best, dot(off, off))
+    return best
+
+
+def test_the_oracles_are_exact_on_slivers(rng):
+    """Both float64 oracles (this file's and the benchmarks' `reference.point_triangle_d2`)
+    against exact rational arithmetic on slivers: triangles 1e-7 to 1e-4 thick, points 1e-9 to
+    1e-3 off their plane. The normal (Gram) equations they once solved cancel there (a distance
+    of 2.4e-6 for an exact 3.0e-8 on a unit triangle)."""
+    from hlbvh_warp.reference import point_triangle_d2
+
+    for _ in range(300):
+        a, b = rng.uniform(-1.0, 1.0, (2, 3))
+        side = np.cross(b - a, rng.normal(size=3))
+        side /= np.linalg.norm(side)
+        c = a + rng.uniform(-0.5, 1.5) * (b - a) + 10.0 ** rng.uniform(-7, -4) * side
+        a, b, c = (x.astype(np.float32).astype(np.float64) for x in (a, b, c))
+        normal = np.cross(b - a, c - a)
+        normal /= np.linalg.norm(normal)
+        s, t = rng.uniform(-0.2, 1.0, 2)
+        height = rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(-9, -3)
+        p = (a + s * (b - a) + t * (c - a) + height * normal).astype(np.float32).astype(np.float64)
+        exact = np.sqrt(float(_exact_point_triangle_d2(p, a, b, c)))
+        ours, _ = oracle_point_triangle(p, a, b, c)
+        bench = point_triangle_d2(p, a, b, c)
+        # The barycentrics of a 1e-7-thick sliver keep about 1e-9 of float64's digits, which
+        # slides the nearest point within the plane by up to about 1e-11 (seen: 2e-11 for a
+        # point on the triangle); the Gram form was off by 1e-7 to 2e-5.
+        assert abs(np.sqrt(ours) - exact) <= 1e-10, (p, a, b, c, exact, np.sqrt(ours))
+        assert abs(np.sqrt(bench) - exact) <= 1e-10, (p, a, b, c, exact, np.sqrt(bench))
 
 
 def test_checker_rejects_wrong_answers(rng):
