@@ -205,7 +205,8 @@ def _ignore_prim_values(ignore_prim, num_rays: int, num_prims: int) -> np.ndarra
     if ignore_prim is None:
         return np.zeros(0, np.int32)
     values = np.asarray(ignore_prim.numpy() if isinstance(ignore_prim, wp.array) else ignore_prim)
-    if values.dtype.kind not in "iu":
+    # An empty list is an empty batch's ignore_prim (NumPy reads it as float64), as it is its t_max.
+    if values.dtype.kind not in "iu" and values.size > 0:
         raise ValueError(f"ignore_prim must hold integer triangle indices (-1 for none), got dtype {values.dtype}")
     if values.size == 1 and values.ndim <= 1:
         values = values.reshape(1)

@@ -671,6 +671,13 @@ def test_empty_batches(device, scene):
     assert point.shape == (0, 3) and dist.shape == prim.shape == (0,)
     t, prim = query.intersect(bvh, [], [])
     assert t.shape == prim.shape == (0,)
+    # And so is an empty list of per-ray ranges and ignored triangles (NumPy reads it as float64).
+    t, prim = query.intersect(bvh, none, none, t_min=[], t_max=[], ignore_prim=[])
+    assert t.shape == prim.shape == (0,)
+    assert query.occluded(bvh, none, none, ignore_prim=[]).shape == (0,)
+    assert query.intersect_all(bvh, none, none, ignore_prim=[])[0].shape == (0,)
+    with pytest.raises(ValueError, match="integer triangle indices"):
+        query.intersect(bvh, np.zeros((1, 3)), np.ones((1, 3)), ignore_prim=[0.0])
 
 
 def test_query_boxes_are_validated(device, scene):
