@@ -548,8 +548,9 @@ class Builder:
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
         stages = self._finish(timer)
-        if self.policy == "auto":
-            self.sah_reference = _finite_or_none(self.sah_cost())
+        # Priced only for `auto`; under another policy the reference is cleared, not left at the
+        # previous mesh's cost, so a later switch to `auto` rebuilds first.
+        self.sah_reference = _finite_or_none(self.sah_cost()) if self.policy == "auto" else None
         self._report("rebuild", "first build", start, stages)
         return self.bvh
 

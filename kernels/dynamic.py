@@ -262,9 +262,13 @@ def bend_kernel(
     if wp.abs(curvature) < 1.0e-12:
         vertices[tid] = rest[tid]
         return
-    radius = 1.0 / curvature
+    # radius - (radius - across) cos(theta), written as radius (1 - cos(theta)) + across cos(theta)
+    # with 1 - cos(theta) = 2 sin^2(theta / 2): the plain difference of two values near the radius
+    # lost `across` to float32 rounding as the radius grew (a unit mesh bent by 1e-8 of pi has a
+    # radius of about 3e7, where float32 steps by 4: its vertices moved by the mesh's whole size).
     theta = along * curvature
-    r = radius - across
-    new_along = r * wp.sin(theta)
-    new_across = radius - r * wp.cos(theta)
+    s = wp.sin(theta)
+    h = wp.sin(0.5 * theta)
+    new_along = s / curvature - across * s
+    new_across = 2.0 * h * h / curvature + across * wp.cos(theta)
     vertices[tid] = origin + new_along * length_axis + new_across * bend_axis + other

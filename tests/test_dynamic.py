@@ -812,6 +812,29 @@ def test_a_new_mesh_starts_with_no_chaotic_wait(device, rng):
     assert not report["reason"].startswith("chaotic"), report
 
 
+def test_a_new_mesh_built_under_another_policy_leaves_auto_no_reference(device, rng):
+    # A mesh set up by build() while the policy was not "auto" is not priced; the cost of the
+    # mesh before it (here slivers across the whole scene, about 27x the new mesh's) stayed the
+    # reference, so after a switch to "auto" the first refit read as -96% growth and was kept,
+    # and so would a refit tree far past the limit. The switch must rebuild first (the policy's
+    # docstring), and the refits after it grow from the new mesh's own tree.
+    n = 1500
+    slivers = (rng.random((3 * n, 3)) * 2.0 - 1.0).astype(np.float32)
+    faces = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+    builder = Builder(n, device=device, policy="auto")
+    builder.build(slivers, faces)
+    builder.policy = "rebuild"
+    v, _ = _soup(rng, n)
+    builder.build(v, faces)
+    builder.policy = "auto"
+    report = builder.update(v + np.float32(1e-5))
+    assert report["decision"] == "rebuild" and "no SAH reference" in report["reason"], report
+    best = numpy_sah(builder.bvh.to_numpy())
+    report = builder.update(v + np.float32(2e-5))
+    assert report["decision"] == "refit", report
+    assert report["sah_growth"] == pytest.approx(report["sah_refit"] / best - 1.0, abs=1e-6)
+
+
 def test_an_infinite_frame_sets_no_reference_for_later_refits(device, rng):
     # A non-finite frame written in place is rebuilt and priced; its cost must not become the
     # reference a later refit is compared with (that refit would fail and start a chaotic wait).
@@ -834,7 +857,10 @@ def test_the_exploding_scene_scales_with_the_mesh(device, rng):
     assert np.abs(b / 1000.0 - a).max() / np.abs(a).max() < 1e-4
 
 
-@pytest.mark.parametrize("amount", [-0.5, 0.5])
+# The small amounts (the first frames of a slow bend): the kernel's radius - r cos(theta) lost
+# the vertices' offsets across the bend to float32 rounding as the radius grew (1e-9 moved
+# vertices by the mesh's whole size, 1e-4 by 1.4e-4 of it).
+@pytest.mark.parametrize("amount", [-0.5, 0.5, 1e-4, -1e-6, 1e-9])
 def test_bending_either_way_matches_the_float64_bend(device, rng, amount):
     v, f = _soup(rng, 400)
     mesh = BendingMesh(v, f, device=device)
