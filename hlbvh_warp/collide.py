@@ -141,6 +141,10 @@ def _triangle_rows(values, name: str) -> np.ndarray:
         arr = arr.reshape(1, 3, 3)
     if arr.ndim != 3 or arr.shape[1:] != (3, 3):
         raise ValueError(f"{name} must have shape (K, 3, 3): K triangles of three vertices, got {arr.shape}")
+    if arr.dtype.kind in "iu":
+        # Straight to float32, rounded once, as a mesh's vertices are (`inputs._check_points`):
+        # through float64 an integer past 2^53 is rounded twice, to another float32 at times.
+        return np.ascontiguousarray(arr.astype(np.float32))
     if arr.dtype != np.float32:
         arr = arr.astype(np.float64, copy=False)
     inputs.check_float32_range(arr.reshape(-1, 3), name)

@@ -1133,6 +1133,23 @@ def test_single_triangle_is_a_batch_of_one(device):
         assert got.shape == (1,) and bool(got[0]) is expected
 
 
+def test_integer_coordinates_are_rounded_once(device):
+    """Integer coordinates are read as the nearest float32, as everywhere else (README): through
+    float64 first, 2^60 + 2^36 + 1 lost its last bit and then tied to even, 2^60, where the nearest
+    float32 is 2^60 + 2^37 (the float32 spacing there is 2^37). Points as zero-area triangles: they
+    meet iff they round to the same float32."""
+    x = 2**60 + 2**36 + 1
+    point = np.array([[x, 0, 0]] * 3, np.int64)
+    for other, expected in ((2**60 + 2**37, True), (2**60, False)):
+        got = hlbvh_warp.triangles_intersect(point, np.array([[other, 0, 0]] * 3, np.int64), device=device)
+        assert got.tolist() == [expected], (other - 2**60, got)
+        # The mesh query reads the same integers the same way.
+        face = np.array([[0, 1, 2]], np.int32)
+        a = hlbvh_warp.build(point, face, device=device)
+        b = hlbvh_warp.build(np.array([[other, 0, 0]] * 3, np.int64), face, device=device)
+        assert len(hlbvh_warp.intersecting_pairs(a, b)) == int(expected)
+
+
 def test_trees_on_different_devices_are_refused():
     if len(DEVICES) < 2:
         pytest.skip("needs a CUDA device beside the CPU")
