@@ -10,6 +10,11 @@ import warp as wp
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
+# The empty box's corners for the min / max reductions: float32's largest finite value. At 3.4e38
+# the bounds of centroids past it (up to 3.4028e38, finite input the checks accept) kept the
+# sentinel as a corner, a grid wider than the centroids.
+FLOAT32_MAX = wp.constant(3.4028234663852886e38)
+
 
 @wp.func
 def box_centroid(lower: wp.vec3, upper: wp.vec3):
@@ -55,7 +60,7 @@ def triangle_bounds_centroids_kernel(
     end = wp.min(begin + chunk, num_prims)
     if begin >= end:
         return
-    big = 3.4e38
+    big = FLOAT32_MAX
     lower = wp.vec3(big, big, big)
     upper = wp.vec3(-big, -big, -big)
     for i in range(begin, end):
@@ -138,7 +143,7 @@ def triangle_bounds_centroids_cpu_kernel(
     end = wp.min(begin + chunk, num_prims)
     if begin >= end:
         return
-    big = 3.4e38
+    big = FLOAT32_MAX
     lower = wp.vec3(big, big, big)
     upper = wp.vec3(-big, -big, -big)
     for i in range(begin, end):
@@ -155,9 +160,9 @@ def triangle_bounds_centroids_cpu_kernel(
 
 @wp.kernel
 def reset_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3)):
-    """Empty the scene bounds (inverted at +-3.4e38) before the atomic min/max reduction."""
+    """Empty the scene bounds (inverted at +-FLOAT32_MAX) before the atomic min/max reduction."""
     # scene_bounds[0] is the lower corner, scene_bounds[1] the upper corner.
-    big = 3.4e38
+    big = FLOAT32_MAX
     scene_bounds[0] = wp.vec3(big, big, big)
     scene_bounds[1] = wp.vec3(-big, -big, -big)
 
@@ -173,7 +178,7 @@ def set_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3), lower: wp.vec3, upp
 def reset_partial_bounds_kernel(partials: wp.array(dtype=wp.vec3)):
     """Empty bounds t (partials[2t] and [2t + 1]) as `reset_bounds_kernel` does, one per thread."""
     t = wp.tid()
-    big = 3.4e38
+    big = FLOAT32_MAX
     partials[2 * t] = wp.vec3(big, big, big)
     partials[2 * t + 1] = wp.vec3(-big, -big, -big)
 

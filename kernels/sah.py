@@ -124,7 +124,9 @@ def bin_of(c: float, cmin: float, scale: wp.float64, num_bins: int) -> int:
 MAX_SWEEP_BINS = 64
 sweep_areas = wp.types.vector(length=MAX_SWEEP_BINS, dtype=wp.float64)
 sweep_counts = wp.types.vector(length=MAX_SWEEP_BINS, dtype=wp.int32)
-BIG = wp.constant(3.0e38)
+# The empty box's corners for min / max reductions: float32's largest finite value. At 3e38,
+# boxes of finite input past it (up to 3.4e38, accepted) kept the sentinel as a corner.
+BIG = wp.constant(3.4028234663852886e38)
 
 
 @wp.func
