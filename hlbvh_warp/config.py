@@ -186,6 +186,11 @@ class BuildConfig:
                                  f"(got {self.morton_bounds!r})")
             if not np.all(np.isfinite(box)):
                 raise ValueError(f"BuildConfig: morton_bounds must be finite (got {self.morton_bounds!r})")
+            # The grid reaches the kernels as float32, where 1e39 is inf: every centroid then
+            # quantized to cell 0 (a tree in input order), where the float64 box would not.
+            if np.abs(box).max() > np.finfo(np.float32).max:
+                raise ValueError(f"BuildConfig: morton_bounds must lie within the float32 range "
+                                 f"(got {self.morton_bounds!r})")
             if np.any(box[0] > box[1]):
                 raise ValueError(f"BuildConfig: morton_bounds lower corner exceeds the upper one "
                                  f"(got {self.morton_bounds!r})")

@@ -86,7 +86,8 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
     device = wp.get_device(device)
     lowers = prim_lowers.numpy()
     uppers = prim_uppers.numpy()
-    centroids = np.float32(0.5) * (lowers + uppers)
+    # Summed in float64 as the kernels' `box_centroid`: in float32 the sum overflows past 1.7e38.
+    centroids = (0.5 * (lowers.astype(np.float64) + uppers)).astype(np.float32)
     n = len(lowers)
     num_bins = config.recursive_sah_bins
     t1 = config.sah_traversal_cost

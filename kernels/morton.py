@@ -10,6 +10,21 @@ import warp as wp
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
+# The empty box's corners for the min / max reductions: float32's largest finite value. At 3.4e38
+# the bounds of centroids past it (up to 3.4028e38, finite input the checks accept) kept the
+# sentinel as a corner, a grid wider than the centroids.
+FLOAT32_MAX = wp.constant(3.4028234663852886e38)
+
+
+@wp.func
+def box_centroid(lower: wp.vec3, upper: wp.vec3):
+    """The centre of the box [lower, upper]: 0.5 * (lower + upper), summed in float64."""
+    # In float32 the sum overflows to inf past 1.7e38 (finite input the checks accept), which put
+    # every centroid in one Morton cell. Float64 carries more than twice float32's precision, so
+    # rounding its exact half to float32 gives the float32 expression's bits wherever that did
+    # not overflow (the centroid of a point is the point, subnormal or not).
+    return wp.vec3(wp.float64(0.5) * (wp.vec3d(lower) + wp.vec3d(upper)))
+
 
 @wp.kernel
 def triangle_bounds_kernel(
@@ -45,7 +60,7 @@ def triangle_bounds_centroids_kernel(
     end = wp.min(begin + chunk, num_prims)
     if begin >= end:
         return
-    big = 3.4e38
+    big = FLOAT32_MAX
     lower = wp.vec3(big, big, big)
     upper = wp.vec3(-big, -big, -big)
     for i in range(begin, end):
@@ -56,7 +71,7 @@ def triangle_bounds_centroids_kernel(
         box_upper = wp.max(wp.max(a, b), c)
         prim_lowers[i] = box_lower
         prim_uppers[i] = box_upper
-        centroid = 0.5 * (box_lower + box_upper)
+        centroid = box_centroid(box_lower, box_upper)
         lower = wp.min(lower, centroid)
         upper = wp.max(upper, centroid)
     wp.atomic_min(scene_bounds, 0, lower)
@@ -128,14 +143,14 @@ def triangle_bounds_centroids_cpu_kernel(
     end = wp.min(begin + chunk, num_prims)
     if begin >= end:
         return
-    big = 3.4e38
+    big = FLOAT32_MAX
     lower = wp.vec3(big, big, big)
     upper = wp.vec3(-big, -big, -big)
     for i in range(begin, end):
         box_lower, box_upper = triangle_box_cpu(vertices[faces[i, 0]], vertices[faces[i, 1]], vertices[faces[i, 2]])
         prim_lowers[i] = box_lower
         prim_uppers[i] = box_upper
-        centroid = 0.5 * (box_lower + box_upper)
+        centroid = box_centroid(box_lower, box_upper)
         # lower and upper start finite and only ever take a centroid that is not NaN.
         lower = min_of_ordered(lower, centroid)
         upper = max_of_ordered(upper, centroid)
@@ -145,9 +160,9 @@ def triangle_bounds_centroids_cpu_kernel(
 
 @wp.kernel
 def reset_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3)):
-    """Empty the scene bounds (inverted at +-3.4e38) before the atomic min/max reduction."""
+    """Empty the scene bounds (inverted at +-FLOAT32_MAX) before the atomic min/max reduction."""
     # scene_bounds[0] is the lower corner, scene_bounds[1] the upper corner.
-    big = 3.4e38
+    big = FLOAT32_MAX
     scene_bounds[0] = wp.vec3(big, big, big)
     scene_bounds[1] = wp.vec3(-big, -big, -big)
 
@@ -163,7 +178,7 @@ def set_bounds_kernel(scene_bounds: wp.array(dtype=wp.vec3), lower: wp.vec3, upp
 def reset_partial_bounds_kernel(partials: wp.array(dtype=wp.vec3)):
     """Empty bounds t (partials[2t] and [2t + 1]) as `reset_bounds_kernel` does, one per thread."""
     t = wp.tid()
-    big = 3.4e38
+    big = FLOAT32_MAX
     partials[2 * t] = wp.vec3(big, big, big)
     partials[2 * t + 1] = wp.vec3(-big, -big, -big)
 
@@ -199,10 +214,10 @@ def centroid_bounds_kernel(
     end = wp.min(begin + chunk, num_prims)
     if begin >= end:
         return
-    lower = 0.5 * (prim_lowers[begin] + prim_uppers[begin])
+    lower = box_centroid(prim_lowers[begin], prim_uppers[begin])
     upper = lower
     for i in range(begin + 1, end):
-        c = 0.5 * (prim_lowers[i] + prim_uppers[i])
+        c = box_centroid(prim_lowers[i], prim_uppers[i])
         lower = wp.min(lower, c)
         upper = wp.max(upper, c)
     wp.atomic_min(scene_bounds, 0, lower)
@@ -246,7 +261,7 @@ def morton_code(lower: wp.vec3, upper: wp.vec3, scene_lower: wp.vec3, scene_uppe
     """The 3n-bit Morton code (Morton 1966) of a box's centroid on the grid of 2^n cells per axis over the
     scene box, n = `bits_per_axis`, as LBVH (Lauterbach et al. 2009) and HLBVH (Pantaleoni & Luebke 2010,
     sections 2.1 and 3.1) order primitives."""
-    c = 0.5 * (lower + upper)
+    c = box_centroid(lower, upper)
     cells = 1 << bits_per_axis
     x = quantize(c[0], scene_lower[0], scene_upper[0], cells)
     y = quantize(c[1], scene_lower[1], scene_upper[1], cells)
@@ -314,7 +329,7 @@ def morton_codes_cpu_kernel(
     scene_lower = scene_bounds[0]
     scene_upper = scene_bounds[1]
     for i in range(begin, end):
-        c = 0.5 * (prim_lowers[i] + prim_uppers[i])
+        c = box_centroid(prim_lowers[i], prim_uppers[i])
         x = quantize(c[0], scene_lower[0], scene_upper[0], cells)
         y = quantize(c[1], scene_lower[1], scene_upper[1], cells)
         z = quantize(c[2], scene_lower[2], scene_upper[2], cells)

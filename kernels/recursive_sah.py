@@ -20,6 +20,7 @@ so the stack holds at most log2(N) deferred siblings.
 import warp as wp
 
 from .metrics import box_area64
+from .morton import box_centroid
 from .sah import BIG, best_bin_split
 
 # Forward-only kernels: no adjoints to compile.
@@ -87,7 +88,7 @@ def temp_bvh_cost(
             p = items[k]
             lo = prim_lowers[p]
             hi = prim_uppers[p]
-            c = 0.5 * (lo + hi)
+            c = box_centroid(lo, hi)
             box_lo = wp.min(box_lo, lo)
             box_hi = wp.max(box_hi, hi)
             cen_lo = wp.min(cen_lo, c)
@@ -109,7 +110,7 @@ def temp_bvh_cost(
             p = items[k]
             lo = prim_lowers[p]
             hi = prim_uppers[p]
-            c = 0.5 * (lo + hi)
+            c = box_centroid(lo, hi)
             for axis in range(3):
                 if extent[axis] > 0.0:
                     slot = axis * num_bins + bin_of(c[axis], cen_lo[axis], extent[axis], num_bins)
@@ -126,7 +127,7 @@ def temp_bvh_cost(
             j = e - 1
             while i <= j:
                 p = items[i]
-                c = 0.5 * (prim_lowers[p] + prim_uppers[p])
+                c = box_centroid(prim_lowers[p], prim_uppers[p])
                 if bin_of(c[best_axis], cen_lo[best_axis], extent[best_axis], num_bins) < best_bin:
                     i += 1
                 else:

@@ -40,7 +40,14 @@ NO_COST = wp.constant(wp.float64(1.0e300))
 @wp.func
 def item_centroid(lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3), item: int, axis: int) -> float:
     """Centroid of item `item` along `axis`."""
-    return 0.5 * (lowers[item][axis] + uppers[item][axis])
+    # Summed in float64, as morton.box_centroid: in float32 lower + upper overflows past 1.7e38.
+    return centroid_of(lowers[item][axis], uppers[item][axis])
+
+
+@wp.func
+def centroid_of(lower: float, upper: float) -> float:
+    """0.5 * (lower + upper) rounded once from float64 (`morton.box_centroid`): no overflow."""
+    return float(wp.float64(0.5) * (wp.float64(lower) + wp.float64(upper)))
 
 
 @wp.func
@@ -117,7 +124,9 @@ def bin_of(c: float, cmin: float, scale: wp.float64, num_bins: int) -> int:
 MAX_SWEEP_BINS = 64
 sweep_areas = wp.types.vector(length=MAX_SWEEP_BINS, dtype=wp.float64)
 sweep_counts = wp.types.vector(length=MAX_SWEEP_BINS, dtype=wp.int32)
-BIG = wp.constant(3.0e38)
+# The empty box's corners for min / max reductions: float32's largest finite value. At 3e38,
+# boxes of finite input past it (up to 3.4e38, accepted) kept the sentinel as a corner.
+BIG = wp.constant(3.4028234663852886e38)
 
 
 @wp.func
@@ -259,12 +268,12 @@ def binned_split_presorted(b: int, e: int, inputs: SplitInputs):
         upper = item_uppers[item]
         w = item_weights[item]
         count = int(1)
-        current = bin_of(0.5 * (lower[a] + upper[a]), cmin, scale, num_bins)
+        current = bin_of(centroid_of(lower[a], upper[a]), cmin, scale, num_bins)
         for i in range(b + 1, e):
             item = order[base + i]
             item_lower = item_lowers[item]
             item_upper = item_uppers[item]
-            j = bin_of(0.5 * (item_lower[a] + item_upper[a]), cmin, scale, num_bins)
+            j = bin_of(centroid_of(item_lower[a], item_upper[a]), cmin, scale, num_bins)
             if j != current:
                 bin_lowers[b + current] = lower
                 bin_uppers[b + current] = upper
@@ -365,11 +374,13 @@ def choose_split(b: int, e: int, inputs: SplitInputs):
     if mode == MODE_MEDIAN:
         # Object median on the axis of largest centroid extent: the extent is read off the ends
         # of the presorted order, no pass over the range needed.
+        # Extents in float64: in float32 a scene spanning -3e38 to 3e38 has an infinite extent
+        # on every axis, and the first axis won whatever its extent.
         best_axis = int(0)
-        best_extent = float(-1.0)
+        best_extent = wp.float64(-1.0)
         for a in range(3):
-            lo_c = item_centroid(item_lowers, item_uppers, order[a * num_items + b], a)
-            hi_c = item_centroid(item_lowers, item_uppers, order[a * num_items + e - 1], a)
+            lo_c = wp.float64(item_centroid(item_lowers, item_uppers, order[a * num_items + b], a))
+            hi_c = wp.float64(item_centroid(item_lowers, item_uppers, order[a * num_items + e - 1], a))
             if hi_c - lo_c > best_extent:
                 best_extent = hi_c - lo_c
                 best_axis = a

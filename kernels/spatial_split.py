@@ -23,6 +23,7 @@ from, so a reference's box always contains its part of the triangle and its pare
 import warp as wp
 
 from .metrics import box_area64, clip_to_slab, mat93d, triangle_in_box
+from .morton import box_centroid
 from .recursive_sah import bin_of as centroid_bin
 from .sah import BIG, MAX_SWEEP_BINS, best_bin_split
 
@@ -210,7 +211,7 @@ def split_search_kernel(
     for k in range(b, e):
         lo = ref_lo[k]
         hi = ref_hi[k]
-        c = 0.5 * (lo + hi)
+        c = box_centroid(lo, hi)
         box_lo = wp.min(box_lo, lo)
         box_hi = wp.max(box_hi, hi)
         cen_lo = wp.min(cen_lo, c)
@@ -233,7 +234,7 @@ def split_search_kernel(
     for k in range(b, e):
         lo = ref_lo[k]
         hi = ref_hi[k]
-        c = 0.5 * (lo + hi)
+        c = box_centroid(lo, hi)
         for axis in range(3):
             if extent[axis] > 0.0:
                 slot = axis * num_bins + centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins)
@@ -388,7 +389,7 @@ def distribute_kernel(
                 to_right = 1
         elif kind == KIND_OBJECT:
             # The search kernel's expression, so both count the same side.
-            c = 0.5 * (lo + hi)
+            c = box_centroid(lo, hi)
             if centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins) < j:
                 to_left = 1
             else:

@@ -356,6 +356,57 @@ def test_binned_sah_near_the_smallest_normal(device, num_bins):
     check_tree_invariants(tree, n)
 
 
+@pytest.mark.parametrize("method", ["hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median"])
+@pytest.mark.parametrize("mesh", [False, True])
+@pytest.mark.parametrize("signs", ["positive", "both"])
+def test_centroids_near_the_largest_float32(device, method, mesh, signs):
+    """Coordinates up to 2^128, all finite float32 (the input checks accept them): the sum
+    lower + upper of a centroid ("positive": [2^127, 2^128)) or the centroids' extent ("both":
+    (-2^128, 2^128)) is past float32's range. The tree must be the one over the same geometry
+    scaled down by 2^127 (exact: a power of two, every value normal), where an overflowed centroid
+    (inf) put every primitive in one Morton cell or at one sweep position and left the input
+    order (an SAH cost 20x the unit scene's), and an overflowed extent made the median split
+    the first axis whatever its extent."""
+    rng = np.random.default_rng(8)
+    n = 400
+
+    def unit_coords(shape):
+        if signs == "positive":
+            return (1.0 + 0.9 * rng.random(shape)).astype(np.float32)
+        return (1.9 * (2.0 * rng.random(shape) - 1.0)).astype(np.float32)
+
+    def scaled(x):
+        big = x.astype(np.float64) * 2.0**127
+        return big.astype(np.float32)
+
+    if mesh:
+        unit_v = unit_coords((3 * n, 3))
+        # Long thin triangles along y on one half, along z on the other: the median's axis matters.
+        unit_v[1::3] = unit_v[0::3]
+        unit_v[2::3] = unit_v[0::3]
+        unit_v[1::3, 1] += np.float32(0.05)
+        unit_v[2::3, 2] += np.float32(0.05)
+        faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+        tree = hw.build(scaled(unit_v), faces, method=method, device=device).to_numpy()
+        unit = hw.build(unit_v, faces, method=method, device=device).to_numpy()
+        unit_lo = unit_v.reshape(n, 3, 3).min(axis=1)
+        unit_hi = unit_v.reshape(n, 3, 3).max(axis=1)
+    else:
+        unit_lo = unit_coords((n, 3))
+        unit_hi = unit_lo + (rng.random((n, 3)) * 0.05).astype(np.float32)
+        tree = hw.build_from_bounds(scaled(unit_lo), scaled(unit_hi), method=method, device=device).to_numpy()
+        unit = hw.build_from_bounds(unit_lo, unit_hi, method=method, device=device).to_numpy()
+    with np.errstate(over="ignore"):  # the scene does what the test means
+        sums = scaled(unit_lo) + scaled(unit_hi)
+        if signs == "positive":
+            assert np.isinf(sums).all()
+        else:
+            centroids = (unit_lo.astype(np.float64) + unit_hi) * 2.0**126
+            assert np.isinf((centroids.max(axis=0) - centroids.min(axis=0)).astype(np.float32)).all()
+    for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order"):
+        np.testing.assert_array_equal(tree[name], unit[name], err_msg=name)
+
+
 @pytest.mark.parametrize("num_bins", [4, 32])
 @pytest.mark.parametrize("shape", [(4, 4, 4), (3, 5, 5), (6, 6, 2)])
 def test_binned_root_split_ties_on_a_lattice(device, num_bins, shape):

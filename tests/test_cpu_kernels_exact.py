@@ -10,7 +10,7 @@ import pytest
 import warp as wp
 
 import hlbvh_warp as hb
-from hlbvh_warp.hlbvh import CPU_MORTON_CHUNK, PARALLEL_MIN_PRIMS, HlbvhPipeline
+from hlbvh_warp.hlbvh import CPU_MORTON_CHUNK, PARALLEL_BOUNDS_MIN_PRIMS, PARALLEL_MIN_PRIMS, HlbvhPipeline
 from hlbvh_warp.kernels import morton
 
 
@@ -105,6 +105,42 @@ def test_morton_codes_on_the_centroid_bounds_match_float64(device, rng, scale):
     codes = pipe.morton_codes.numpy()
     np.testing.assert_array_equal(codes, morton_on_grid(centroids, *grid, 10))
     np.testing.assert_array_equal(codes, old_codes(pipe.prim_lowers, pipe.prim_uppers, pipe.scene_bounds, 10, device))
+
+
+@pytest.mark.parametrize("n, threads", [(1000, 1), (PARALLEL_BOUNDS_MIN_PRIMS + 5, 2)])
+@pytest.mark.parametrize("mesh", [False, True])
+def test_centroid_bounds_past_3_4e38(device, rng, n, threads, mesh):
+    """Centroids beyond 3.4e38 on x, below -3.4e38 on y (finite float32 up to 3.4028e38, which the
+    input checks accept): the reductions started from +-3.4e38 kept that as the grid's corner,
+    a grid wider than the centroids, so the codes and the tree's order were not the stable sort
+    of the codes on the centroid bounds."""
+    top = np.float64(np.finfo(np.float32).max)
+    rows = 3 * n if mesh else n
+    pts = (top * (1.0 - 0.0004 * rng.random((rows, 3)))).astype(np.float32)
+    pts[:, 1] *= -1
+    pts[:, 2] = rng.standard_normal(rows).astype(np.float32)
+    if mesh:
+        faces = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+        lo, hi = pts[faces].min(axis=1), pts[faces].max(axis=1)
+    else:
+        lo, hi = pts, pts
+    centroids = (0.5 * (lo.astype(np.float64) + hi)).astype(np.float32)
+    grid = centroids.min(axis=0), centroids.max(axis=0)
+    assert grid[0][0] > 3.4e38 and grid[1][1] < -3.4e38  # the scene does what the test means
+    config = hb.BuildConfig(cpu_threads=threads)
+    pipe = HlbvhPipeline(n, config, device)
+    if mesh:
+        pipe.compute_triangle_bounds(wp.array(pts, dtype=wp.vec3, device=device),
+                                     wp.array(faces, dtype=wp.int32, device=device))
+    else:
+        pipe.prim_lowers.assign(lo)
+        pipe.prim_uppers.assign(hi)
+        pipe.compute_centroid_bounds()
+    np.testing.assert_array_equal(pipe.scene_bounds.numpy(), np.stack(grid))
+    expected = np.argsort(morton_on_grid(centroids, *grid, 10), kind="stable")
+    bvh = hb.build(pts, faces, device=device, config=config) if mesh else \
+        hb.build_from_bounds(lo, hi, device=device, config=config)
+    np.testing.assert_array_equal(bvh.to_numpy()["prim_order"], expected)
 
 
 def test_spread_table_is_spread_bits_10():

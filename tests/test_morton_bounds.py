@@ -26,6 +26,10 @@ def centroid_box(v, f):
     ("box", "morton_bounds must be"),
     (((0, 0, np.nan), (1, 1, 1)), "finite"),
     (((0, 2, 0), (1, 1, 1)), "lower corner exceeds"),
+    # Finite, but infinite as the kernels' float32: every centroid then fell in cell 0 (an SAH
+    # cost 10x the same grid at +-3.4e38 on boxes spread over +-3e38).
+    (((-1e39, 0, 0), (1, 1, 1)), "float32"),
+    (((0, 0, 0), (1, 1, 3.5e38)), "float32"),
 ])
 def test_bad_bounds_are_rejected(bad, match):
     with pytest.raises(ValueError, match=match):

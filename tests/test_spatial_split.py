@@ -466,6 +466,48 @@ def test_clipped_part_boxes_hold_the_exact_parts_when_z_is_large(device, rng):
     assert checked > 300
 
 
+def test_boxes_past_3e38_are_their_triangles_boxes(device, rng):
+    """Vertices beyond 3.0e38 on x and below -3.0e38 on y, finite float32 the input checks accept:
+    the reductions' empty box, at +-3.0e38, stayed a corner of every node and bin box there (the
+    root's lower x 3.0e38 below every vertex), so the sweeps priced boxes larger than the parts."""
+    top = np.float64(np.finfo(np.float32).max)
+    verts, faces = slivers(rng, 60, length=0.3)
+    verts = verts.astype(np.float64)
+    verts[:, 0] = top * (0.9 + 0.08 * verts[:, 0] / verts[:, 0].max())
+    verts[:, 1] = -top * (0.9 + 0.08 * verts[:, 1] / verts[:, 1].max())
+    verts = verts.astype(np.float32)
+    assert verts[:, 0].min() > 3.0e38 and verts[:, 1].max() < -3.0e38  # the scene does what the test means
+    bvh = hw.build(verts, faces, method="sbvh", device=device, config=hw.BuildConfig(sbvh_alpha=0.0))
+    tree = bvh.to_numpy()
+    np.testing.assert_array_equal(tree["node_lowers"][0], verts.min(axis=0))
+    np.testing.assert_array_equal(tree["node_uppers"][0], verts.max(axis=0))
+    check_parts_bounded(bvh, verts, faces)
+    # Every leaf's box within the boxes of the triangles it references.
+    tris = verts[faces]
+    leaves = np.nonzero(tree["node_left"] < 0)[0]
+    for leaf in leaves:
+        refs = tree["prim_order"][tree["node_begin"][leaf]:tree["node_end"][leaf]]
+        assert (tree["node_lowers"][leaf] >= tris[refs].min(axis=(0, 1))).all()
+        assert (tree["node_uppers"][leaf] <= tris[refs].max(axis=(0, 1))).all()
+
+
+def test_centroids_near_the_largest_float32(device, rng):
+    """Slivers at [2^127, 2^128), finite float32 the input checks accept: lower + upper of every
+    reference's centroid overflowed float32 to inf, every object split binned them all in one
+    bin, and the tree priced worse than the same mesh scaled down by 2^127. Scaled by a power of
+    two (every value normal) every decision is the same: the tree must be that mesh's."""
+    verts, faces = slivers(rng, 80, length=0.3)
+    verts = (1.0 + 0.75 * (verts - verts.min()) / (verts.max() - verts.min())).astype(np.float32)
+    big = (verts.astype(np.float64) * 2.0**127).astype(np.float32)
+    with np.errstate(over="ignore"):
+        assert np.isinf(big[0::3] + big[1::3]).all()  # the scene does what the test means
+    config = hw.BuildConfig(sbvh_alpha=0.0)
+    tree = hw.build(big, faces, method="sbvh", device=device, config=config).to_numpy()
+    expected = hw.build(verts, faces, method="sbvh", device=device, config=config).to_numpy()
+    for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order"):
+        np.testing.assert_array_equal(tree[name], expected[name], err_msg=name)
+
+
 def test_no_spatial_search_where_the_object_split_does_not_overlap(device, rng):
     # Two clusters far apart: the best object split's boxes are disjoint, an overlap of 0, which
     # is not more than alpha = 0 of the root's area: the spatial search is not tried.
