@@ -45,6 +45,13 @@ PARALLEL_SORT_MIN_PRIMS = 1 << 18
 #: which two sorts at once would corrupt.
 SORTS_SIDE_BY_SIDE = tuple(int(x) for x in wp.config.version.split(".")[:2]) >= (1, 19)
 
+#: The CPU's own bounds and Morton kernels take a box's centre as 0.5 * (lower + upper), which
+#: overflows past 1.7e38; where the centroid bounds (or the fixed grid) reach this far on an axis,
+#: the host takes the kernels with `morton.box_centroid` instead (`HlbvhPipeline.compute_morton_codes`).
+#: Below it no centre can overflow, and one that overflowed lies outside the grid on the side its
+#: infinity does, which clamps it to the same border cell.
+CENTROID_OVERFLOW_BOUND = 2.0**127
+
 #: Adjacent pairs of the input codes a CPU build samples to estimate its run count before
 #: encoding (`HlbvhPipeline.sampled_run_fraction`): a standard error of at most 0.016 in M / N.
 RUN_SAMPLES = 1024
@@ -151,6 +158,8 @@ class HlbvhPipeline:
             return memory.empty(count, dtype=wp.int32, device=device)
 
         self.scene_bounds = wp.empty(2, dtype=wp.vec3, device=device)
+        # A NumPy view of the CPU's bounds, made once: the frame's overflow check reads six floats.
+        self.scene_bounds_host = self.scene_bounds.numpy() if self.device.is_cpu else None
         # The CPU's bounds pass on several cores: each slice reduces into its own pair (atomics on
         # the CPU device are not atomic across threads), combined in order after.
         self.partial_bounds = wp.empty(2 * 64, dtype=wp.vec3, device=device)
@@ -262,6 +271,17 @@ class HlbvhPipeline:
         kernel = morton.triangle_bounds_centroids_cpu_kernel if self.device.is_cpu \
             else morton.triangle_bounds_centroids_kernel
         self._reduce_centroid_bounds(kernel, [vertices, faces, lowers, uppers], per_prim=(1, 2, 3))
+        if self.device.is_cpu and not self.grid_within_overflow_bound():
+            # A centre may have overflowed in the CPU kernel's plain expression: the bounds
+            # again, from the boxes, with `box_centroid` (coordinates past 1.7e38 only).
+            self._reduce_centroid_bounds(morton.centroid_bounds_kernel, [lowers, uppers], per_prim=(0, 1))
+
+    def grid_within_overflow_bound(self) -> bool:
+        """Whether the CPU's `scene_bounds` lie within +-`CENTROID_OVERFLOW_BOUND` on every axis
+        (NaN bounds do not), where the plain centres of its own kernels cannot overflow."""
+        # Six Python floats: NumPy's ufuncs on this view cost 20 us a frame, the list 2.
+        bound = CENTROID_OVERFLOW_BOUND
+        return all(-bound < x < bound for x in self.scene_bounds_host.ravel().tolist())
 
     def compute_triangle_boxes(self, vertices: wp.array, faces: wp.array, lowers: wp.array | None = None,
                                uppers: wp.array | None = None):
@@ -360,7 +380,9 @@ class HlbvhPipeline:
         codes = self.morton_codes if codes is None else codes
         if not bounds_ready:
             self.compute_centroid_bounds()
-        if not self.device.is_cpu:
+        if not self.device.is_cpu or not self.grid_within_overflow_bound():
+            # CUDA, or a CPU grid so wide that a centre may overflow in the CPU kernel's plain
+            # expression: the kernel with `box_centroid`.
             self._launch(
                 morton.morton_codes_kernel,
                 n,

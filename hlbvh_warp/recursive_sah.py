@@ -78,6 +78,18 @@ def _side_costs(scratch: np.ndarray, firsts: np.ndarray, lasts: np.ndarray, prim
     return costs.numpy()
 
 
+def host_centroids(lowers: np.ndarray, uppers: np.ndarray) -> np.ndarray:
+    """The kernels' `morton.box_centroid` on the host, to the bit: 0.5 * (lower + upper) in
+    float32, and where that sum overflows (past 1.7e38), the sum of the exact halves."""
+    half = np.float32(0.5)
+    with np.errstate(over="ignore", invalid="ignore"):
+        centroids = half * (lowers + uppers)
+        over = np.isinf(centroids)
+        if over.any():
+            centroids[over] = (half * lowers + half * uppers)[over]
+    return centroids
+
+
 def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig, device,
                         timer: StageTimer) -> Bvh:
     """The RBVH of Wodniok & Goesele (GI 2016, Alg. 1) over the primitive boxes: level by level on
@@ -86,8 +98,7 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
     device = wp.get_device(device)
     lowers = prim_lowers.numpy()
     uppers = prim_uppers.numpy()
-    # Summed in float64 as the kernels' `box_centroid`: in float32 the sum overflows past 1.7e38.
-    centroids = (0.5 * (lowers.astype(np.float64) + uppers)).astype(np.float32)
+    centroids = host_centroids(lowers, uppers)
     n = len(lowers)
     num_bins = config.recursive_sah_bins
     t1 = config.sah_traversal_cost

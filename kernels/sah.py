@@ -40,14 +40,15 @@ NO_COST = wp.constant(wp.float64(1.0e300))
 @wp.func
 def item_centroid(lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3), item: int, axis: int) -> float:
     """Centroid of item `item` along `axis`."""
-    # Summed in float64, as morton.box_centroid: in float32 lower + upper overflows past 1.7e38.
+    # As morton.box_centroid: in float32 lower + upper overflows past 1.7e38.
     return centroid_of(lowers[item][axis], uppers[item][axis])
 
 
 @wp.func
 def centroid_of(lower: float, upper: float) -> float:
-    """0.5 * (lower + upper) rounded once from float64 (`morton.box_centroid`): no overflow."""
-    return float(wp.float64(0.5) * (wp.float64(lower) + wp.float64(upper)))
+    """0.5 * (lower + upper) without overflow, as `morton.box_centroid`."""
+    c = 0.5 * (lower + upper)
+    return wp.where(wp.abs(c) > BIG, 0.5 * lower + 0.5 * upper, c)
 
 
 @wp.func
