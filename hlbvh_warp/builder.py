@@ -336,6 +336,12 @@ class Builder:
             else:
                 sources = [self._source(lowers, "lowers", self.num_prims),
                            self._source(uppers, "uppers", self.num_prims)]
+            for name, src, other in (("lowers", sources[0], "prim_uppers"), ("uppers", sources[1], "prim_lowers")):
+                # The builder's own buffers swapped: loading the lowers would overwrite the
+                # uppers before they were read, and both sides came out as the old uppers.
+                if src.ptr == getattr(self, other).ptr:
+                    raise ValueError(f"{name} is this Builder's own {other} buffer: pass its buffers in their "
+                                     "own places (written in place), or copies")
         if all(src.ptr == buf.ptr for src, buf in zip(sources, self._buffers())):
             return None
         return sources

@@ -207,6 +207,9 @@ def test_box_builder_rejects_bad_frames_and_keeps_its_tree(device, rng):
         # float64 that float32 cannot hold would become Inf when narrowed for the build.
         (dict(bounds=(lowers, huge)), "float32 range"),
         (dict(bounds=(wp.array(lowers, dtype=wp.vec3, device=device), huge)), "float32 range"),
+        # The builder's own buffers swapped (each side would be read after the other's load).
+        (dict(bounds=(builder.prim_uppers, builder.prim_lowers)), "own prim_uppers"),
+        (dict(bounds=(lowers, builder.prim_lowers)), "own prim_lowers"),
     ]
     for kwargs, message in bad:
         for call in (builder.update, builder.rebuild, builder.refit):
