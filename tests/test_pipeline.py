@@ -739,6 +739,29 @@ def test_input_forms_and_their_checks(device):
 
 
 
+def test_indexed_warp_arrays_are_read_as_the_rows_they_select(device, rng):
+    # A wp.indexedarray (rows of a Warp array picked by an index array) is no wp.array subclass:
+    # NumPy wrapped it as one object and the build refused it as "must hold real numbers, got
+    # dtype object", though it holds vec3 floats as any Warp array.
+    pool = rng.random((40, 3)).astype(np.float32)
+    picked = rng.permutation(40)[:24].astype(np.int32)
+    selected = pool[picked]
+    faces = np.arange(24, dtype=np.int32).reshape(8, 3)
+
+    def indexed(rows):
+        return wp.indexedarray(wp.array(rows, dtype=wp.vec3, device=device),
+                               [wp.array(picked, dtype=wp.int32, device=device)])
+
+    bvh = hb.build(indexed(pool), faces, device=device)
+    np.testing.assert_array_equal(bvh.vertices.numpy(), selected)
+    o, d = random_rays(rng, selected, 50)
+    assert_hits_match(*hb.intersect(bvh, o, d), *brute_force_closest_hit(selected, faces, o, d))
+    # A lowers / uppers pair, one indexed and one NumPy.
+    boxes = hb.build_from_bounds(indexed(pool), selected + np.float32(0.1), device=device)
+    np.testing.assert_array_equal(boxes.prim_lowers.numpy(), selected)
+    np.testing.assert_array_equal(boxes.prim_uppers.numpy(), selected + np.float32(0.1))
+
+
 def test_wide_integer_vertices_are_rounded_once(device):
     # Through float64, 2^54 + 2^30 + 1 rounded to 2^54 + 2^30 and then (a tie) to 2^54; the
     # float32 nearest to it is 2^54 + 2^31.
