@@ -41,8 +41,8 @@ def _check_points(values, name: str) -> np.ndarray:
         # Straight to float32, rounded once: through float64 a 64-bit integer past 2^53 would be
         # rounded twice. Every integer fits float32's range.
         return np.ascontiguousarray(arr.astype(np.float32))
-    if arr.dtype != np.float32:
-        arr = arr.astype(np.float64, copy=False)
+    # Checked in the given dtype: a long double past float64's range would be inf once widened
+    # (or narrowed) to float64, and refused as a NaN or Inf it is not.
     check_float32_range(arr, name)
     return np.ascontiguousarray(arr, dtype=np.float32)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -810,6 +812,17 @@ def test_vertex_input_edges(device):
     assert bvh.to_numpy()["node_uppers"][0][1] == np.float32(big)
     with pytest.raises(ValueError, match="beyond the float32 range"):
         hb.build(np.array([[0, 0, 0], [1, 0, 0], [0, 2 * big, 0]], np.float64), faces, device=device)
+    # A long double past float64's range was rounded to float64 first: it became inf and was
+    # refused as a NaN or Inf coordinate (with NumPy's overflow warning), though it is finite.
+    if np.finfo(np.longdouble).max > np.finfo(np.float64).max:
+        huge = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.longdouble)
+        huge[2, 1] = np.longdouble("1e400")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match="beyond the float32 range"):
+                hb.build(huge, faces, device=device)
+            with pytest.raises(ValueError, match="lowers has a coordinate beyond the float32 range"):
+                hb.build_from_bounds(huge, huge + 1, device=device)
     # A flat NumPy array is not (n, 3) vertices (only a flat wp.array of floats is read as rows).
     with pytest.raises(ValueError, match=r"must have shape \(n, 3\)"):
         hb.build(np.array([0, 0, 0, 1, 0, 0, 0, 1, 0], np.float32), faces, device=device)
