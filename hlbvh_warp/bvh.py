@@ -51,7 +51,8 @@ class Bvh:
 
         The arrays are checked as a loaded file is (`hlbvh_warp.load_bvh`), since the traversal
         kernels index with their contents: types, devices and lengths, then, read back to the
-        host, the node count, the tree's structure, its boxes and the face indices. The library's
+        host, the node count, the tree's structure, its boxes, the face indices and, for a mesh,
+        that the primitive boxes are its triangles' (a loaded file's are derived from them). The library's
         builders make their trees through `_trusted`, unchecked.
 
         Raises:
@@ -337,8 +338,20 @@ def _check_contents(bvh: Bvh) -> None:
         vertices, faces = bvh.vertices.numpy(), bvh.faces.numpy()
         if faces.min() < 0 or faces.max() >= vertices.shape[0]:
             raise ValueError(f"Bvh: faces hold a vertex index outside [0, {vertices.shape[0]})")
+        # Rays test the triangles, box queries these boxes, and the leaves were checked against
+        # these boxes only: boxes other than the triangles' (vertices moved after the build) let
+        # a tree through whose leaves miss its triangles. A loaded file's boxes are derived
+        # from its triangles, so it cannot differ; a builder's are the same min and max.
+        # (A NaN matches a NaN here: the check of the boxes below names it.)
+        tri = vertices[faces]
+        differs = np.zeros(faces.shape[0], dtype=bool)
+        for given, own in ((bvh.prim_lowers.numpy(), tri.min(axis=1)), (bvh.prim_uppers.numpy(), tri.max(axis=1))):
+            differs |= ((given != own) & ~(np.isnan(given) & np.isnan(own))).any(axis=1)
+        if differs.any():
+            raise ValueError(f"Bvh: prim_lowers / prim_uppers are not the boxes of its triangles "
+                             f"(first at primitive {int(np.argmax(differs))})")
         if bvh.has_duplicates:  # only a spatial-split tree's leaves are checked against the triangles
-            triangles = vertices[faces]
+            triangles = tri
     tree = {name: getattr(bvh, name).numpy()[:count] for name in NODE_FIELDS}
     tree.update({name: getattr(bvh, name).numpy() for name in ("prim_order", "prim_lowers", "prim_uppers")})
     try:

@@ -19,6 +19,14 @@ EMISSIONS = ("auto", "treelets", "depth_first")
 TRAVERSAL_STACK_SIZE = 64
 
 
+def _shown(value) -> str:
+    """A setting's value for a message: Python refuses to print an integer of more than 4300
+    digits (its int_max_str_digits), so one that long is described instead."""
+    if isinstance(value, int) and value.bit_length() > 1000:
+        return f"an integer of about {int(value.bit_length() * 0.30103)} digits"
+    return repr(value)
+
+
 @dataclasses.dataclass(frozen=True)
 class BuildConfig:
     """Settings of the HLBVH build (Pantaleoni & Luebke, HPG 2010) and of the builders beside it.
@@ -136,12 +144,17 @@ class BuildConfig:
                 # Kernels take these as int32, which wraps silently: a block_capacity of 2^32
                 # reached the voxel sort as 0 and divided by it (SIGFPE, the process gone).
                 if not -(1 << 31) <= int(value) < 1 << 31:
-                    raise ValueError(f"BuildConfig: {field.name} must fit in int32 (got {value!r})")
+                    raise ValueError(f"BuildConfig: {field.name} must fit in int32 (got {_shown(value)})")
                 object.__setattr__(self, field.name, int(value))
             elif field.type == "float":
                 if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
                     raise ValueError(f"BuildConfig: {field.name} must be a number (got {value!r})")
-                object.__setattr__(self, field.name, float(value))
+                try:
+                    object.__setattr__(self, field.name, float(value))
+                except OverflowError:
+                    # float() of an integer past float's range (10**400) raises, not a ValueError.
+                    raise ValueError(f"BuildConfig: {field.name} is too large for a float "
+                                     f"(got {_shown(value)})") from None
             elif field.type == "str" and not isinstance(value, str):
                 raise ValueError(f"BuildConfig: {field.name} must be a string (got {value!r})")
         checks = [

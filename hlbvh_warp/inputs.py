@@ -19,7 +19,9 @@ def count_arg(value, name: str, minimum: int) -> int:
 
 
 def _to_numpy(values, name: str) -> np.ndarray:
-    if isinstance(values, wp.array):
+    # Any Warp array, wp.indexedarray too (no wp.array subclass): NumPy would wrap that as one
+    # object, refused as "dtype object" though it holds numbers.
+    if wp.types.is_array(values):
         return values.numpy()
     try:
         return np.asarray(values)
@@ -31,7 +33,7 @@ def _check_points(values, name: str) -> np.ndarray:
     arr = _to_numpy(values, name)
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
-    if arr.ndim == 1 and arr.size % 3 == 0 and arr.dtype.kind == "f" and isinstance(values, wp.array):
+    if arr.ndim == 1 and arr.size % 3 == 0 and arr.dtype.kind == "f" and wp.types.is_array(values):
         arr = arr.reshape(-1, 3)  # a wp.array of vec3 comes back as (n, 3) already; flat floats too
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (n, 3), got {arr.shape}")
@@ -39,8 +41,8 @@ def _check_points(values, name: str) -> np.ndarray:
         # Straight to float32, rounded once: through float64 a 64-bit integer past 2^53 would be
         # rounded twice. Every integer fits float32's range.
         return np.ascontiguousarray(arr.astype(np.float32))
-    if arr.dtype != np.float32:
-        arr = arr.astype(np.float64, copy=False)
+    # Checked in the given dtype: a long double past float64's range would be inf once widened
+    # (or narrowed) to float64, and refused as a NaN or Inf it is not.
     check_float32_range(arr, name)
     return np.ascontiguousarray(arr, dtype=np.float32)
 

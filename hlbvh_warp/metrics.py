@@ -27,10 +27,15 @@ def check_costs(t_traversal, t_intersect) -> tuple[float, float]:
     for name, value in (("t_traversal", t_traversal), ("t_intersect", t_intersect)):
         if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
             raise ValueError(f"{name} must be a number, got {value!r}")
-        values.append(float(value))
+        try:
+            values.append(float(value))
+        except OverflowError:
+            # A Python int past float's range (10**400): not finite either.
+            values.append(float("inf") if value > 0 else float("-inf"))
     t1, t2 = values
     if not (np.isfinite(t1) and np.isfinite(t2) and t1 >= 0 and t2 > 0):
-        raise ValueError(f"need finite t_traversal >= 0 and t_intersect > 0, got {t_traversal}, {t_intersect}")
+        # The floats, not the values given: an integer of 5000 digits cannot even be printed.
+        raise ValueError(f"need finite t_traversal >= 0 and t_intersect > 0, got {t1}, {t2}")
     return t1, t2
 
 

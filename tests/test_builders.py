@@ -165,6 +165,19 @@ def test_config_integers_must_fit_the_kernels_int32(field, value):
         hw.BuildConfig(**{field: value})
 
 
+@pytest.mark.parametrize("field, value", [("sah_traversal_cost", 10**400), ("sbvh_alpha", -(10**400)),
+                                          ("cluster_min_prims", 10**400), ("max_leaf_size", 10**5000),
+                                          ("block_capacity", -(10**5000))],
+                         ids=["float 1e400", "float -1e400", "float 1e400 again", "int 1e5000", "int -1e5000"])
+def test_integers_past_every_range_are_refused_by_name(field, value):
+    # A float setting took float(10**400), which raised OverflowError; an integer setting's
+    # message printed the value, and Python refused to print 5000 digits ("Exceeds the limit
+    # (4300 digits) for integer string conversion"), a ValueError that named no setting.
+    with pytest.raises(ValueError, match=f"BuildConfig: {field} ") as error:
+        hw.BuildConfig(**{field: value})
+    assert "4300" not in str(error.value)
+
+
 def test_config_takes_numpy_scalars_as_plain_numbers(device, rng):
     config = hw.BuildConfig(sah_bins=np.int64(8), max_leaf_size=np.int32(2), sbvh_alpha=0)
     assert type(config.sah_bins) is int and type(config.sbvh_alpha) is float

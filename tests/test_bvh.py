@@ -143,6 +143,28 @@ def test_a_tree_made_from_bad_arrays_is_refused_by_name(device):
         assert bvh.num_nodes == 2 * len(faces) - 1, what
 
 
+def test_a_mesh_tree_whose_boxes_are_not_its_triangles_is_refused(device, rng):
+    # Vertices moved off the primitive boxes the tree was built over: load_bvh derives those boxes
+    # from the triangles and refuses such a tree, but Bvh(...) checked the boxes it was handed,
+    # took it, and every ray then missed the triangles outside their leaves' boxes.
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    moved = wp.array(verts + np.float32(10.0), dtype=wp.vec3, device=device)
+    with pytest.raises(ValueError, match="not the boxes of its triangles"):
+        hb.Bvh(**_fields(bvh, vertices=moved))
+    # One primitive box grown past its triangle's (still inside its leaf) is refused too: box
+    # queries read these boxes and would report the triangle where it is not.
+    lowers = bvh.prim_lowers.numpy().copy()
+    leaf = int(np.nonzero(bvh.to_numpy()["node_left"] < 0)[0][0])
+    prim = int(bvh.to_numpy()["prim_order"][bvh.to_numpy()["node_begin"][leaf]])
+    lowers[prim] = bvh.to_numpy()["node_lowers"][0]
+    with pytest.raises(ValueError, match="not the boxes of its triangles"):
+        hb.Bvh(**_fields(bvh, prim_lowers=wp.array(lowers, dtype=wp.vec3, device=device)))
+    # The same tree over its own triangles is taken, and answers as the brute force.
+    o, d = random_rays(rng, verts, 100)
+    assert_hits_match(*hb.intersect(hb.Bvh(**_fields(bvh)), o, d), *brute_force_closest_hit(verts, faces, o, d))
+
+
 @pytest.mark.skipif(not wp.get_cuda_device_count(), reason="needs a second device (CUDA) to mix")
 def test_arrays_on_another_device_are_refused():
     verts, faces = _mesh()

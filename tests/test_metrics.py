@@ -231,15 +231,20 @@ def test_tree_stats_counts_and_mean_leaf_size(device, rng):
 
 
 @pytest.mark.parametrize("t1, t2", [(-0.5, 1.0), (1.0, 0.0), (1.0, -1.0), (float("nan"), 1.0), (1.0, float("inf")),
-                                    ("1", 1.0), (1.0, None)])
+                                    ("1", 1.0), (1.0, None),
+                                    # Integers past float's range: float() raised OverflowError.
+                                    (10**400, 1.0), (1.0, -(10**400))])
 def test_cost_functions_reject_bad_constants(device, t1, t2):
-    from hlbvh_warp.metrics import node_costs
+    from hlbvh_warp.metrics import end_point_overlap, node_costs
 
     lo = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
     bvh = hw.build_from_bounds(lo, lo + 1, device=device)
     for cost in (sah_cost, node_costs, tree_stats):
         with pytest.raises(ValueError, match="t_intersect|t_traversal"):
             cost(bvh, t1, t2)
+    mesh = hw.build(lo[[0, 1, 1]] + np.eye(3, dtype=np.float32), [[0, 1, 2]], device=device)
+    with pytest.raises(ValueError, match="t_intersect|t_traversal"):
+        end_point_overlap(mesh, t1, t2)
 
 
 def test_cost_functions_name_a_tree_that_is_not_one(device):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -739,6 +741,29 @@ def test_input_forms_and_their_checks(device):
 
 
 
+def test_indexed_warp_arrays_are_read_as_the_rows_they_select(device, rng):
+    # A wp.indexedarray (rows of a Warp array picked by an index array) is no wp.array subclass:
+    # NumPy wrapped it as one object and the build refused it as "must hold real numbers, got
+    # dtype object", though it holds vec3 floats as any Warp array.
+    pool = rng.random((40, 3)).astype(np.float32)
+    picked = rng.permutation(40)[:24].astype(np.int32)
+    selected = pool[picked]
+    faces = np.arange(24, dtype=np.int32).reshape(8, 3)
+
+    def indexed(rows):
+        return wp.indexedarray(wp.array(rows, dtype=wp.vec3, device=device),
+                               [wp.array(picked, dtype=wp.int32, device=device)])
+
+    bvh = hb.build(indexed(pool), faces, device=device)
+    np.testing.assert_array_equal(bvh.vertices.numpy(), selected)
+    o, d = random_rays(rng, selected, 50)
+    assert_hits_match(*hb.intersect(bvh, o, d), *brute_force_closest_hit(selected, faces, o, d))
+    # A lowers / uppers pair, one indexed and one NumPy.
+    boxes = hb.build_from_bounds(indexed(pool), selected + np.float32(0.1), device=device)
+    np.testing.assert_array_equal(boxes.prim_lowers.numpy(), selected)
+    np.testing.assert_array_equal(boxes.prim_uppers.numpy(), selected + np.float32(0.1))
+
+
 def test_wide_integer_vertices_are_rounded_once(device):
     # Through float64, 2^54 + 2^30 + 1 rounded to 2^54 + 2^30 and then (a tie) to 2^54; the
     # float32 nearest to it is 2^54 + 2^31.
@@ -787,6 +812,17 @@ def test_vertex_input_edges(device):
     assert bvh.to_numpy()["node_uppers"][0][1] == np.float32(big)
     with pytest.raises(ValueError, match="beyond the float32 range"):
         hb.build(np.array([[0, 0, 0], [1, 0, 0], [0, 2 * big, 0]], np.float64), faces, device=device)
+    # A long double past float64's range was rounded to float64 first: it became inf and was
+    # refused as a NaN or Inf coordinate (with NumPy's overflow warning), though it is finite.
+    if np.finfo(np.longdouble).max > np.finfo(np.float64).max:
+        huge = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.longdouble)
+        huge[2, 1] = np.longdouble("1e400")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match="beyond the float32 range"):
+                hb.build(huge, faces, device=device)
+            with pytest.raises(ValueError, match="lowers has a coordinate beyond the float32 range"):
+                hb.build_from_bounds(huge, huge + 1, device=device)
     # A flat NumPy array is not (n, 3) vertices (only a flat wp.array of floats is read as rows).
     with pytest.raises(ValueError, match=r"must have shape \(n, 3\)"):
         hb.build(np.array([0, 0, 0, 1, 0, 0, 0, 1, 0], np.float32), faces, device=device)
