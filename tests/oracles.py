@@ -228,9 +228,11 @@ def brute_overlaps(lowers, uppers, q_lo, q_hi):
     return ((lowers[None] <= q_hi[:, None]) & (uppers[None] >= q_lo[:, None])).all(-1)
 
 
-def _hull_area_2d(points: np.ndarray) -> float:
-    """Area of the convex hull of 2D points (Andrew's monotone chain, shoelace)."""
-    pts = sorted(set(map(tuple, np.round(points, 15))))
+def _hull_area_2d(points: np.ndarray, scale: float = 1.0) -> float:
+    """Area of the convex hull of 2D points (Andrew's monotone chain, shoelace); coincident points
+    are merged at 15 digits of `scale`, the size of the coordinates (absolute digits merged every
+    point of a 1e-30 triangle into one)."""
+    pts = sorted(set(map(tuple, np.round(np.asarray(points) / scale, 15))))
     if len(pts) < 3:
         return 0.0
 
@@ -250,7 +252,7 @@ def _hull_area_2d(points: np.ndarray) -> float:
     if len(hull) < 3:
         return 0.0
     x, y = hull[:, 0], hull[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))) * scale * scale
 
 
 def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
@@ -265,7 +267,9 @@ def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
     twice = np.linalg.norm(normal)
     if twice == 0.0:
         return 0.0
-    scale = max(np.abs(tri).max(), np.abs(lo).max(), np.abs(hi).max(), 1.0)
+    # Tolerances relative to the coordinates' size, at any scale (a floor of 1 made them
+    # absolute below it: a 1e-5 triangle came out 1% off, a 1e-30 one empty).
+    scale = max(np.abs(tri).max(), np.abs(lo).max(), np.abs(hi).max())
     eps = tol * scale
 
     def in_box(p):
@@ -313,7 +317,7 @@ def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
     u = (b - a) / np.linalg.norm(b - a)
     w = np.cross(normal / twice, u)
     pts = np.array(points) - a
-    return _hull_area_2d(np.stack([pts @ u, pts @ w], axis=1))
+    return _hull_area_2d(np.stack([pts @ u, pts @ w], axis=1), scale)
 
 
 def numpy_end_point_overlap(tree: dict, vertices, faces, t1=1.0, t2=1.0, node_boxes=None):

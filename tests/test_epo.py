@@ -118,6 +118,13 @@ def test_triangle_box_oracle_on_known_shapes():
     big = [[4.5, -1.5, -1.5], [-1.5, 4.5, -1.5], [-1.5, -1.5, 4.5]]
     assert triangle_box_area(big, [0, 0, 0], [1, 1, 1]) == pytest.approx(3 * np.sqrt(3) / 4)
     assert triangle_box_area(tri, [2, 2, 2], [3, 3, 3]) == 0.0
+    # At any scale (powers of two: the scaled shapes are exact): the area scales with its square.
+    for k in (-100, -40, -17, 17, 60):
+        s = 2.0**k
+        assert triangle_box_area(np.multiply(tri, s), np.multiply([-1, -1, -1], s),
+                                 np.multiply([0.5, 2, 2], s)) == pytest.approx(0.375 * s * s, rel=1e-12, abs=0.0)
+        assert triangle_box_area(np.multiply(big, s), [0, 0, 0], [s, s, s]) == pytest.approx(
+            3 * np.sqrt(3) / 4 * s * s, rel=1e-12, abs=0.0)
 
 
 def test_epo_rejects_box_trees_and_bad_costs(device):
