@@ -516,9 +516,15 @@ def parse_args(argv):
     # Before the run: a path that cannot be written failed only after every builder was timed.
     with argument_errors(parser):
         check_out_file(args.json, "--json")
-        if args.plot:
-            check_out_file(args.plot, "--plot")
+        # The default plot beside the JSON is checked as a given one: a folder there was found
+        # only after every builder was timed.
+        check_out_file(plot_path(args), "--plot")
     return args
+
+
+def plot_path(args) -> pathlib.Path:
+    """Where the plot goes: ``--plot``, else beside the JSON with the suffix ``.png``."""
+    return pathlib.Path(args.plot) if args.plot else pathlib.Path(args.json).with_suffix(".png")
 
 
 def main(argv=None) -> int:
@@ -548,8 +554,8 @@ def main(argv=None) -> int:
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "cpu_threads": args.cpu_threads,
                                      "rows": rows}, indent=1))
-    plot_path = pathlib.Path(args.plot) if args.plot else json_path.with_suffix(".png")
-    plot_path.parent.mkdir(parents=True, exist_ok=True)
-    plot(rows, plot_path)
-    print(f"wrote {json_path} and {plot_path}")
+    png_path = plot_path(args)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    plot(rows, png_path)
+    print(f"wrote {json_path} and {png_path}")
     return 1 if any("error" in r and r["builder"] not in PEERS for r in rows) else 0

@@ -50,6 +50,15 @@ def test_json_path_is_checked_before_the_run(command, tmp_path, capsys, no_build
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"] and a_file.read_text() == ""
 
 
+def test_bench_checks_the_default_plot_beside_the_json_before_the_run(tmp_path, capsys, no_builds):
+    # Without --plot the plot goes beside the JSON (b.json -> b.png): a folder there was found
+    # only after every builder was timed, "[Errno 21] Is a directory", the JSON already written.
+    (tmp_path / "b.png").mkdir()
+    err = error_of(["bench", "--json", str(tmp_path / "b.json")], capsys)
+    assert f"--plot {tmp_path / 'b.png'} is a folder, not a file" in err
+    assert not (tmp_path / "b.json").exists()
+
+
 def test_json_check_accepts_new_folders_and_existing_files(tmp_path):
     for parse in (quality.parse_args, wide_bench.parse_args, bench.parse_args):
         parse(["--json", str(tmp_path / "new" / "deeper" / "x.json")])
