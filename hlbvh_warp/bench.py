@@ -519,6 +519,11 @@ def parse_args(argv):
         # The default plot beside the JSON is checked as a given one: a folder there was found
         # only after every builder was timed.
         check_out_file(plot_path(args), "--plot")
+        # The plot is written after the JSON: at the same path (--json b.png, whose plot goes
+        # beside it at b.png itself) it replaced the rows.
+        if plot_path(args).resolve() == pathlib.Path(args.json).resolve():
+            raise ValueError(f"--plot {plot_path(args)} is the --json file; the plot would replace the rows "
+                             "(give the JSON another name, or --plot another path)")
     return args
 
 

@@ -59,6 +59,16 @@ def test_bench_checks_the_default_plot_beside_the_json_before_the_run(tmp_path, 
     assert not (tmp_path / "b.json").exists()
 
 
+@pytest.mark.parametrize("extra", [[], ["--plot", "SAME"]])
+def test_bench_refuses_a_plot_that_would_overwrite_the_json(extra, tmp_path, capsys, no_builds):
+    # --json b.png put the plot beside it at b.png itself: the plot replaced the rows, and the
+    # run ended "wrote b.png and b.png".
+    json_path = tmp_path / "b.png"
+    argv = ["bench", "--json", str(json_path)] + [str(json_path) if a == "SAME" else a for a in extra]
+    err = error_of(argv, capsys)
+    assert f"--plot {json_path} is the --json file" in err
+
+
 def test_json_check_accepts_new_folders_and_existing_files(tmp_path):
     for parse in (quality.parse_args, wide_bench.parse_args, bench.parse_args):
         parse(["--json", str(tmp_path / "new" / "deeper" / "x.json")])
