@@ -621,3 +621,29 @@ def test_frame_timing_bounds_subdivide_by_the_meshs_size(capsys, monkeypatch):
     args = [*TINY_ARGS["example_frame_timing"], "--num-tris", "60000", "--subdivide", "8"]
     last = argument_error("example_frame_timing", args, capsys, monkeypatch)
     assert "--subdivide 8:" in last and "a tree holds fewer than 2^30 triangles" in last, last
+
+
+def test_mesh_collision_at_any_scale(tmp_path, capsys, monkeypatch):
+    """The same mesh scaled by 2^70 (coordinates near 1e21, well inside float32) collides as the
+    mesh itself, frame by frame: a power of two scales every coordinate exactly. The diagonal was
+    taken in float32, whose squares overflow past 1.8e19: it came out inf, the copy's first
+    position -inf, and the run ended in the Builder's "vertices has a NaN or Inf coordinate"
+    traceback. A mesh whose moving copy does leave float32's range (coordinates of 3e38) is an
+    argument error naming the file."""
+    import trimesh
+
+    module = load_example("example_mesh_collision")
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    vertices, faces = np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)
+    rows = []
+    for scale in (1.0, 2.0 ** 70):
+        example = module.Example((vertices * np.float32(scale), faces), num_frames=8, headless=True)
+        for _ in range(8):
+            example.step()
+        rows.append([(r["candidates"], r["intersecting"]) for r in example.rows])
+    assert rows[0] == rows[1] and max(i for _, i in rows[0]) > 0, rows
+    huge = tmp_path / "huge.ply"
+    trimesh.Trimesh(vertices * 3e38, faces, process=False).export(huge)
+    last = argument_error("example_mesh_collision", [*TINY_ARGS["example_mesh_collision"], "--mesh", str(huge)],
+                          capsys, monkeypatch)
+    assert f"{huge}: " in last and "float32" in last, last
