@@ -312,7 +312,7 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
         # Correctness before speed: a batch of rays against the float64 brute force.
         bvh = api.build(verts, tris, method=builder, device=device, config=config, timings=True)
         t, prim = api_intersect(bvh, origins, directions)
-        mismatches = reference.count_mismatches(t, prim, t_ref, prim_ref)
+        mismatches = reference.count_mismatches(t, prim, t_ref, prim_ref, rays=(verts, tris, origins, directions))
         if mismatches:
             print(f"error: {builder} {label} on {name}: {mismatches} of {len(t)} rays disagree with the brute "
                   "force; not timed", file=sys.stderr)
