@@ -309,6 +309,11 @@ def main(argv=None) -> int:
     api._load_optional_builders()
     devices = args.device or ["cpu"] + [str(d) for d in wp.get_cuda_devices()]
     methods = args.method or sorted(api.BUILDERS)
+    # Every name before the first build, as the other commands check theirs: an unknown one was
+    # found only when the loop reached it, after the methods before it had run.
+    unknown = [m for m in methods if m not in api.BUILDERS]
+    if unknown:
+        parser.error(f"unknown method(s) {unknown} in --method; choose from {sorted(api.BUILDERS)}")
     families = args.family or list(SCENE_FAMILIES)
     cache = {}
     total_unexplained = 0

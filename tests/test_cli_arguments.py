@@ -418,3 +418,10 @@ def test_usage_and_errors_name_the_program_the_user_ran(argv0, program, capsys, 
     assert capsys.readouterr().out.startswith(f"usage: {program} <command>")
     err = error_of(["no-such-command"], capsys)
     assert err.startswith(f"{program}: unknown command 'no-such-command'"), err
+
+
+def test_stress_checks_its_method_names_before_any_build(capsys, no_builds):
+    # An unknown --method after a known one was found only when the loop reached it, after the
+    # known one had been built and traced (the other commands check every name first).
+    err = error_of(["stress", "--method", "hlbvh", "--method", "foo", "--family", "one"], capsys)
+    assert "unknown method(s) ['foo'] in --method" in err, err
