@@ -23,8 +23,8 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import api, query, reference, render, scenes, wide
-from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh,
-                            scene_tris)
+from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
+                            mesh_file, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.kernels import traversal
 
 
@@ -116,10 +116,13 @@ def main(argv=None):
     parser.add_argument("--num-tris", type=scene_tris, default=20000, help="Triangles of the generated scene.")
     parser.add_argument("--methods", type=str, default="hlbvh,hlbvh_sah,sweep_sah,median", help="Builders.")
     parser.add_argument("--widths", type=str, default="2,4,8,16", help="Branching factors.")
-    parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
+    # Bounded as the command line's images: an unbounded size ended in Warp's array-shape error.
+    parser.add_argument("--resolution", type=image_side, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
     parser.add_argument("--out", type=str, default="camera_orbit_out", help="Where the PNG and GIF go.")
     args = parser.parse_args(argv)
+    if not args.headless:
+        check_animation_pixels(parser, args.num_frames, args.resolution, "--resolution")
     widths = tuple(int(k) for k in args.widths.split(",") if k.strip().isdigit())
     if len(widths) != len(args.widths.split(",")) or not all(k in wide.WIDTHS for k in widths):
         parser.error(f"--widths takes branching factors from {wide.WIDTHS[0]} to {wide.WIDTHS[-1]}, got {args.widths}")

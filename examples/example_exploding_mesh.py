@@ -9,8 +9,8 @@ import argparse
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
-from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh,
-                            scene_tris)
+from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
+                            mesh_file, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
 from hlbvh_warp.render import Camera
 from hlbvh_warp.scenes import scene
@@ -49,9 +49,12 @@ def main(argv=None):
     parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
     parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
-    parser.add_argument("--image-size", type=positive_int, default=256)
+    # Bounded as the command line's images: an unbounded size ended in NumPy's MemoryError.
+    parser.add_argument("--image-size", type=image_side, default=256)
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
     args = parser.parse_args(argv)
+    if not args.headless:
+        check_animation_pixels(parser, args.num_frames, args.image_size)
     # The mesh file and the output folder before the first frame, not after the last.
     with argument_errors(parser):
         mesh = read_mesh(args.mesh) if args.mesh else None

@@ -16,10 +16,10 @@ import time
 import numpy as np
 import warp as wp
 
-from hlbvh_warp.bench import WarpBvhPeer, collector_paused, turn_order
+from hlbvh_warp.bench import MAX_SUBDIVIDE, WarpBvhPeer, collector_paused, turn_order
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, non_negative_float,
-                            non_negative_int, positive_int, read_mesh, scene_tris)
+from hlbvh_warp.cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_folder, device_name, int_in_range,
+                            mesh_file, non_negative_float, non_negative_int, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp import host_morton
 from hlbvh_warp.dynamic import BendingMesh, ExplodingMesh
@@ -279,7 +279,9 @@ def main(argv=None):
                              "face order).")
     parser.add_argument("--cpu-threads", type=non_negative_int, default=0,
                         help="BuildConfig.cpu_threads of the Builders (0: every core; wp.Bvh uses one).")
-    parser.add_argument("--subdivide", type=non_negative_int, default=0,
+    # Bounded as bench's: past what a tree holds the split ran out of memory, as a traceback.
+    parser.add_argument("--subdivide", type=int_in_range(0, MAX_SUBDIVIDE, f"4^{MAX_SUBDIVIDE + 1} triangles of one "
+                                                          "would be more than a tree holds"), default=0,
                         help="Split every triangle into four this many times (a mesh at the paper's sizes).")
     parser.add_argument("--global-sort-runs", type=non_negative_float, default=None,
                         help="BuildConfig.global_sort_runs of the Builders (default: the library's); 1 gives "
@@ -302,6 +304,14 @@ def main(argv=None):
     with argument_errors(parser):
         mesh = read_mesh(args.mesh) if args.mesh else None
         check_out_folder(args.out)
+        if args.subdivide:
+            # The split's size before the split, on the mesh itself (the generated scene made here
+            # and handed on): one triangle becomes 4^k.
+            mesh = scene(mesh, args.num_tris)
+            count = len(mesh[1]) * 4 ** args.subdivide
+            if count > MAX_TRIS:
+                raise ValueError(f"--subdivide {args.subdivide}: the mesh has {len(mesh[1])} triangles, {count} once "
+                                 f"split; {TRIS_LIMIT}")
 
     with wp.ScopedDevice(args.device):
         example = Example(mesh, args.num_tris, args.num_frames, args.sequences.split(","),

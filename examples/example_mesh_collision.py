@@ -25,6 +25,8 @@ from hlbvh_warp.scenes import scene
 
 # The copy starts and ends this many box diagonals from the mesh's centre along x: clear of it.
 TRAVEL = 1.2
+#: Largest finite float32: the moving copy's vertices go to the Builder in float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def quarter_turn(vertices: np.ndarray) -> np.ndarray:
@@ -34,6 +36,18 @@ def quarter_turn(vertices: np.ndarray) -> np.ndarray:
     return (vertices - center) @ turn.T + center
 
 
+def diagonal(vertices) -> float:
+    """The length of the box diagonal, in float64: float32's squares overflow past 1.8e19."""
+    v = np.asarray(vertices, dtype=np.float64)
+    return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+
+
+def copy_reach(vertices) -> float:
+    """An upper bound on the moving copy's coordinates over the whole pass, in float64: the turned
+    mesh's largest one plus its travel."""
+    return float(np.abs(quarter_turn(np.asarray(vertices, dtype=np.float64))).max()) + TRAVEL * diagonal(vertices)
+
+
 class Example:
     def __init__(self, mesh=None, num_tris=20000, num_frames=24, headless=False):
         vertices, faces = scene(mesh, num_tris)
@@ -41,8 +55,7 @@ class Example:
         self.faces = faces
         self.num_frames = max(int(num_frames), 1)
         self.resting = hb.build(vertices, faces, method="hlbvh")
-        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-        self.diag = float(np.linalg.norm(hi - lo))
+        self.diag = diagonal(self.vertices)
         self.turned = quarter_turn(self.vertices)
         self.builder = Builder(len(faces), policy="auto")
         self.builder.build(self.position(0).astype(np.float32), faces)
@@ -126,6 +139,12 @@ def main(argv=None):
     # The mesh file and the picture's path before the first frame, not after the last.
     with argument_errors(parser):
         mesh = read_mesh(args.mesh) if args.mesh else None
+        # A finite mesh whose copy leaves float32's range on its pass (coordinates near 3e38) is
+        # named here, not by the Builder's "NaN or Inf coordinate" for vertices the example made.
+        if mesh is not None and not copy_reach(mesh[0]) <= FLOAT32_MAX:
+            raise ValueError(f"{args.mesh}: the moving copy, turned and carried {TRAVEL} box diagonals to either side, "
+                             f"reaches {copy_reach(mesh[0]):.3g}, past float32's largest {FLOAT32_MAX:.3g}; scale "
+                             "the mesh down")
         if not args.headless:
             check_out_file(args.out, "--out")
 

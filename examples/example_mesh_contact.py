@@ -19,7 +19,8 @@ import warp as wp
 
 from hlbvh_warp import query
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh, scene_tris
+from hlbvh_warp.cli import (argument_errors, check_out_file, device_name, mesh_file, positive_int, query_count, read_mesh,
+                            scene_tris)
 from hlbvh_warp.dynamic import BendingMesh
 from hlbvh_warp.scenes import scene
 
@@ -151,7 +152,8 @@ def main(argv=None):
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=scene_tris, default=20000, help="Size of the generated scene.")
-    parser.add_argument("--num-particles", type=positive_int, default=20000)
+    # Bounded as the command line's query counts: an unbounded count ended in NumPy's MemoryError.
+    parser.add_argument("--num-particles", type=query_count, default=20000)
     parser.add_argument("--out", type=str, default="example_mesh_contact.png", help="The picture of the last frame.")
     args = parser.parse_args(argv)
     # The mesh file and the picture's path before the first frame, not after the last.

@@ -18,7 +18,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import query
-from hlbvh_warp.cli import device_name, positive_int
+from hlbvh_warp.cli import device_name, image_side, positive_int
 
 
 @wp.kernel
@@ -107,7 +107,8 @@ def main(argv=None):
     parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--num-frames", type=positive_int, default=8, help="Total number of frames.")
-    parser.add_argument("--resolution", type=positive_int, default=128, help="Image width and height in pixels.")
+    # Bounded as the command line's images: an unbounded size ended in Warp's allocation error.
+    parser.add_argument("--resolution", type=image_side, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
     args = parser.parse_args(argv)
 

@@ -312,7 +312,7 @@ def bench_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
         # Correctness before speed: a batch of rays against the float64 brute force.
         bvh = api.build(verts, tris, method=builder, device=device, config=config, timings=True)
         t, prim = api_intersect(bvh, origins, directions)
-        mismatches = reference.count_mismatches(t, prim, t_ref, prim_ref)
+        mismatches = reference.count_mismatches(t, prim, t_ref, prim_ref, rays=(verts, tris, origins, directions))
         if mismatches:
             print(f"error: {builder} {label} on {name}: {mismatches} of {len(t)} rays disagree with the brute "
                   "force; not timed", file=sys.stderr)
@@ -516,9 +516,20 @@ def parse_args(argv):
     # Before the run: a path that cannot be written failed only after every builder was timed.
     with argument_errors(parser):
         check_out_file(args.json, "--json")
-        if args.plot:
-            check_out_file(args.plot, "--plot")
+        # The default plot beside the JSON is checked as a given one: a folder there was found
+        # only after every builder was timed.
+        check_out_file(plot_path(args), "--plot")
+        # The plot is written after the JSON: at the same path (--json b.png, whose plot goes
+        # beside it at b.png itself) it replaced the rows.
+        if plot_path(args).resolve() == pathlib.Path(args.json).resolve():
+            raise ValueError(f"--plot {plot_path(args)} is the --json file; the plot would replace the rows "
+                             "(give the JSON another name, or --plot another path)")
     return args
+
+
+def plot_path(args) -> pathlib.Path:
+    """Where the plot goes: ``--plot``, else beside the JSON with the suffix ``.png``."""
+    return pathlib.Path(args.plot) if args.plot else pathlib.Path(args.json).with_suffix(".png")
 
 
 def main(argv=None) -> int:
@@ -548,8 +559,8 @@ def main(argv=None) -> int:
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps({"device": str(device), "repeats": args.repeats, "cpu_threads": args.cpu_threads,
                                      "rows": rows}, indent=1))
-    plot_path = pathlib.Path(args.plot) if args.plot else json_path.with_suffix(".png")
-    plot_path.parent.mkdir(parents=True, exist_ok=True)
-    plot(rows, plot_path)
-    print(f"wrote {json_path} and {plot_path}")
+    png_path = plot_path(args)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    plot(rows, png_path)
+    print(f"wrote {json_path} and {png_path}")
     return 1 if any("error" in r and r["builder"] not in PEERS for r in rows) else 0

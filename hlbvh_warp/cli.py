@@ -94,6 +94,19 @@ def check_ray_count(parser: argparse.ArgumentParser, views: int, side: int):
                      f"({MEMORY_LIMIT}); choose fewer views or a smaller side")
 
 
+def check_animation_pixels(parser: argparse.ArgumentParser, frames: int, side: int, option: str = "--image-size"):
+    """End the program with an argparse error unless ``frames`` images of ``side`` x ``side``
+    pixels, every one kept for an animated GIF, are at most the demo's `MAX_ANIMATION_PIXELS`
+    (about 7 bytes a pixel in memory at the save)."""
+    from .demo import MAX_ANIMATION_PIXELS
+
+    pixels = frames * side * side
+    if pixels > MAX_ANIMATION_PIXELS:
+        parser.error(f"--num-frames {frames} at {option} {side} keeps {pixels} pixels of frames for the GIF, more "
+                     f"than {MAX_ANIMATION_PIXELS} (about 7 bytes each in memory); choose fewer frames or a smaller "
+                     "image")
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1 (frames, triangles, pixels, repeats)."""
     value = int(text)

@@ -29,13 +29,16 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def check_rays(bvh, vertices, faces, origins, directions, reference, rtol=1e-4) -> int:
-    """Rays whose hit disagrees with the reference: another primitive at another t, or hit/miss."""
+    """Rays whose hit disagrees with the reference: another primitive at another t, another
+    primitive at the same t that the ray does not meet there (`unmet_ties`), or hit/miss."""
     from .query import intersect
+    from .reference import unmet_ties
 
     t, prim = intersect(bvh, origins, directions)
     t_ref, prim_ref = reference
     hit, hit_ref = prim >= 0, prim_ref >= 0
     same = (prim == prim_ref) | (hit & hit_ref & np.isclose(t, t_ref, rtol=rtol, atol=0.0))
+    same &= ~unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, rtol)
     return int((~same).sum())
 
 

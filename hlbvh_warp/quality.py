@@ -103,7 +103,8 @@ def measure_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
     # The reference tree itself against the float64 brute force, on an even sample of the rays.
     sample = np.linspace(0, len(t_ref) - 1, min(ORACLE_RAYS, len(t_ref))).astype(np.int64)
     t_bf, prim_bf = reference.brute_force_closest_hit(vertices, faces, primary[0][sample], primary[1][sample])
-    wrong = reference.count_mismatches(t_ref[sample], prim_ref[sample], t_bf, prim_bf)
+    wrong = reference.count_mismatches(t_ref[sample], prim_ref[sample], t_bf, prim_bf,
+                                       rays=(vertices, faces, primary[0][sample], primary[1][sample]))
     if wrong:
         raise RuntimeError(f"{name}: {wrong} of {len(sample)} primary rays of the reference tree disagree with "
                            "the float64 brute force")

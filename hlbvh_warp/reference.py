@@ -158,14 +158,54 @@ def rays_at_box(rng, vertices, num_rays):
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
-def count_mismatches(t, prim, t_ref, prim_ref, rtol=1e-5) -> int:
+def unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, rtol=1e-5) -> np.ndarray:
+    """Mask of the rays whose hit names another triangle than the reference's at the same t
+    (within ``rtol``) that the ray does not meet there: neither the float64 test (`_moller_trumbore`)
+    hits the named triangle at that t, nor does the ray pass within rounding of it
+    (`stress_report.is_marginal`: a shared edge or vertex, where either triangle may be hit).
+
+    A tie was accepted on the distance alone: a traversal that reported the right distance under
+    another triangle's id (a leaf's slot in ``prim_order`` instead of the face it holds) passed
+    every check of the commands."""
+    from .stress_report import is_marginal
+
+    t = np.asarray(t, dtype=np.float64)
+    prim, prim_ref = np.asarray(prim), np.asarray(prim_ref)
+    tie = (prim >= 0) & (prim_ref >= 0) & (prim != prim_ref) & np.isclose(t, t_ref, rtol=rtol, atol=0.0)
+    unmet = np.zeros(len(t), dtype=bool)
+    rows = np.flatnonzero(tie)
+    if len(rows) == 0:
+        return unmet
+    # A named id outside the mesh meets nothing.
+    valid = prim[rows] < len(faces)
+    unmet[rows[~valid]] = True
+    rows = rows[valid]
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = v[np.asarray(faces, dtype=np.int64)[prim[rows]]]
+    o = np.asarray(origins, dtype=np.float64)[rows]
+    d = np.asarray(directions, dtype=np.float64)[rows]
+    with np.errstate(all="ignore"):
+        t_named = _moller_trumbore(o, d, tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], np.inf,
+                                   BARYCENTRIC_EPS)
+    met = np.isclose(t_named, t[rows], rtol=rtol, atol=0.0)
+    for r, ok in zip(rows, met):
+        if not ok and not is_marginal(vertices, faces, int(prim[r]), origins[r], directions[r]):
+            unmet[r] = True
+    return unmet
+
+
+def count_mismatches(t, prim, t_ref, prim_ref, rtol=1e-5, rays=None) -> int:
     """Rays whose hit disagrees with the reference: hit/miss differs, or a different primitive at
-    a different distance (ties between primitives at the same t are accepted)."""
+    a different distance. Ties between primitives at the same t are accepted; with ``rays``
+    (``(vertices, faces, origins, directions)``) only where the ray meets the named triangle
+    there (`unmet_ties`)."""
     t = np.asarray(t, dtype=np.float64)
     hit, hit_ref = np.asarray(prim) >= 0, np.asarray(prim_ref) >= 0
     same = np.asarray(prim) == np.asarray(prim_ref)
     close = np.isclose(t, t_ref, rtol=rtol, atol=0.0)
     bad = (hit != hit_ref) | (hit & ~(same | close))
+    if rays is not None:
+        bad |= unmet_ties(*rays, t, prim, t_ref, prim_ref, rtol)
     return int(bad.sum())
 
 

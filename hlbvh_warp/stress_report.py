@@ -27,7 +27,7 @@ import argparse
 import numpy as np
 
 from .cli import command_prog, device_name, non_negative_int, quiet_warp
-from .reference import brute_force_closest_hit
+from .reference import brute_force_closest_hit, unmet_ties
 
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
 NEAR_TIE_TOL = 1e-5
@@ -233,9 +233,12 @@ def classify(vertices, faces, origins, directions, t, prim, t_ref, prim_ref):
         o, d = np.asarray(origins[r], dtype=np.float64), np.asarray(directions[r], dtype=np.float64)
         scale = max(np.abs(o).max(), np.abs(v[faces[prim[r]]]).max(), 1e-300)
         far_t[r] = abs(t[r] - t_ref[r]) * np.linalg.norm(d) > NEAR_TIE_TOL * scale
-    agree = (~hit & ~hit_ref) | (hit & hit_ref & (((prim == prim_ref) & ~far_t) | same_t))
-    unexplained = 0
-    for r in np.nonzero(~agree)[0]:
+    # Another triangle at the same t is a tie only if the ray meets that triangle there: on the
+    # distance alone, a hit reported under a wrong id passed.
+    unmet = unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, T_RTOL)
+    agree = ((~hit & ~hit_ref) | (hit & hit_ref & (((prim == prim_ref) & ~far_t) | same_t))) & ~unmet
+    unexplained = int(unmet.sum())
+    for r in np.nonzero(~agree & ~unmet)[0]:
         involved = []
         # We hit something before the reference's closest hit: the reference rejected it.
         if hit[r] and (not hit_ref[r] or t[r] < t_ref[r]):
@@ -306,6 +309,11 @@ def main(argv=None) -> int:
     api._load_optional_builders()
     devices = args.device or ["cpu"] + [str(d) for d in wp.get_cuda_devices()]
     methods = args.method or sorted(api.BUILDERS)
+    # Every name before the first build, as the other commands check theirs: an unknown one was
+    # found only when the loop reached it, after the methods before it had run.
+    unknown = [m for m in methods if m not in api.BUILDERS]
+    if unknown:
+        parser.error(f"unknown method(s) {unknown} in --method; choose from {sorted(api.BUILDERS)}")
     families = args.family or list(SCENE_FAMILIES)
     cache = {}
     total_unexplained = 0

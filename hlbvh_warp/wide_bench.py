@@ -60,7 +60,8 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
     t2, prim2 = wide.intersect(trees[2], *primary)
     sample = np.linspace(0, len(t2) - 1, min(ORACLE_RAYS, len(t2))).astype(np.int64)
     t_bf, prim_bf = reference.brute_force_closest_hit(vertices, faces, primary[0][sample], primary[1][sample])
-    wrong = reference.count_mismatches(t2[sample], prim2[sample], t_bf, prim_bf)
+    wrong = reference.count_mismatches(t2[sample], prim2[sample], t_bf, prim_bf,
+                                       rays=(vertices, faces, primary[0][sample], primary[1][sample]))
     if wrong:
         raise RuntimeError(f"{name}: {wrong} of {len(sample)} primary rays through k = 2 disagree with the "
                            "float64 brute force")

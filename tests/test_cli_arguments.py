@@ -50,6 +50,25 @@ def test_json_path_is_checked_before_the_run(command, tmp_path, capsys, no_build
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"] and a_file.read_text() == ""
 
 
+def test_bench_checks_the_default_plot_beside_the_json_before_the_run(tmp_path, capsys, no_builds):
+    # Without --plot the plot goes beside the JSON (b.json -> b.png): a folder there was found
+    # only after every builder was timed, "[Errno 21] Is a directory", the JSON already written.
+    (tmp_path / "b.png").mkdir()
+    err = error_of(["bench", "--json", str(tmp_path / "b.json")], capsys)
+    assert f"--plot {tmp_path / 'b.png'} is a folder, not a file" in err
+    assert not (tmp_path / "b.json").exists()
+
+
+@pytest.mark.parametrize("extra", [[], ["--plot", "SAME"]])
+def test_bench_refuses_a_plot_that_would_overwrite_the_json(extra, tmp_path, capsys, no_builds):
+    # --json b.png put the plot beside it at b.png itself: the plot replaced the rows, and the
+    # run ended "wrote b.png and b.png".
+    json_path = tmp_path / "b.png"
+    argv = ["bench", "--json", str(json_path)] + [str(json_path) if a == "SAME" else a for a in extra]
+    err = error_of(argv, capsys)
+    assert f"--plot {json_path} is the --json file" in err
+
+
 def test_json_check_accepts_new_folders_and_existing_files(tmp_path):
     for parse in (quality.parse_args, wide_bench.parse_args, bench.parse_args):
         parse(["--json", str(tmp_path / "new" / "deeper" / "x.json")])
@@ -399,3 +418,10 @@ def test_usage_and_errors_name_the_program_the_user_ran(argv0, program, capsys, 
     assert capsys.readouterr().out.startswith(f"usage: {program} <command>")
     err = error_of(["no-such-command"], capsys)
     assert err.startswith(f"{program}: unknown command 'no-such-command'"), err
+
+
+def test_stress_checks_its_method_names_before_any_build(capsys, no_builds):
+    # An unknown --method after a known one was found only when the loop reached it, after the
+    # known one had been built and traced (the other commands check every name first).
+    err = error_of(["stress", "--method", "hlbvh", "--method", "foo", "--family", "one"], capsys)
+    assert "unknown method(s) ['foo'] in --method" in err, err

@@ -584,3 +584,66 @@ def test_frame_timing_order_stats(device):
     assert all(row[0] > 0.0 and row[2] > 0.0 for row in example.sequences["explode"]["order"])
     lines = example.order_table().splitlines()
     assert lines[1].split()[0] == "static" and float(lines[1].split()[1]) == 0.0
+
+
+@pytest.mark.parametrize("name,option,limit", [
+    ("example_exploding_mesh", "--image-size", "4096"), ("example_bending_mesh", "--image-size", "4096"),
+    ("example_camera_orbit", "--resolution", "4096"), ("example_user_kernel", "--resolution", "4096"),
+    ("example_particle_collisions", "--num-particles", "16777216"),
+    ("example_mesh_contact", "--num-particles", "16777216"),
+    ("example_frame_timing", "--subdivide", "14"),
+])
+def test_example_scripts_refuse_sizes_past_their_bound(name, option, limit, capsys, monkeypatch):
+    """`--image-size 100000` (and `--resolution`, `--num-particles 1e11`, `--subdivide 40`) ended in
+    a MemoryError or Warp's allocation traceback, naming no option: the examples take the bounds
+    of the command line (`cli.MAX_IMAGE_SIDE`, `cli.MAX_QUERIES`, a tree's 2^30 triangles)."""
+    last = argument_error(name, [*TINY_ARGS[name], option, str(int(limit) + 1)], capsys, monkeypatch)
+    assert f"argument {option}: must be at most {limit}" in last, last
+
+
+@pytest.mark.parametrize("name,option", [("example_exploding_mesh", "--image-size"),
+                                         ("example_bending_mesh", "--image-size"),
+                                         ("example_camera_orbit", "--resolution")])
+def test_animated_examples_bound_the_frames_they_keep_for_the_gif(name, option, capsys, monkeypatch):
+    # Every rendered frame is kept for the GIF: 1000 frames of 4096^2 pixels are 50 GB.
+    args = [*without_headless(TINY_ARGS[name]), "--num-frames", "1000", option, "4096"]
+    last = argument_error(name, args, capsys, monkeypatch)
+    assert "pixels of frames for the GIF" in last and "--num-frames 1000" in last, last
+    # Headless runs keep no frame: the same sizes reach the Example (replaced here by one that fails).
+    module = load_example(name)
+    monkeypatch.setattr(module, "Example", lambda *a, **k: pytest.fail("started", pytrace=False))
+    with pytest.raises(pytest.fail.Exception, match="started"):
+        module.main([*args, "--headless"])
+
+
+def test_frame_timing_bounds_subdivide_by_the_meshs_size(capsys, monkeypatch):
+    # 60000 triangles split 7 times are 983M (under 2^30), 8 times 3.9G: more than a tree holds.
+    args = [*TINY_ARGS["example_frame_timing"], "--num-tris", "60000", "--subdivide", "8"]
+    last = argument_error("example_frame_timing", args, capsys, monkeypatch)
+    assert "--subdivide 8:" in last and "a tree holds fewer than 2^30 triangles" in last, last
+
+
+def test_mesh_collision_at_any_scale(tmp_path, capsys, monkeypatch):
+    """The same mesh scaled by 2^70 (coordinates near 1e21, well inside float32) collides as the
+    mesh itself, frame by frame: a power of two scales every coordinate exactly. The diagonal was
+    taken in float32, whose squares overflow past 1.8e19: it came out inf, the copy's first
+    position -inf, and the run ended in the Builder's "vertices has a NaN or Inf coordinate"
+    traceback. A mesh whose moving copy does leave float32's range (coordinates of 3e38) is an
+    argument error naming the file."""
+    import trimesh
+
+    module = load_example("example_mesh_collision")
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    vertices, faces = np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)
+    rows = []
+    for scale in (1.0, 2.0 ** 70):
+        example = module.Example((vertices * np.float32(scale), faces), num_frames=8, headless=True)
+        for _ in range(8):
+            example.step()
+        rows.append([(r["candidates"], r["intersecting"]) for r in example.rows])
+    assert rows[0] == rows[1] and max(i for _, i in rows[0]) > 0, rows
+    huge = tmp_path / "huge.ply"
+    trimesh.Trimesh(vertices * 3e38, faces, process=False).export(huge)
+    last = argument_error("example_mesh_collision", [*TINY_ARGS["example_mesh_collision"], "--mesh", str(huge)],
+                          capsys, monkeypatch)
+    assert f"{huge}: " in last and "float32" in last, last

@@ -133,3 +133,45 @@ def test_hits_inside_the_barycentric_slack_are_kept(eps, miss_by):
     assert p[0] == 0 and t[0] == 1.0
     t, p = brute_force_closest_hit(v, faces, o, d, eps=0.0, group_size=1)
     assert p[0] == -1
+
+
+def test_a_tie_must_name_a_triangle_the_ray_meets(monkeypatch):
+    """The commands' checks took another triangle at the same t as a tie on the distance alone: a
+    traversal that reported every hit under a wrong id (the leaf's slot in ``prim_order`` instead
+    of the face it holds) passed bench's, the demo's, bench-rays' and stress's checks with no
+    ray wrong. A tie now names a triangle the ray meets at that t, or passes within rounding of
+    (a shared edge), and a ray through a shared edge may still name either triangle."""
+    import trimesh
+
+    import hlbvh_warp as hb
+    from hlbvh_warp import demo, query, ray_bench, reference, stress_report
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)
+    rng = np.random.default_rng(3)
+    o, d = reference.rays_at_box(rng, v, 64)
+    t_ref, p_ref = every_pair(v, f, o, d)
+    hit = p_ref >= 0
+    assert hit.sum() > 20
+    wrong = np.where(hit, (p_ref + 7) % len(f), -1)  # the right distance under another face's id
+    t = t_ref.astype(np.float32)
+    rays = (v, f, o, d)
+    assert reference.count_mismatches(t, wrong, t_ref, p_ref, rays=rays) == hit.sum()
+    assert reference.count_mismatches(t, p_ref, t_ref, p_ref, rays=rays) == 0
+    assert stress_report.classify(v, f, o, d, t, wrong, t_ref, p_ref) == (hit.sum(), hit.sum())
+    assert ray_bench.count_wrong(v, f, o, d, t, wrong) == hit.sum()
+    bvh = hb.build(v, f)
+    monkeypatch.setattr(query, "intersect", lambda *args, **kwargs: (t, wrong))
+    assert demo.check_rays(bvh, v, f, o, d, (t_ref, p_ref)) == hit.sum()
+    # A ray aimed at the midpoint of a shared edge: the triangle on the other side is a tie.
+    a, b = f[0, 0], f[0, 1]
+    other = next(i for i in range(1, len(f)) if {a, b} <= set(f[i].tolist()))
+    mid = 0.5 * (v[a].astype(np.float64) + v[b])
+    origin = (3.0 * mid).astype(np.float32)[None]
+    direction = (-mid / np.linalg.norm(mid)).astype(np.float32)[None]
+    t_edge, p_edge = every_pair(v, f, origin, direction)
+    assert p_edge[0] in (0, other)
+    swapped = np.array([other if p_edge[0] == 0 else 0])
+    assert reference.count_mismatches(t_edge.astype(np.float32), swapped, t_edge, p_edge,
+                                      rays=(v, f, origin, direction)) == 0
+    assert stress_report.classify(v, f, origin, direction, t_edge, swapped, t_edge, p_edge)[1] == 0
