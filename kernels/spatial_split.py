@@ -237,7 +237,7 @@ def split_search_kernel(
         c = box_centroid(lo, hi)
         for axis in range(3):
             if extent[axis] > 0.0:
-                slot = axis * num_bins + centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins)
+                slot = axis * num_bins + centroid_bin(c[axis], cen_lo[axis], cen_hi[axis], num_bins)
                 counts[slot] = counts[slot] + 1
                 boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                 boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
@@ -370,7 +370,7 @@ def distribute_kernel(
     box_lo = seg_lo[s]
     size = seg_hi[s] - box_lo
     cen_lo = seg_cen_lo[s]
-    extent = seg_cen_hi[s] - cen_lo
+    cen_hi = seg_cen_hi[s]
     plane = float(0.0)
     if kind == KIND_SPATIAL:
         plane = slab_plane(box_lo[axis], size[axis], j, num_bins)
@@ -390,7 +390,7 @@ def distribute_kernel(
         elif kind == KIND_OBJECT:
             # The search kernel's expression, so both count the same side.
             c = box_centroid(lo, hi)
-            if centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins) < j:
+            if centroid_bin(c[axis], cen_lo[axis], cen_hi[axis], num_bins) < j:
                 to_left = 1
             else:
                 to_right = 1
