@@ -539,3 +539,26 @@ def test_centroid_extent_past_the_float32_range(device, rng):
     bvh = hw.build(big, f, method="sbvh", device=device, config=config)
     check_parts_bounded(bvh, big, f)
     assert sah_cost(bvh) == pytest.approx(expected, rel=0.01)
+
+
+def test_spatial_splits_of_a_box_past_the_float32_range(device, rng):
+    """Large and small triangles in [-1.7, 1.7] x 2^127: the root's box is wider than float32's
+    largest value, so its float32 extent was inf, every slab plane lower + inf * j / B was inf,
+    every reference fell in slab 0 and no spatial split was found where the same scene scaled
+    down by 2^127 takes one (its SAH 16% below the big scene's tree). The root's spatial split
+    must cost what the scaled-down scene's does (areas scaled by 2^254), and the tree as much."""
+    v, f = large_and_small(rng, 200)
+    v = (v.astype(np.float64) * 2.0 - 1.0) * 1.7
+    small = v.astype(np.float32)
+    big = (v * 2.0**127).astype(np.float32)
+    assert (big.max(0).astype(np.float64) - big.min(0) > np.finfo(np.float32).max).all()
+    config = hw.BuildConfig(sbvh_alpha=0.0)
+    root = spatial_split.root_split_costs(small, f, config, device)
+    assert root["spatial"] < root["object"]  # the scene does what the test means
+    found = spatial_split.root_split_costs(big, f, config, device)
+    assert found["spatial_axis"] == root["spatial_axis"]
+    assert found["spatial"] == pytest.approx(root["spatial"] * 2.0**254, rel=1e-3)
+    expected = hw.build(small, f, method="sbvh", device=device, config=config)
+    bvh = hw.build(big, f, method="sbvh", device=device, config=config)
+    check_parts_bounded(bvh, big, f)
+    assert sah_cost(bvh) == pytest.approx(sah_cost(expected), rel=0.01)
