@@ -36,10 +36,11 @@ from .kernels import recursive_sah as kernels
 SCRATCH_ITEMS = 1 << 23
 
 
-def _bins(centroids: np.ndarray, lower: np.ndarray, extent: np.ndarray, num_bins: int) -> np.ndarray:
-    """Bin of every centroid per axis, the float32 expression of the kernel's `bin_of`; an axis of
-    zero extent puts everything in bin 0."""
+def _bins(centroids: np.ndarray, lower: np.ndarray, upper: np.ndarray, num_bins: int) -> np.ndarray:
+    """Bin of every centroid per axis among bins over [lower, upper], the expressions of the
+    kernel's `bin_of`; an axis of zero extent puts everything in bin 0."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        extent = upper - lower
         offset = centroids - lower
         product = np.float32(num_bins) * offset
         scaled = product / extent
@@ -47,6 +48,10 @@ def _bins(centroids: np.ndarray, lower: np.ndarray, extent: np.ndarray, num_bins
         # (bin 0 on x86: every centroid in one bin). Dividing first cannot overflow; the float32
         # expression is kept elsewhere so that the kernel and this host binning agree.
         scaled = np.where(np.isinf(product), (offset / extent) * np.float32(num_bins), scaled)
+        # An extent past float32's range (centroids from -3e38 to 3e38) is inf: there the kernel
+        # bins in float64, and so does this.
+        wide = np.float64(num_bins) * (centroids.astype(np.float64) - lower) / (upper.astype(np.float64) - lower)
+        scaled = np.where(np.isinf(extent), wide, scaled)
     bins = np.where(extent > 0, scaled, 0).astype(np.int64)
     return np.clip(bins, 0, num_bins - 1)
 
@@ -129,8 +134,7 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
         c_hi = np.maximum.reduceat(c, starts)
         box_area = _area(np.minimum.reduceat(lowers[items], starts),
                          np.maximum.reduceat(uppers[items], starts))
-        extent = (c_hi - c_lo).astype(np.float32)
-        bins = _bins(c, c_lo[member], extent[member], num_bins)
+        bins = _bins(c, c_lo[member], c_hi[member], num_bins)
         # Per axis, the level's primitives in (node, bin) order, stable: each node's segment holds
         # the candidates' left sides as prefixes.
         by_axis = [np.lexsort((bins[:, a], member)) for a in range(3)]

@@ -34,13 +34,19 @@ binned_boxes = wp.types.matrix(shape=(3 * MAX_TEMP_BINS, 3), dtype=wp.float32)
 
 
 @wp.func
-def bin_of(c: float, lower: float, extent: float, num_bins: int) -> int:
-    """Bin of centroid c among `num_bins` equal bins over [lower, lower + extent], clamped."""
-    # The host's binning of the main splits uses the same float32 expression.
+def bin_of(c: float, lower: float, upper: float, num_bins: int) -> int:
+    """Bin of centroid c among `num_bins` equal bins over [lower, upper], clamped."""
+    # The host's binning of the main splits uses the same expressions.
+    extent = upper - lower
     offset = c - lower
     product = float(num_bins) * offset
     b = int(0)
-    if wp.isinf(product):
+    if wp.isinf(extent):
+        # Centroids spanning more than float32's largest value (-3e38 to 3e38): the float32
+        # extent is inf and every centroid fell in bin 0, so no candidate split the node. Such
+        # extents are rare; they take float64, where nothing overflows.
+        b = int(wp.float64(num_bins) * (wp.float64(c) - wp.float64(lower)) / (wp.float64(upper) - wp.float64(lower)))
+    elif wp.isinf(product):
         # Overflowed (a scene past about 1e36): divide first, which cannot; int(inf) is undefined.
         b = int(offset / extent * float(num_bins))
     else:
@@ -113,7 +119,7 @@ def temp_bvh_cost(
             c = box_centroid(lo, hi)
             for axis in range(3):
                 if extent[axis] > 0.0:
-                    slot = axis * num_bins + bin_of(c[axis], cen_lo[axis], extent[axis], num_bins)
+                    slot = axis * num_bins + bin_of(c[axis], cen_lo[axis], cen_hi[axis], num_bins)
                     counts[slot] = counts[slot] + 1
                     boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                     boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
@@ -128,7 +134,7 @@ def temp_bvh_cost(
             while i <= j:
                 p = items[i]
                 c = box_centroid(prim_lowers[p], prim_uppers[p])
-                if bin_of(c[best_axis], cen_lo[best_axis], extent[best_axis], num_bins) < best_bin:
+                if bin_of(c[best_axis], cen_lo[best_axis], cen_hi[best_axis], num_bins) < best_bin:
                     i += 1
                 else:
                     items[i] = items[j]

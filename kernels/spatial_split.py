@@ -82,26 +82,40 @@ def clip_margin(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
 
 
 @wp.func
-def slab_plane(lower: float, extent: float, j: int, num_bins: int) -> float:
-    """Boundary j (1 .. num_bins - 1) of the node box's equal slabs along one axis; monotone in j."""
+def slab_plane(lower: float, upper: float, j: int, num_bins: int) -> float:
+    """Boundary j (1 .. num_bins - 1) of the equal slabs of [lower, upper] along one axis; monotone in j."""
+    extent = upper - lower
+    if wp.isinf(extent):
+        # A box wider than float32's largest value (-3e38 to 3e38): every float32 plane was inf,
+        # every reference fell in slab 0 and no spatial split was found. Such boxes are rare;
+        # their planes come from float64, rounded once (still monotone in j, and within the box).
+        wide = wp.float64(upper) - wp.float64(lower)
+        return float(wp.float64(lower) + wide * (wp.float64(j) / wp.float64(num_bins)))
     return lower + extent * (float(j) / float(num_bins))
 
 
 @wp.func
-def planes_at_or_below(x: float, lower: float, extent: float, num_bins: int, strict: int) -> int:
+def planes_at_or_below(x: float, lower: float, upper: float, num_bins: int, strict: int) -> int:
     """How many of the planes 1 .. num_bins - 1 lie at or below x (strictly below if `strict`):
     the slab of x, found from the planes' own float32 values so that the reference's side of a
     plane never disagrees with the plane the distribution cuts at."""
-    j = wp.clamp(int(float(num_bins) * (x - lower) / extent), 0, num_bins - 1)
+    extent = upper - lower
+    j = int(0)
+    if wp.isinf(extent):
+        # The guess in float64, as the planes are (`slab_plane`); in float32 it is inf / inf.
+        j = int(wp.float64(num_bins) * (wp.float64(x) - wp.float64(lower)) / (wp.float64(upper) - wp.float64(lower)))
+        j = wp.clamp(j, 0, num_bins - 1)
+    else:
+        j = wp.clamp(int(float(num_bins) * (x - lower) / extent), 0, num_bins - 1)
     # The guess is off by at most a step or two of rounding: walk it to the exact count.
     while j > 0:
-        p = slab_plane(lower, extent, j, num_bins)
+        p = slab_plane(lower, upper, j, num_bins)
         if p > x or (strict == 1 and p == x):
             j -= 1
         else:
             break
     while j < num_bins - 1:
-        p = slab_plane(lower, extent, j + 1, num_bins)
+        p = slab_plane(lower, upper, j + 1, num_bins)
         if p < x or (strict == 0 and p == x):
             j += 1
         else:
@@ -237,7 +251,7 @@ def split_search_kernel(
         c = box_centroid(lo, hi)
         for axis in range(3):
             if extent[axis] > 0.0:
-                slot = axis * num_bins + centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins)
+                slot = axis * num_bins + centroid_bin(c[axis], cen_lo[axis], cen_hi[axis], num_bins)
                 counts[slot] = counts[slot] + 1
                 boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), lo)
                 boxes_hi[slot] = wp.max(wp.vec3(boxes_hi[slot]), hi)
@@ -289,8 +303,8 @@ def split_search_kernel(
         margin = float(0.0)
         for axis in range(3):
             if size[axis] > 0.0:
-                b0 = planes_at_or_below(lo[axis], box_lo[axis], size[axis], num_bins, 0)
-                b1 = wp.max(b0, planes_at_or_below(hi[axis], box_lo[axis], size[axis], num_bins, 1))
+                b0 = planes_at_or_below(lo[axis], box_lo[axis], box_hi[axis], num_bins, 0)
+                b1 = wp.max(b0, planes_at_or_below(hi[axis], box_lo[axis], box_hi[axis], num_bins, 1))
                 entries[axis * num_bins + b0] = entries[axis * num_bins + b0] + 1
                 exits[axis * num_bins + b1] = exits[axis * num_bins + b1] + 1
                 if b0 == b1:
@@ -308,9 +322,9 @@ def split_search_kernel(
                         slab_lo = lo[axis]
                         slab_hi = hi[axis]
                         if bb > b0:
-                            slab_lo = slab_plane(box_lo[axis], size[axis], bb, num_bins)
+                            slab_lo = slab_plane(box_lo[axis], box_hi[axis], bb, num_bins)
                         if bb < b1:
-                            slab_hi = slab_plane(box_lo[axis], size[axis], bb + 1, num_bins)
+                            slab_hi = slab_plane(box_lo[axis], box_hi[axis], bb + 1, num_bins)
                         part_lo, part_hi = slab_part_box(polygon, count, axis, lo, hi, slab_lo, slab_hi, margin)
                         slot = axis * num_bins + bb
                         boxes_lo[slot] = wp.min(wp.vec3(boxes_lo[slot]), part_lo)
@@ -368,12 +382,12 @@ def distribute_kernel(
     if kind == KIND_HALVE:
         right = left + (e - b) // 2
     box_lo = seg_lo[s]
-    size = seg_hi[s] - box_lo
+    box_hi = seg_hi[s]
     cen_lo = seg_cen_lo[s]
-    extent = seg_cen_hi[s] - cen_lo
+    cen_hi = seg_cen_hi[s]
     plane = float(0.0)
     if kind == KIND_SPATIAL:
-        plane = slab_plane(box_lo[axis], size[axis], j, num_bins)
+        plane = slab_plane(box_lo[axis], box_hi[axis], j, num_bins)
     for k in range(b, e):
         tri = ref_tri[k]
         lo = ref_lo[k]
@@ -390,13 +404,13 @@ def distribute_kernel(
         elif kind == KIND_OBJECT:
             # The search kernel's expression, so both count the same side.
             c = box_centroid(lo, hi)
-            if centroid_bin(c[axis], cen_lo[axis], extent[axis], num_bins) < j:
+            if centroid_bin(c[axis], cen_lo[axis], cen_hi[axis], num_bins) < j:
                 to_left = 1
             else:
                 to_right = 1
         else:
-            b0 = planes_at_or_below(lo[axis], box_lo[axis], size[axis], num_bins, 0)
-            b1 = wp.max(b0, planes_at_or_below(hi[axis], box_lo[axis], size[axis], num_bins, 1))
+            b0 = planes_at_or_below(lo[axis], box_lo[axis], box_hi[axis], num_bins, 0)
+            b1 = wp.max(b0, planes_at_or_below(hi[axis], box_lo[axis], box_hi[axis], num_bins, 1))
             if b0 < j:
                 to_left = 1
             if b1 >= j:

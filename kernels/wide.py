@@ -39,13 +39,6 @@ vec256f = wp.types.vector(length=WIDE_STACK_SIZE, dtype=wp.float32)
 WIDE_STACK = wp.constant(WIDE_STACK_SIZE)
 
 
-@wp.func
-def box_area(lower: wp.vec3, upper: wp.vec3) -> float:
-    """Surface area of the box in float32: the collapse's ranking of interior children."""
-    d = upper - lower
-    return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
-
-
 @wp.kernel
 def expand_kernel(
     width: int,
@@ -78,11 +71,13 @@ def expand_kernel(
         count = 2
     while count < width:
         best = int(-1)
-        best_area = float(-1.0)
+        best_area = wp.float64(-1.0)
         for j in range(count):
             c = picked[j]
             if node_left[c] >= 0:
-                a = box_area(node_lowers[c], node_uppers[c])
+                # In float64: float32 areas overflowed to inf past coordinates of about 1e19 and
+                # underflowed to 0 below about 1e-20, so every child tied and the earliest won.
+                a = box_area64(node_lowers[c], node_uppers[c])
                 if a > best_area:
                     best_area = a
                     best = j

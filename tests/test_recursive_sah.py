@@ -3,8 +3,11 @@ rule: temporary greedy binned-SAH BVHs priced by their recursive SAH cost."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
+import trimesh
 import warp as wp
 
 import hlbvh_warp as hw
@@ -228,3 +231,26 @@ def test_centroids_near_the_largest_float32(device, rng):
     expected = hw.build(v, f, method="recursive_sah", device=device).to_numpy()
     for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order"):
         np.testing.assert_array_equal(tree[name], expected[name], err_msg=name)
+
+
+def test_centroid_extent_past_the_float32_range(device, rng):
+    """A sphere of radius 1.7 x 2^127 (2.9e38), finite float32 the input checks accept: the
+    centroids span more than float32's largest value, the float32 extent of the root's (and its
+    large children's) centroids overflowed to inf, every centroid fell in bin 0, no candidate
+    split the node and it was halved in its (shuffled) face order: 6.4 times the SAH cost of the
+    same sphere scaled down by 2^127, with NumPy overflow warnings. Scaled down, every extent is
+    finite; the splits must cost what that sphere's do."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v = np.asarray(mesh.vertices, np.float64) * 1.7
+    f = np.asarray(mesh.faces, np.int32)[rng.permutation(len(mesh.faces))]
+    small = v.astype(np.float32)
+    big = (v * 2.0**127).astype(np.float32)
+    c = np.float32(0.5) * small[f].min(1) + np.float32(0.5) * small[f].max(1)
+    assert ((c.max(0).astype(np.float64) - c.min(0)) * 2.0**127 > np.finfo(np.float32).max).all()
+    config = hw.BuildConfig(recursive_sah_bins=16, recursive_sah_temp_bins=8)
+    expected = metrics.sah_cost(hw.build(small, f, method="recursive_sah", device=device, config=config))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bvh = hw.build(big, f, method="recursive_sah", device=device, config=config)
+    check_tree_invariants(bvh.to_numpy(), len(f))
+    assert metrics.sah_cost(bvh) == pytest.approx(expected, rel=0.01)

@@ -519,3 +519,46 @@ def test_no_spatial_search_where_the_object_split_does_not_overlap(device, rng):
     found = spatial_split.root_split_costs(verts, faces, hw.BuildConfig(sbvh_bins=8, sbvh_alpha=0.0), device)
     assert found["object"] == pytest.approx(candidates["object"], rel=1e-12)
     assert found["spatial"] == np.inf and found["spatial_axis"] == -1
+
+
+def test_centroid_extent_past_the_float32_range(device, rng):
+    """A sphere of radius 1.7 x 2^127 (2.9e38): its centroids span more than float32's largest
+    value, so the float32 extent of a large node's centroids was inf, every object split binned
+    them all in bin 0 and the node was halved in its (shuffled) order: 6.3 times the SAH cost of
+    the same sphere scaled down by 2^127. Object splits only (alpha = inf), as cheap as that
+    sphere's."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v = np.asarray(mesh.vertices, np.float64) * 1.7
+    f = np.asarray(mesh.faces, np.int32)[rng.permutation(len(mesh.faces))]
+    small = v.astype(np.float32)
+    big = (v * 2.0**127).astype(np.float32)
+    c = np.float32(0.5) * small[f].min(1) + np.float32(0.5) * small[f].max(1)
+    assert ((c.max(0).astype(np.float64) - c.min(0)) * 2.0**127 > np.finfo(np.float32).max).all()
+    config = hw.BuildConfig(sbvh_alpha=np.inf)
+    expected = sah_cost(hw.build(small, f, method="sbvh", device=device, config=config))
+    bvh = hw.build(big, f, method="sbvh", device=device, config=config)
+    check_parts_bounded(bvh, big, f)
+    assert sah_cost(bvh) == pytest.approx(expected, rel=0.01)
+
+
+def test_spatial_splits_of_a_box_past_the_float32_range(device, rng):
+    """Large and small triangles in [-1.7, 1.7] x 2^127: the root's box is wider than float32's
+    largest value, so its float32 extent was inf, every slab plane lower + inf * j / B was inf,
+    every reference fell in slab 0 and no spatial split was found where the same scene scaled
+    down by 2^127 takes one (its SAH 16% below the big scene's tree). The root's spatial split
+    must cost what the scaled-down scene's does (areas scaled by 2^254), and the tree as much."""
+    v, f = large_and_small(rng, 200)
+    v = (v.astype(np.float64) * 2.0 - 1.0) * 1.7
+    small = v.astype(np.float32)
+    big = (v * 2.0**127).astype(np.float32)
+    assert (big.max(0).astype(np.float64) - big.min(0) > np.finfo(np.float32).max).all()
+    config = hw.BuildConfig(sbvh_alpha=0.0)
+    root = spatial_split.root_split_costs(small, f, config, device)
+    assert root["spatial"] < root["object"]  # the scene does what the test means
+    found = spatial_split.root_split_costs(big, f, config, device)
+    assert found["spatial_axis"] == root["spatial_axis"]
+    assert found["spatial"] == pytest.approx(root["spatial"] * 2.0**254, rel=1e-3)
+    expected = hw.build(small, f, method="sbvh", device=device, config=config)
+    bvh = hw.build(big, f, method="sbvh", device=device, config=config)
+    check_parts_bounded(bvh, big, f)
+    assert sah_cost(bvh) == pytest.approx(sah_cost(expected), rel=0.01)

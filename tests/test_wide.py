@@ -33,8 +33,8 @@ def numpy_collapse(tree: dict, width: int):
             interior = [c for c in children if left[c] >= 0]
             if not interior:
                 break
-            # Largest area first; float32 areas as the kernel compares them, ties to the earlier slot.
-            areas = [np.float32(area(c)) for c in interior]
+            # Largest area first (float64, as the kernel compares them), ties to the earlier slot.
+            areas = [area(c) for c in interior]
             pick = interior[int(np.argmax(areas))]
             children[children.index(pick)] = left[pick]
             children.append(right[pick])
@@ -483,3 +483,30 @@ def test_a_tiny_direction_gives_the_distance_in_its_units(device):
     for width in (2, 4, 8):
         t, prim = wide.intersect(wide.collapse(bvh, width=width), o, d)
         assert prim[0] == 0 and t[0] == pytest.approx(expected, rel=1e-5), width
+
+
+@pytest.mark.parametrize("scale", [2.0**66, 2.0**-90])
+def test_collapse_ranks_areas_at_any_scale(device, scale):
+    """An icosphere scaled by 2^66 (coordinates near 7e19) or 2^-90 (near 8e-28): the binary
+    tree is the unit sphere's, scaled. The collapse ranked interior children by float32 areas,
+    which overflowed to inf (or underflowed to 0) at every node, so every tie went to the earlier
+    slot: wide trees deeper (6 -> 9 levels at k = 4) and 9-28% above the unit sphere's wide SAH.
+    Scaled by a power of two the areas scale exactly: the wide trees must be the unit sphere's."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int32)
+    unit = hw.build(v.astype(np.float32), f, method="sweep_sah", device=device)
+    scaled = hw.build((v * scale).astype(np.float32), f, method="sweep_sah", device=device)
+    a, b = unit.to_numpy(), scaled.to_numpy()
+    for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order"):
+        assert np.array_equal(a[name], b[name])  # the scene does what the test means
+    for width in (4, 8, 16):
+        w_unit, w_scaled = wide.collapse(unit, width), wide.collapse(scaled, width)
+        got, expected = w_scaled.to_numpy(), w_unit.to_numpy()
+        for name in ("slot_child", "slot_begin", "slot_end", "wide_begin", "wide_end"):
+            np.testing.assert_array_equal(got[name], expected[name], err_msg=f"{name}, width {width}")
+        assert wide.sah_cost(w_scaled) == pytest.approx(wide.sah_cost(w_unit), rel=1e-9)
+        assert sorted(numpy_collapse(b, width).values()) == sorted(
+            sorted((b_, e_) for _, b_, e_, _, _ in slots) for slots in wide_nodes(got, width).values())
