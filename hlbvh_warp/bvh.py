@@ -148,9 +148,12 @@ class Bvh:
     @property
     def depth(self) -> int:
         """Edges on the longest root-to-leaf path (a single leaf has depth 0)."""
-        if "depth" not in self._cache:
-            self._cache["depth"] = int(node_depths(self.to_numpy()).max())
-        return self._cache["depth"]
+        # Held from the host copy to the store: let go in between, an update on another thread
+        # emptied the cache there, and this frame's depth was stored as the next one's.
+        with held(self):
+            if "depth" not in self._cache:
+                self._cache["depth"] = int(node_depths(self.to_numpy()).max())
+            return self._cache["depth"]
 
     def to_numpy(self) -> dict:
         """The used part of every array as NumPy, keyed by the attribute names above.

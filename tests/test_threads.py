@@ -395,3 +395,83 @@ def test_a_huge_thread_count_is_capped_per_core(device):
     builder = Builder(300, hw.BuildConfig(cpu_threads=2**31 - 1), device=device)
     tree = builder.build(v, f).to_numpy()
     check_tree_invariants(tree, 300, 1, exact_node_count=599)
+
+
+def test_depth_read_while_another_thread_updates_is_not_kept_past_the_update(device, monkeypatch):
+    """`Bvh.depth` computed the depth from a host copy taken under the builder's lock but stored it
+    after letting go: an update in between (another thread) emptied the cache, and the old frame's
+    depth went into the new frame's, where every later read found it. The update is made to land
+    in that gap (or, once depth holds the lock throughout, to wait for it): the lock is wrapped so
+    that the second thread says whether it got the lock or had to wait."""
+    import threading
+
+    from hlbvh_warp import bvh as bvh_module
+
+    def oracle_depth(parent):
+        # Edges from each node up to the root, walked in Python.
+        depths = []
+        for node in range(parent.shape[0]):
+            steps = 0
+            while parent[node] >= 0:
+                node, steps = parent[node], steps + 1
+            depths.append(steps)
+        return max(depths)
+
+    n = 64
+    v, f = random_soup(np.random.default_rng(5), n)
+    deep = v.copy()
+    # Centroids spaced ever wider along x: each split cuts one triangle off, a deeper tree.
+    deep[:, 0] = np.repeat(np.arange(n, dtype=np.float32) ** 8, 3)
+    expected = [oracle_depth(hw.build(frame, f, device=device).to_numpy()["node_parent"]) for frame in (v, deep)]
+    assert expected[0] != expected[1], expected
+    builder = hw.Builder(n, device=device)
+    tree = builder.build(v, f)
+    updater = None
+    decided = threading.Event()  # the second thread has updated, or waits for the lock
+
+    class Watched:
+        def __init__(self, lock):
+            self.lock = lock
+
+        def acquire(self, blocking=True, timeout=-1):
+            if self.lock.acquire(blocking=False):
+                return True
+            if not blocking:
+                return False
+            if threading.current_thread() is updater:
+                decided.set()
+            return self.lock.acquire(True, timeout)
+
+        def release(self):
+            self.lock.release()
+
+        __enter__ = acquire
+
+        def __exit__(self, *exc):
+            self.release()
+
+    watched = Watched(builder._lock)
+    builder._lock = tree._lock = watched
+    real_depths = bvh_module.node_depths
+    reached = threading.Event()
+
+    def depths_after_an_update(arrays):
+        reached.set()
+        assert decided.wait(30), "the second thread neither updated nor waited"
+        return real_depths(arrays)
+
+    monkeypatch.setattr(bvh_module, "node_depths", depths_after_an_update)
+
+    def update():
+        assert reached.wait(30)
+        builder.update(deep)
+        decided.set()
+
+    updater = threading.Thread(target=update, daemon=True)
+    updater.start()
+    during = tree.depth
+    updater.join(30)
+    assert not updater.is_alive()
+    monkeypatch.setattr(bvh_module, "node_depths", real_depths)
+    assert during in expected
+    assert tree.depth == expected[1], (tree.depth, expected)
