@@ -475,3 +475,47 @@ def test_depth_read_while_another_thread_updates_is_not_kept_past_the_update(dev
     monkeypatch.setattr(bvh_module, "node_depths", real_depths)
     assert during in expected
     assert tree.depth == expected[1], (tree.depth, expected)
+
+
+@pytest.mark.parametrize("policy", ["auto", "refit", "rebuild"])
+def test_a_frame_that_raised_in_a_worker_is_not_kept_by_the_next(device, monkeypatch, policy):
+    """A rebuild whose emission raised in a worker thread (one run of seeds never written) left
+    half a tree behind, and the next frame kept it: under `auto` the same vertices again were "no
+    vertex moved", under `refit` the half tree was refit. The next frame now builds from scratch,
+    whatever the policy, and gives the tree a one-shot build of that frame gives."""
+    import sys as _sys
+
+    if device != "cpu":
+        pytest.skip("worker threads run only the CPU device's launches")
+    n = 10_000  # past PARALLEL_MIN_PRIMS: the emission runs its seeds on two threads
+    rng = np.random.default_rng(7)
+    v0, f = random_soup(rng, n)
+    v1 = (v0 * np.float32(1.5) + rng.random(v0.shape).astype(np.float32)).astype(np.float32)
+    builder = hw.Builder(n, hw.BuildConfig(cpu_threads=2), device=device, policy=policy)
+    builder.build(v0, f)
+    real_run = threads.run
+
+    def emission_fails_in_a_worker(jobs, count):
+        jobs = list(jobs)
+        if _sys._getframe(1).f_code.co_name == "emit_depth_first":
+            def fail():
+                raise RuntimeError("injected worker failure")
+
+            # Job 1 goes to the pool (the caller takes every `count`-th job from job 0).
+            jobs[1] = fail
+        return real_run(jobs, count)
+
+    monkeypatch.setattr(threads, "run", emission_fails_in_a_worker)
+    with pytest.raises(RuntimeError, match="injected worker failure"):
+        if policy == "auto":
+            builder.update(v1)  # large motion: a rebuild
+        else:
+            builder.rebuild(v1)
+    monkeypatch.setattr(threads, "run", real_run)
+    report = builder.update(v1)
+    assert report["decision"] == "rebuild", report
+    tree = builder.bvh.to_numpy()
+    check_tree_invariants(tree, n, 1, exact_node_count=2 * n - 1)
+    fresh = hw.build(v1, f, device=device).to_numpy()
+    assert np.array_equal(tree["prim_order"], fresh["prim_order"])
+    assert np.array_equal(canonical(tree), canonical(fresh))
