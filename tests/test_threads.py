@@ -519,3 +519,45 @@ def test_a_frame_that_raised_in_a_worker_is_not_kept_by_the_next(device, monkeyp
     fresh = hw.build(v1, f, device=device).to_numpy()
     assert np.array_equal(tree["prim_order"], fresh["prim_order"])
     assert np.array_equal(canonical(tree), canonical(fresh))
+
+
+def test_a_pair_query_on_a_tree_its_builder_keeps_updating_finishes(device):
+    """Two trees' locks were taken by trying both without waiting and, while one was busy,
+    sleeping a moment and trying again. A builder updating frame after frame in another thread
+    holds its lock but between two frames, and the query, which ran only when the updating
+    thread let go of the interpreter (in its kernel launches, lock held), never found it free:
+    it hung. It now waits for the busy lock as a one-tree query does."""
+    import threading
+
+    n = 400
+    rng = np.random.default_rng(11)
+    v, f = random_soup(rng, n)
+    other_v, other_f = random_soup(rng, n)
+    frames = [v, (v + np.float32(0.05)).astype(np.float32)]
+    # Launches not recorded: the builders run in two threads (see `Builder`'s record_launches).
+    moving = hw.Builder(n, device=device, record_launches=False)
+    still = hw.Builder(n, device=device, record_launches=False)
+    moving.build(v, f)
+    still.build(other_v, other_f)
+    other = hw.build(other_v, other_f, device=device)
+    expected = [hw.overlapping_pairs(hw.build(frame, f, device=device), other) for frame in frames]
+    stop = threading.Event()
+
+    def update():
+        k = 0
+        while not stop.is_set():
+            k += 1
+            moving.update(frames[k % 2])
+
+    results = []
+    updater = threading.Thread(target=update, daemon=True)
+    query = threading.Thread(target=lambda: results.append(hw.overlapping_pairs(moving.bvh, still.bvh)), daemon=True)
+    updater.start()
+    try:
+        query.start()
+        query.join(20)
+    finally:
+        stop.set()
+        updater.join(30)
+    assert results, "the pair query did not finish while the other thread kept updating"
+    assert any(np.array_equal(results[0], pairs) for pairs in expected)
