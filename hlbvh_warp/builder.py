@@ -72,6 +72,8 @@ PIPELINE_METHODS = ("hlbvh", "lbvh", "hlbvh_sah")
 # Adjacent pairs of the previous tree's order sampled to decide whether resorting pays (the
 # estimate of M / N is within about 0.03 (one standard error) of the whole order's).
 RESORT_SAMPLES = 256
+# The report's reason for the frame after one that raised partway (`Builder._begin_frame`).
+UNFINISHED_REASON = "the previous frame raised partway and left its tree unfinished: built from scratch"
 
 
 def _finite_or_none(cost: float) -> float | None:
@@ -255,6 +257,10 @@ class Builder:
         self.previous_bounds = None
         self.snapshots: list = []
         self.snapshot_valid = False
+        # Whether a frame has begun changing the buffers and not finished: one that raised partway
+        # (an error in a worker thread, an interrupt) left a half-written tree, and maybe a
+        # half-written order (`_begin_frame`).
+        self.frame_unfinished = False
         self.bvh: Bvh | None = None
         self.frame = 0
         self.sah_reference = None
@@ -482,6 +488,7 @@ class Builder:
         verts_np, faces_np = inputs.mesh_arrays(vertices, faces)
         if faces_np.shape[0] != self.num_prims:
             raise ValueError(f"faces has {faces_np.shape[0]} rows, the builder was set up for {self.num_prims}")
+        self.frame_unfinished = True
         if self.vertices is None or self.vertices.shape[0] != verts_np.shape[0]:
             if self.vertices is not None:
                 # New faces too: a view taken earlier keeps the old vertex array, and the new
@@ -508,6 +515,7 @@ class Builder:
         lo, hi = inputs.bounds_arrays(lowers, uppers)
         if lo.shape[0] != self.num_prims:
             raise ValueError(f"lowers has {lo.shape[0]} rows, the builder was set up for {self.num_prims}")
+        self.frame_unfinished = True
         if self.previous_bounds is None:
             self.previous_bounds = [wp.empty(self.num_prims, dtype=wp.vec3, device=self.device) for _ in range(2)]
         self.prim_lowers.assign(lo)
@@ -558,6 +566,7 @@ class Builder:
         # previous mesh's cost, so a later switch to `auto` rebuilds first.
         self.sah_reference = _finite_or_none(self.sah_cost()) if self.policy == "auto" else None
         self._report("rebuild", "first build", start, stages)
+        self.frame_unfinished = False
         return self.bvh
 
     @property
@@ -576,6 +585,21 @@ class Builder:
         if self.bvh is None:
             raise RuntimeError("call build(vertices, faces) or build_from_bounds(lowers, uppers) once before "
                                "rebuild/refit/update/sah_cost")
+
+    def _begin_frame(self) -> bool:
+        """Mark a frame as changing the buffers (until its report) and return whether the previous
+        one raised partway. Such a frame may have stopped inside its sort or emission: its tree is
+        half written, and its order (the next resorted frame's input) may not be a permutation,
+        nor its sorted codes those of any tree. The next frame then builds from scratch, as the
+        first build does, whatever the policy or call: kept, refit or resorted, the half tree
+        lived on (under `auto` the same vertices again were "no vertex moved")."""
+        unfinished = self.frame_unfinished
+        if unfinished:
+            if self.resort:
+                wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
+            self.has_last_codes = False
+        self.frame_unfinished = True
+        return unfinished
 
     def _rebuild(self, timer: StageTimer):
         """The launches of one full build from `self.vertices` (or the boxes in `prim_lowers` /
@@ -779,6 +803,10 @@ class Builder:
             raise RuntimeError(f"a {self.method!r} rebuild on {self.device} reads counts on the host and cannot be "
                                "captured in a graph; capture a CUDA Builder with method='hlbvh' or 'lbvh'")
         start = time.perf_counter()
+        unfinished = self._begin_frame()
+        return self._full_rebuild(sources, start, UNFINISHED_REASON if unfinished else "rebuild requested")
+
+    def _full_rebuild(self, sources: list | None, start: float, reason: str) -> Bvh:
         self._load(sources)
         timer = StageTimer(self.device, self.timings)
         self._rebuild(timer)
@@ -787,7 +815,8 @@ class Builder:
         # A fresh tree: `auto`'s refits in a row and their growth start again from it.
         self.refits_since_rebuild = 0
         self.previous_growth = self.last_growth = 0.0
-        self._report("rebuild", "rebuild requested", start, stages)
+        self._report("rebuild", reason, start, stages)
+        self.frame_unfinished = False
         return self.bvh
 
     @_one_call_at_a_time
@@ -797,6 +826,9 @@ class Builder:
         self._require_built()
         sources = self._frame_sources(vertices, bounds)
         start = time.perf_counter()
+        if self._begin_frame():
+            # No whole topology to refit: the last frame stopped partway through writing it.
+            return self._full_rebuild(sources, start, UNFINISHED_REASON)
         self._load(sources)
         timer = StageTimer(self.device, self.timings)
         self._refit(timer)
@@ -806,6 +838,7 @@ class Builder:
         # a switch back to `auto` priced a tree refit 40 times as "after 1 refits".
         self.refits_since_rebuild += 1
         self._report("refit", "refit requested", start, stages)
+        self.frame_unfinished = False
         return self.bvh
 
     @_one_call_at_a_time
@@ -847,6 +880,7 @@ class Builder:
 
     def _auto(self, sources: list | None):
         start = time.perf_counter()
+        unfinished = self._begin_frame()
         timer = StageTimer(self.device, self.timings)
         timer.stage("motion")
         compare_only = self.chaotic_frames > 0 and self._comparable(sources)
@@ -872,7 +906,11 @@ class Builder:
             extra = {"max_displacement": moved, "relative_motion": relative} if measured else {}
         skipped = []
         large = False
-        if not measured:
+        if unfinished:
+            # Motion is measured against the buffers, not against what the half tree bounds.
+            decision, reason = "rebuild", UNFINISHED_REASON
+            self._rebuild(timer)
+        elif not measured:
             decision = "rebuild"
             reason = "frame written in place, with no snapshot of the previous frame to measure against"
             self._rebuild(timer)
@@ -960,6 +998,7 @@ class Builder:
         stages = self._finish(timer, changed=decision != "none")
         stages["skipped"] = list(stages.get("skipped", [])) + skipped
         self._report(decision, reason, start, stages, **extra)
+        self.frame_unfinished = False
 
     # --------------------------------------------------------------- report
     def _report(self, decision: str, reason: str, start: float, stages: dict, **extra):

@@ -5,13 +5,15 @@ from __future__ import annotations
 import contextlib
 import functools
 import inspect
-import random
-import time
 
 import numpy as np
 import warp as wp
 
 from .config import BuildConfig
+
+#: How long `held` first waits for a second tree's lock while holding the first one (then twice
+#: as long each round).
+LOCK_WAIT_S = 0.001
 
 
 class Bvh:
@@ -148,9 +150,12 @@ class Bvh:
     @property
     def depth(self) -> int:
         """Edges on the longest root-to-leaf path (a single leaf has depth 0)."""
-        if "depth" not in self._cache:
-            self._cache["depth"] = int(node_depths(self.to_numpy()).max())
-        return self._cache["depth"]
+        # Held from the host copy to the store: let go in between, an update on another thread
+        # emptied the cache there, and this frame's depth was stored as the next one's.
+        with held(self):
+            if "depth" not in self._cache:
+                self._cache["depth"] = int(node_depths(self.to_numpy()).max())
+            return self._cache["depth"]
 
     def to_numpy(self) -> dict:
         """The used part of every array as NumPy, keyed by the attribute names above.
@@ -227,9 +232,12 @@ def held(*trees):
     between their passes and wrote fewer pairs than they had counted: garbage ids, and in
     `intersecting_pairs` a crash.
 
-    Two locks are taken together or not at all (each tried, all let go and tried again after a
-    short random wait when one is busy): a fixed order alone deadlocked a thread already inside
-    one tree's `hold()` against another taking both in that order."""
+    Two locks are taken as ``std::lock`` takes them: wait for one, then for the other a while,
+    and when that one stays busy let go and wait for it first, each wait twice as long as the
+    last. A fixed order alone deadlocked a thread already inside one tree's `hold()` against
+    another taking both in that order; and trying both without waiting (let go and try again
+    after a short random sleep) never found both free while their builders updated frame after
+    frame in other threads, each lock free only between two frames: the query hung."""
     locks = []
     for tree in trees:
         lock = getattr(tree, "_lock", None)
@@ -239,17 +247,25 @@ def held(*trees):
         with locks[0] if locks else contextlib.nullcontext():
             yield
         return
+    first, wait = 0, LOCK_WAIT_S
     while True:
-        taken = []
-        for lock in locks:
-            if not lock.acquire(blocking=False):
-                break
-            taken.append(lock)
-        if len(taken) == len(locks):
+        locks[first].acquire()
+        taken = [locks[first]]
+        busy = None
+        for index, lock in enumerate(locks):
+            if index != first:
+                if not lock.acquire(timeout=wait):
+                    busy = index
+                    break
+                taken.append(lock)
+        if busy is None:
             break
         for lock in reversed(taken):
             lock.release()
-        time.sleep(random.uniform(0.0, 0.002))
+        # Let go before waiting for the busy one: a thread inside `hold()` on it may be waiting
+        # for the one taken here. The longer waits let two builders' frames, each longer than
+        # the last wait, end while one lock is held.
+        first, wait = busy, 2.0 * wait
     try:
         yield
     finally:

@@ -395,3 +395,169 @@ def test_a_huge_thread_count_is_capped_per_core(device):
     builder = Builder(300, hw.BuildConfig(cpu_threads=2**31 - 1), device=device)
     tree = builder.build(v, f).to_numpy()
     check_tree_invariants(tree, 300, 1, exact_node_count=599)
+
+
+def test_depth_read_while_another_thread_updates_is_not_kept_past_the_update(device, monkeypatch):
+    """`Bvh.depth` computed the depth from a host copy taken under the builder's lock but stored it
+    after letting go: an update in between (another thread) emptied the cache, and the old frame's
+    depth went into the new frame's, where every later read found it. The update is made to land
+    in that gap (or, once depth holds the lock throughout, to wait for it): the lock is wrapped so
+    that the second thread says whether it got the lock or had to wait."""
+    import threading
+
+    from hlbvh_warp import bvh as bvh_module
+
+    def oracle_depth(parent):
+        # Edges from each node up to the root, walked in Python.
+        depths = []
+        for node in range(parent.shape[0]):
+            steps = 0
+            while parent[node] >= 0:
+                node, steps = parent[node], steps + 1
+            depths.append(steps)
+        return max(depths)
+
+    n = 64
+    v, f = random_soup(np.random.default_rng(5), n)
+    deep = v.copy()
+    # Centroids spaced ever wider along x: each split cuts one triangle off, a deeper tree.
+    deep[:, 0] = np.repeat(np.arange(n, dtype=np.float32) ** 8, 3)
+    expected = [oracle_depth(hw.build(frame, f, device=device).to_numpy()["node_parent"]) for frame in (v, deep)]
+    assert expected[0] != expected[1], expected
+    builder = hw.Builder(n, device=device)
+    tree = builder.build(v, f)
+    updater = None
+    decided = threading.Event()  # the second thread has updated, or waits for the lock
+
+    class Watched:
+        def __init__(self, lock):
+            self.lock = lock
+
+        def acquire(self, blocking=True, timeout=-1):
+            if self.lock.acquire(blocking=False):
+                return True
+            if not blocking:
+                return False
+            if threading.current_thread() is updater:
+                decided.set()
+            return self.lock.acquire(True, timeout)
+
+        def release(self):
+            self.lock.release()
+
+        __enter__ = acquire
+
+        def __exit__(self, *exc):
+            self.release()
+
+    watched = Watched(builder._lock)
+    builder._lock = tree._lock = watched
+    real_depths = bvh_module.node_depths
+    reached = threading.Event()
+
+    def depths_after_an_update(arrays):
+        reached.set()
+        assert decided.wait(30), "the second thread neither updated nor waited"
+        return real_depths(arrays)
+
+    monkeypatch.setattr(bvh_module, "node_depths", depths_after_an_update)
+
+    def update():
+        assert reached.wait(30)
+        builder.update(deep)
+        decided.set()
+
+    updater = threading.Thread(target=update, daemon=True)
+    updater.start()
+    during = tree.depth
+    updater.join(30)
+    assert not updater.is_alive()
+    monkeypatch.setattr(bvh_module, "node_depths", real_depths)
+    assert during in expected
+    assert tree.depth == expected[1], (tree.depth, expected)
+
+
+@pytest.mark.parametrize("policy", ["auto", "refit", "rebuild"])
+def test_a_frame_that_raised_in_a_worker_is_not_kept_by_the_next(device, monkeypatch, policy):
+    """A rebuild whose emission raised in a worker thread (one run of seeds never written) left
+    half a tree behind, and the next frame kept it: under `auto` the same vertices again were "no
+    vertex moved", under `refit` the half tree was refit. The next frame now builds from scratch,
+    whatever the policy, and gives the tree a one-shot build of that frame gives."""
+    import sys as _sys
+
+    if device != "cpu":
+        pytest.skip("worker threads run only the CPU device's launches")
+    n = 10_000  # past PARALLEL_MIN_PRIMS: the emission runs its seeds on two threads
+    rng = np.random.default_rng(7)
+    v0, f = random_soup(rng, n)
+    v1 = (v0 * np.float32(1.5) + rng.random(v0.shape).astype(np.float32)).astype(np.float32)
+    builder = hw.Builder(n, hw.BuildConfig(cpu_threads=2), device=device, policy=policy)
+    builder.build(v0, f)
+    real_run = threads.run
+
+    def emission_fails_in_a_worker(jobs, count):
+        jobs = list(jobs)
+        if _sys._getframe(1).f_code.co_name == "emit_depth_first":
+            def fail():
+                raise RuntimeError("injected worker failure")
+
+            # Job 1 goes to the pool (the caller takes every `count`-th job from job 0).
+            jobs[1] = fail
+        return real_run(jobs, count)
+
+    monkeypatch.setattr(threads, "run", emission_fails_in_a_worker)
+    with pytest.raises(RuntimeError, match="injected worker failure"):
+        if policy == "auto":
+            builder.update(v1)  # large motion: a rebuild
+        else:
+            builder.rebuild(v1)
+    monkeypatch.setattr(threads, "run", real_run)
+    report = builder.update(v1)
+    assert report["decision"] == "rebuild", report
+    tree = builder.bvh.to_numpy()
+    check_tree_invariants(tree, n, 1, exact_node_count=2 * n - 1)
+    fresh = hw.build(v1, f, device=device).to_numpy()
+    assert np.array_equal(tree["prim_order"], fresh["prim_order"])
+    assert np.array_equal(canonical(tree), canonical(fresh))
+
+
+def test_a_pair_query_on_a_tree_its_builder_keeps_updating_finishes(device):
+    """Two trees' locks were taken by trying both without waiting and, while one was busy,
+    sleeping a moment and trying again. A builder updating frame after frame in another thread
+    holds its lock but between two frames, and the query, which ran only when the updating
+    thread let go of the interpreter (in its kernel launches, lock held), never found it free:
+    it hung. It now waits for the busy lock as a one-tree query does."""
+    import threading
+
+    n = 400
+    rng = np.random.default_rng(11)
+    v, f = random_soup(rng, n)
+    other_v, other_f = random_soup(rng, n)
+    frames = [v, (v + np.float32(0.05)).astype(np.float32)]
+    # Launches not recorded: the builders run in two threads (see `Builder`'s record_launches).
+    moving = hw.Builder(n, device=device, record_launches=False)
+    still = hw.Builder(n, device=device, record_launches=False)
+    moving.build(v, f)
+    still.build(other_v, other_f)
+    other = hw.build(other_v, other_f, device=device)
+    expected = [hw.overlapping_pairs(hw.build(frame, f, device=device), other) for frame in frames]
+    stop = threading.Event()
+
+    def update():
+        k = 0
+        while not stop.is_set():
+            k += 1
+            moving.update(frames[k % 2])
+
+    results = []
+    updater = threading.Thread(target=update, daemon=True)
+    query = threading.Thread(target=lambda: results.append(hw.overlapping_pairs(moving.bvh, still.bvh)), daemon=True)
+    updater.start()
+    try:
+        query.start()
+        query.join(20)
+    finally:
+        stop.set()
+        updater.join(30)
+    assert results, "the pair query did not finish while the other thread kept updating"
+    assert any(np.array_equal(results[0], pairs) for pairs in expected)
