@@ -19,8 +19,8 @@ import warp as wp
 
 from hlbvh_warp import query
 from hlbvh_warp.builder import Builder
-from hlbvh_warp.cli import (argument_errors, check_out_file, device_name, mesh_file, positive_int, query_count, read_mesh,
-                            scene_tris)
+from hlbvh_warp.cli import (argument_errors, check_out_file, device_name, mesh_file, positive_int, query_count,
+                            read_mesh, scene_tris)
 from hlbvh_warp.dynamic import BendingMesh
 from hlbvh_warp.scenes import scene
 

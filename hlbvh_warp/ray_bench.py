@@ -9,9 +9,10 @@ Hits are checked first. This package's are checked against a float64 brute force
 disagrees (up to `ORACLE_RAYS` of each), by the rule of the ``stress`` command
 (`stress_report.classify`). A ray is wrong when its answer differs from the brute force's (a hit
 against a miss, or a hit at a t not within 1e-5 relative of the brute force's: a different
-triangle at the same t is a tie where the ray meets it there, `reference.unmet_ties`) and the difference is not a near-tie: every
-triangle on which the two answers differ decided within float32's rounding, the ray passing
-within 1e-5 x scale of the triangle's boundary or of the line through one of its edges (scale:
+triangle at the same t is a tie where the ray meets it there, `reference.unmet_ties`) and the
+difference is not a near-tie: every triangle on which the two answers differ decided within
+float32's rounding, the ray passing within 1e-5 x scale of the triangle's boundary or of the
+line through one of its edges (scale:
 the largest coordinate of the ray's origin and the triangle), grazing the triangle's plane or
 starting on it, or the triangle having almost no area. On a shared edge or vertex the watertight
 test may pick either triangle, and on the mesh's silhouette a hit or a miss. Wrong rays are the
