@@ -475,3 +475,20 @@ def numpy_sah(tree: dict, t1: float = 1.0, t2: float = 1.0) -> float:
     leaf = tree["node_left"] < 0
     cost = np.where(leaf, t2 * (tree["node_end"] - tree["node_begin"]), 2.0 * t1)
     return float((cost * area).sum() / area[0])
+
+
+def sphere_past_float32_extent(rng):
+    """An icosphere of radius 1.7 (shuffled faces) as ``(small, big, faces)``: its vertices in
+    float32 at that size and scaled by 2^127 (2.9e38), where the centroids of its triangles span
+    more than float32's largest value on every axis (checked), though every coordinate is finite.
+    A builder should split the big one as it splits the small one."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v = np.asarray(mesh.vertices, np.float64) * 1.7
+    f = np.asarray(mesh.faces, np.int32)[rng.permutation(len(mesh.faces))]
+    small = v.astype(np.float32)
+    big = (v * 2.0**127).astype(np.float32)
+    c = np.float32(0.5) * small[f].min(1) + np.float32(0.5) * small[f].max(1)
+    assert ((c.max(0).astype(np.float64) - c.min(0)) * 2.0**127 > np.finfo(np.float32).max).all()
+    return small, big, f

@@ -537,6 +537,19 @@ def _box_count_kernel(bvh: query.BvhView, lowers: wp.array(dtype=wp.vec3), upper
     counts[tid] = query.bvh_aabb_count(bvh, lowers[tid], uppers[tid])
 
 
+def _assert_box_queries(bvh, q_lo, q_hi, ref, device):
+    """`query_aabb` (counts and pairs) and `bvh_aabb_count` in a user kernel against the
+    reference overlaps ``ref`` (queries x primitives)."""
+    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
+    assert np.array_equal(counts, ref.sum(1))
+    assert np.array_equal(pairs, np.argwhere(ref))
+    out = wp.zeros(len(q_lo), dtype=int, device=device)
+    wp.launch(_box_count_kernel, dim=len(q_lo), device=device,
+              inputs=[query.view(bvh), wp.array(q_lo, dtype=wp.vec3, device=device),
+                      wp.array(q_hi, dtype=wp.vec3, device=device), out])
+    assert np.array_equal(out.numpy(), ref.sum(1))
+
+
 @pytest.mark.parametrize("max_leaf_size", [1, 4])
 def test_box_queries_count_touching_boxes(device, rng, max_leaf_size):
     """Closed boxes: a query that only touches a box (a shared face, edge or corner, from below
@@ -552,14 +565,7 @@ def test_box_queries_count_touching_boxes(device, rng, max_leaf_size):
     # Many queries meet their boxes only on a boundary.
     inner = ((lo[None] < q_hi[:, None]) & (hi[None] > q_lo[:, None])).all(-1)
     assert (ref & ~inner).sum() > 100
-    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
-    assert np.array_equal(counts, ref.sum(1))
-    assert np.array_equal(pairs, np.argwhere(ref))
-    out = wp.zeros(len(q_lo), dtype=int, device=device)
-    wp.launch(_box_count_kernel, dim=len(q_lo), device=device,
-              inputs=[query.view(bvh), wp.array(q_lo, dtype=wp.vec3, device=device),
-                      wp.array(q_hi, dtype=wp.vec3, device=device), out])
-    assert np.array_equal(out.numpy(), ref.sum(1))
+    _assert_box_queries(bvh, q_lo, q_hi, ref, device)
 
 
 @pytest.mark.parametrize("boxes_only", [False, True])
@@ -580,14 +586,7 @@ def test_an_inverted_query_box_overlaps_nothing(device, boxes_only):
     q_hi = np.float32([[0.4, 0.3, 2.0], [2.0, 0.4, 2.0], [2.0, 2.0, 0.6], [0.2, 0.2, 0.1], [2.4, 2.6, 2.6]])
     ref = brute_overlaps(tri.min(1), tri.max(1), q_lo, q_hi) & (q_lo <= q_hi).all(-1)[:, None]
     assert ref.sum(1).tolist() == [0, 0, 0, 1, 0]  # every box but the fourth is inverted on one axis
-    counts, pairs = query.query_aabb(bvh, q_lo, q_hi, return_pairs=True)
-    assert np.array_equal(counts, ref.sum(1))
-    assert np.array_equal(pairs, np.argwhere(ref))
-    out = wp.zeros(len(q_lo), dtype=int, device=device)
-    wp.launch(_box_count_kernel, dim=len(q_lo), device=device,
-              inputs=[query.view(bvh), wp.array(q_lo, dtype=wp.vec3, device=device),
-                      wp.array(q_hi, dtype=wp.vec3, device=device), out])
-    assert np.array_equal(out.numpy(), ref.sum(1))
+    _assert_box_queries(bvh, q_lo, q_hi, ref, device)
 
 
 def test_occluded_takes_one_t_max_for_every_ray(device):

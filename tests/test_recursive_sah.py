@@ -7,13 +7,13 @@ import warnings
 
 import numpy as np
 import pytest
-import trimesh
 import warp as wp
 
 import hlbvh_warp as hw
 from hlbvh_warp import metrics
 from hlbvh_warp.recursive_sah import _side_costs
-from oracles import brute_force_closest_hit, check_tree_invariants, random_rays, random_soup
+from oracles import (brute_force_closest_hit, check_tree_invariants, random_rays, random_soup,
+                     sphere_past_float32_extent)
 
 
 def boxes(v, f):
@@ -240,13 +240,7 @@ def test_centroid_extent_past_the_float32_range(device, rng):
     split the node and it was halved in its (shuffled) face order: 6.4 times the SAH cost of the
     same sphere scaled down by 2^127, with NumPy overflow warnings. Scaled down, every extent is
     finite; the splits must cost what that sphere's do."""
-    mesh = trimesh.creation.icosphere(subdivisions=2)
-    v = np.asarray(mesh.vertices, np.float64) * 1.7
-    f = np.asarray(mesh.faces, np.int32)[rng.permutation(len(mesh.faces))]
-    small = v.astype(np.float32)
-    big = (v * 2.0**127).astype(np.float32)
-    c = np.float32(0.5) * small[f].min(1) + np.float32(0.5) * small[f].max(1)
-    assert ((c.max(0).astype(np.float64) - c.min(0)) * 2.0**127 > np.finfo(np.float32).max).all()
+    small, big, f = sphere_past_float32_extent(rng)
     config = hw.BuildConfig(recursive_sah_bins=16, recursive_sah_temp_bins=8)
     expected = metrics.sah_cost(hw.build(small, f, method="recursive_sah", device=device, config=config))
     with warnings.catch_warnings():

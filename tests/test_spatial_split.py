@@ -15,7 +15,7 @@ from hlbvh_warp import hlbvh, query, spatial_split, wide
 from hlbvh_warp.kernels import spatial_split as sk
 from hlbvh_warp.metrics import end_point_overlap, sah_cost
 from oracles import (assert_hits_match, brute_force_closest_hit, numpy_end_point_overlap, random_rays,
-                     sbvh_root_candidates, triangle_slab_bounds)
+                     sbvh_root_candidates, sphere_past_float32_extent, triangle_slab_bounds)
 
 
 def slivers(rng, num_tris: int, length: float = 1.0, width: float = 0.01):
@@ -527,13 +527,7 @@ def test_centroid_extent_past_the_float32_range(device, rng):
     them all in bin 0 and the node was halved in its (shuffled) order: 6.3 times the SAH cost of
     the same sphere scaled down by 2^127. Object splits only (alpha = inf), as cheap as that
     sphere's."""
-    mesh = trimesh.creation.icosphere(subdivisions=2)
-    v = np.asarray(mesh.vertices, np.float64) * 1.7
-    f = np.asarray(mesh.faces, np.int32)[rng.permutation(len(mesh.faces))]
-    small = v.astype(np.float32)
-    big = (v * 2.0**127).astype(np.float32)
-    c = np.float32(0.5) * small[f].min(1) + np.float32(0.5) * small[f].max(1)
-    assert ((c.max(0).astype(np.float64) - c.min(0)) * 2.0**127 > np.finfo(np.float32).max).all()
+    small, big, f = sphere_past_float32_extent(rng)
     config = hw.BuildConfig(sbvh_alpha=np.inf)
     expected = sah_cost(hw.build(small, f, method="sbvh", device=device, config=config))
     bvh = hw.build(big, f, method="sbvh", device=device, config=config)
