@@ -125,9 +125,11 @@ class Builder:
         keep_reports: how many of the latest frame reports `reports` keeps (a long animation
             would otherwise grow the list by one dict per frame for as long as it runs).
         record_launches: pack each kernel launch's arguments once and replay the launch every
-            frame (`hlbvh_warp.launches`). Turn it off for builders driven from several Python
-            threads at once: Warp 1.19's recorded CPU launches are not safe side by side. (Calls
-            on one builder from several threads take turns either way.)
+            frame (`hlbvh_warp.launches`). Safe with builders driven from several Python threads
+            at once: a record that could call into a module Warp unloaded (made while another
+            thread loaded the same module) is refused, that launch made plainly. Off: every
+            launch through `wp.launch`, the same trees at more time per frame. (Calls on one
+            builder from several threads take turns either way.)
 
     Example::
 

@@ -12,9 +12,15 @@ keeps its arguments alive. Launches made while the CPU runs kernels side by side
 there crashed the process (a segmentation fault in Warp 1.19's CPU `invoke`, with `hlbvh_sah`
 on two cores). Those are the launches whose arguments change every frame anyway (each run's
 first seed), so nothing is lost.
+
+A record is kept only if it holds the loaded module its entry points are in (`holds_its_code`):
+made while another thread was loading the same module, one could hold one load and call into
+the other, which Warp then unloaded, and its replay crashed the process.
 """
 
 from __future__ import annotations
+
+import ctypes
 
 import numpy as np
 import warp as wp
@@ -31,6 +37,36 @@ MAX_RECORDED = 256
 #: its three kernels once per p bit planes, ceil(30 / 3) passes and the median pass, 11 sets each
 #: frame, so at 8 it launched 28 kernels plainly every frame.
 MAX_RECORDS_PER_KERNEL = 24
+
+
+def _entry_address(entry) -> int | None:
+    """The address of a kernel entry point as `KernelHooks` holds it: a ctypes function on the
+    CPU, a CUDA function handle on a GPU."""
+    if entry is None or isinstance(entry, int):
+        return entry
+    return ctypes.cast(entry, ctypes.c_void_p).value
+
+
+def holds_its_code(cmd) -> bool:
+    """Whether the recorded launch `cmd` keeps alive the loaded module its kernel's entry points
+    are in, so that replaying it can never call unloaded code.
+
+    `wp.launch(..., record_cmd=True)` takes the entry points (``cmd.hooks``) from the module it
+    loaded, then keeps whatever a second ``kernel.module.load`` returns (``cmd.module_exec``).
+    Warp 1.19's `Module.load` is not thread-safe: two threads launching a kernel of a module not
+    yet loaded both load it, and the later one replaces the earlier in the module's table. When
+    that replacement lands between the two calls, the record keeps the newer module and the entry
+    points of the older, which Warp unloads once nothing else holds it; a replay then jumped into
+    freed code (a segmentation fault in its CPU `invoke`). Compared by address, not by the hooks
+    objects: two threads asking one module for a kernel's hooks at once may get two objects,
+    and an address that equals the kept module's entry point is that module's code whichever
+    load handed it out. Once per record, never per replay."""
+    try:
+        own = cmd.module_exec.get_kernel_hooks(cmd.kernel)
+        return (_entry_address(own.forward) == _entry_address(cmd.hooks.forward)
+                and _entry_address(own.backward) == _entry_address(cmd.hooks.backward))
+    except AttributeError:  # a Warp whose Launch keeps these otherwise: trust it
+        return True
 
 
 def _arg_key(value):
@@ -87,8 +123,13 @@ class RecordedLaunches:
                 return
             if len(self.records) >= MAX_RECORDED:
                 self.clear()
-            self.made[kernel] = self.made.get(kernel, 0) + 1
             cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
+            if not holds_its_code(cmd):
+                # Recorded while another thread loaded the kernel's module: this time plainly,
+                # the next call records anew.
+                wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+                return
+            self.made[kernel] = self.made.get(kernel, 0) + 1
             entry = self.records[key] = [cmd, dim]
         else:
             if entry[1] != dim:

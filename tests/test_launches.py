@@ -206,6 +206,110 @@ def test_recording_builders_survive_side_by_side_launches(tmp_path):
     assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
 
 
+def test_a_record_keeping_another_load_than_its_entry_points_is_dropped(device, monkeypatch):
+    # `wp.launch(..., record_cmd=True)` takes the kernel's entry points from the module it
+    # loaded, then the Launch keeps what a second load returns. Another thread loading the module
+    # in between (Warp's Module.load is not thread-safe) left a record holding one load and
+    # calling into the other, which Warp unloaded: its replay crashed the process. Here that
+    # second load is made to load anew: such a record must be refused and the launch made
+    # plainly, and the next call, with no load in between, records as usual.
+    from hlbvh_warp.launches import holds_its_code
+
+    x = wp.array(np.ones((8, 3)), dtype=wp.vec3, device=device)
+    y = wp.zeros(8, dtype=wp.vec3, device=device)
+    args = [2.0, x, wp.vec3(), wp.float64(0.0), 0, y]
+    wp.launch(_axpy_kernel, dim=8, inputs=args, device=device)  # loaded before
+    module = _axpy_kernel.module
+    replaced = []
+    real_init = wp.Launch.__init__
+
+    def reloading_init(self, kernel, *rest, **kwargs):
+        # As another thread's load replacing this one's. The replaced load is kept alive here:
+        # freed, its code's place could go to the next load's (Warp places a CPU module's code on
+        # its first lookup), and the entry points would then be the same, the replay safe.
+        replaced.extend(module.execs.values())
+        module.execs = {}
+        real_init(self, kernel, *rest, **kwargs)
+
+    monkeypatch.setattr(wp.Launch, "__init__", reloading_init)
+    torn = wp.launch(_axpy_kernel, dim=8, inputs=args, device=device, record_cmd=True)
+    assert not holds_its_code(torn)
+    del torn  # never replayed: its entry points may be unloaded code
+    rec = RecordedLaunches(device)
+    y.zero_()
+    rec.launch(_axpy_kernel, 8, args)
+    np.testing.assert_allclose(y.numpy(), np.full((8, 3), 2.0))
+    assert len(rec.records) == 0 and not rec.made
+    monkeypatch.setattr(wp.Launch, "__init__", real_init)
+    y.zero_()
+    rec.launch(_axpy_kernel, 8, args)
+    np.testing.assert_allclose(y.numpy(), np.full((8, 3), 2.0))
+    (cmd, _), = rec.records.values()
+    assert holds_its_code(cmd)
+
+
+BUILDERS_LOADING_MODULES_SCRIPT = """
+import sys, threading
+import numpy as np, warp as wp
+wp.config.quiet = True
+import warp._src.context as warp_context
+import hlbvh_warp as hb
+from hlbvh_warp.launches import holds_its_code
+from hlbvh_warp.scenes import default_scene
+
+meshes = [default_scene(n) for n in (400, 1500)]
+rng = np.random.default_rng(0)
+origins = rng.normal(size=(64, 3)).astype(np.float32) * 3
+other = hb.build(*meshes[1], device="cpu")
+for round in range(60):
+    # Each round's first launches load the library's modules afresh, as a process's first
+    # frames do: Warp forgets the loaded ones (records made before keep theirs alive).
+    for module in list(warp_context.user_modules.values()):
+        if module.name.startswith("hlbvh_warp."):
+            module.execs = {}
+    start = threading.Barrier(3)
+    builders = [None, None]
+
+    def drive(i):
+        v, f = meshes[i]
+        start.wait()
+        b = hb.Builder(len(f), device="cpu", policy="auto")
+        b.build(v, f)
+        for k in range(1, 7):
+            b.update(v * np.float32(1.0 + 0.01 * k))
+        builders[i] = b
+
+    def query():
+        start.wait()
+        hb.intersect(other, origins, -origins)
+        hb.closest_point(other, origins)
+        hb.overlapping_pairs(other)
+
+    threads = [threading.Thread(target=drive, args=(0,)), threading.Thread(target=drive, args=(1,)),
+               threading.Thread(target=query)]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    torn = [cmd.kernel.key for b in builders for cmd, _ in b.pipeline.launches.records.values()
+            if not holds_its_code(cmd)]
+    assert not torn, (round, torn)
+print("done")
+"""
+
+
+def test_builders_first_launching_in_several_threads_record_safely():
+    # Two recording Builders, each built and updated in its own thread, and a third thread
+    # querying: their first launches load Warp modules in several threads at once, and a record
+    # made meanwhile could keep one load of a module while calling into another, unloaded one.
+    # Its replay crashed the process (a segmentation fault in Warp's CPU `invoke`) within a few
+    # rounds in every run. In a child process, so that a crash fails this test alone.
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", BUILDERS_LOADING_MODULES_SCRIPT], capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+
+
 @wp.kernel
 def _shape_kernel(x: wp.array(dtype=float), out: wp.array(dtype=float)):
     i = wp.tid()
