@@ -395,3 +395,26 @@ def test_classifier_flags_the_right_triangle_at_a_wrong_distance():
     disagree, unexplained = stress_report.classify(verts, faces, o, d, wrong, prim_ref, t_ref, prim_ref)
     assert disagree == int(hit.sum())
     assert unexplained >= 0.9 * disagree
+
+
+def test_classifier_flags_a_hit_beyond_a_near_tie_that_the_ray_does_not_meet():
+    """A reference hit that is a near-tie (a ray grazing an edge) excuses missing that triangle,
+    not whatever the traversal reported behind it: a hit on a triangle the ray never meets, or one
+    past another triangle the ray plainly crosses, must be flagged."""
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [10, 0, 0], [11, 0, 0], [10, 1, 0],
+                      [0, -1, -1], [1, -1, -1], [0.5, 1, -1]], np.float32)
+    faces = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]], np.int32)
+    # Down onto the edge y = 0 of triangle 0 (within rounding of it), then through triangle 2 at t = 2.
+    o, d = np.array([[0.5, 1e-9, 1.0]], np.float32), np.array([[0.0, 0.0, -1.0]], np.float32)
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    assert prim_ref[0] == 0 and stress_report.is_marginal(verts, faces, 0, o[0], d[0])
+    # Missing the grazed triangle and reporting the next one is a near-tie.
+    assert stress_report.classify(verts, faces, o, d, np.array([2.0]), np.array([2]), t_ref, prim_ref) == (1, 0)
+    # Triangle 1 lies nowhere on the ray, and the ray meets triangle 2 at t = 2, not 3: wrong
+    # answers, not ties.
+    assert stress_report.classify(verts, faces, o, d, np.array([3.0]), np.array([1]), t_ref, prim_ref) == (1, 1)
+    assert stress_report.classify(verts, faces, o, d, np.array([3.0]), np.array([2]), t_ref, prim_ref) == (1, 1)
+    # Triangle 2 crossed at t = 2 and skipped for a hit behind it (triangle 3, at t = 4).
+    verts4 = np.concatenate([verts, verts[6:9] - [0, 0, 2]]).astype(np.float32)
+    faces4 = np.concatenate([faces, [[9, 10, 11]]]).astype(np.int32)
+    assert stress_report.classify(verts4, faces4, o, d, np.array([4.0]), np.array([3]), t_ref, prim_ref) == (1, 1)
