@@ -136,7 +136,8 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
 def load(path, device=None) -> Bvh:
     """The BVH saved in ``path``, on ``device`` (default: Warp's default device). A name without
     the ``.npz`` suffix that `save` added finds the file it wrote. An open binary file (or
-    ``io.BytesIO``) is read from its position to its end, which must hold one archive.
+    ``io.BytesIO``) is read from its position to its end, which must hold one archive; so is a
+    pipe or a device at the path (what `save` wrote into it).
 
     Raises:
         ValueError: the file is not a saved BVH, or its tree is not a valid one (named).
@@ -164,6 +165,12 @@ def load(path, device=None) -> Bvh:
         else:
             with open(source, "rb") as file:
                 head = file.read(4)
+                if head == b"PK\x03\x04" and not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                    # A pipe or a device (a FIFO, /dev/stdin) is read once, here, as an open file
+                    # is: opened again by NumPy, it waited for a writer that had already gone
+                    # (the process hung), or gave the stream without its head, which NumPy
+                    # cannot seek back to. Read only after the head: /dev/zero never ends.
+                    source = io.BytesIO(head + file.read())
         if head != b"PK\x03\x04":
             raise ValueError("not a saved BVH (not an .npz archive)")
         with np.load(source, allow_pickle=False) as data:

@@ -587,6 +587,54 @@ def test_save_into_a_pipe_writes_into_it(device, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.npz", "pipe.npz"]
 
 
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs are POSIX")
+def test_load_from_a_pipe_reads_it_once(device, tmp_path):
+    # What save_bvh writes into a pipe, load_bvh reads from one: the pipe was opened twice, once
+    # for the archive's first bytes and again by NumPy, which then waited for a writer that had
+    # gone (the process hung) or got the stream without its head and refused it as no saved tree.
+    import io
+    import threading
+
+    verts, faces = _mesh()
+    bvh = hb.build(verts, faces, device=device)
+    buffer = io.BytesIO()
+    hb.save_bvh(bvh, buffer)
+    pipe = tmp_path / "pipe.npz"
+    os.mkfifo(pipe)
+    for attempt in range(3):
+        def write():
+            with open(pipe, "wb") as fifo:
+                fifo.write(buffer.getvalue())
+
+        writer = threading.Thread(target=write, daemon=True)
+        writer.start()
+        result = []
+
+        def load():
+            try:
+                result.append(hb.load_bvh(pipe, device=device))
+            except Exception as error:  # reported below, in the test's thread
+                result.append(error)
+
+        reader = threading.Thread(target=load, daemon=True)
+        reader.start()
+        reader.join(timeout=30)
+        if reader.is_alive():
+            with open(pipe, "wb"):  # a writer that closes at once: the waiting open gets end of file
+                pass
+            reader.join(timeout=30)
+            pytest.fail(f"load_bvh of a pipe waited for a second writer (attempt {attempt})")
+        writer.join(timeout=30)
+        assert isinstance(result[0], hb.Bvh), result[0]
+        for name in NODE_FIELDS + ("prim_order",):
+            np.testing.assert_array_equal(result[0].to_numpy()[name], bvh.to_numpy()[name], err_msg=name)
+    # A device that streams forever is refused by its first bytes, not read to its end.
+    if os.path.exists("/dev/zero"):
+        with pytest.raises(ValueError, match="not an .npz archive"):
+            hb.load_bvh("/dev/zero", device=device)
+
+
 def _meta_text(arrays, text):
     return {**arrays, "meta": np.array(text)}
 
