@@ -46,6 +46,29 @@ def test_exploding_mesh(device, headless, tmp_path):
         assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0
 
 
+@pytest.mark.parametrize("scale", [2.0 ** -66, 2.0 ** -100, 2.0 ** 100])
+def test_shading_does_not_depend_on_the_meshs_scale(scale):
+    # The examples' and the demo's images light each hit by its triangle's normal, a direction:
+    # scaling the mesh by a power of two (exact in every coordinate) must leave every pixel as it
+    # was. The normal was divided by max(|n|, 1e-30), so on a mesh of size 1e-20 (|n| about
+    # 1e-42) it came out near zero and 231 of 1024 pixels of a sphere lost their light.
+    import trimesh
+
+    from hlbvh_warp import render
+
+    sphere = trimesh.creation.icosphere(2)
+    vertices = np.asarray(sphere.vertices, np.float32)
+    faces = np.asarray(sphere.faces, np.int32)
+    _, directions = render.Camera.framing(vertices).rays(32, 32)
+    # Every face, some more than once, lit from every side (the image need not be a true view).
+    prim = np.arange(32 * 32) % len(faces)
+    prim[::7] = -1
+    unit = render.shade(vertices, faces, prim, directions, 32, 32)
+    scaled = render.shade(vertices * np.float32(scale), faces, prim, directions, 32, 32)
+    assert unit.std() > 0
+    np.testing.assert_array_equal(scaled, unit)
+
+
 def test_bending_mesh(device, tmp_path):
     module = load_example("example_bending_mesh")
     with wp.ScopedDevice(device):
