@@ -670,3 +670,32 @@ def test_mesh_collision_at_any_scale(tmp_path, capsys, monkeypatch):
     last = argument_error("example_mesh_collision", [*TINY_ARGS["example_mesh_collision"], "--mesh", str(huge)],
                           capsys, monkeypatch)
     assert f"{huge}: " in last and "float32" in last, last
+
+
+def test_mesh_contact_at_a_large_scale(tmp_path, capsys, monkeypatch):
+    """The generated scene scaled by 2^70 (coordinates near 1e21, well inside float32): the
+    particles land on it and stay out of it, as at scale 1. The diagonal was taken in float32,
+    whose squares overflow past 1.8e19: gravity came out NaN, every particle NaN, and no particle
+    ever touched the mesh, silently. A mesh whose particles would leave float32's range
+    (coordinates of 3e38) is an argument error naming the file."""
+    import trimesh
+
+    import hlbvh_warp
+    from hlbvh_warp.scenes import default_scene
+
+    module = load_example("example_mesh_contact")
+    vertices, faces = default_scene(num_tris=2000)
+    example = module.Example((vertices * np.float32(2.0 ** 70), faces), num_particles=500, num_frames=12,
+                             headless=True)
+    for _ in range(4):
+        example.step()
+        positions = example.positions.numpy()
+        assert np.isfinite(positions).all()
+        _, distance, prim = hlbvh_warp.closest_point(example.builder.bvh, positions)
+        assert (prim >= 0).all() and distance.min() >= 0.99 * example.radius, distance.min() / example.radius
+    assert sum(r["touching"] for r in example.rows) > 0, example.rows
+    huge = tmp_path / "huge.ply"
+    trimesh.Trimesh(vertices * np.float32(1e38), faces, process=False).export(huge)
+    last = argument_error("example_mesh_contact", [*TINY_ARGS["example_mesh_contact"], "--mesh", str(huge)],
+                          capsys, monkeypatch)
+    assert f"{huge}: " in last and "float32" in last, last
