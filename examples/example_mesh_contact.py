@@ -31,6 +31,28 @@ CONTACT_PASSES = 2
 # substep at most, so it does not pass through a thin part of the mesh between two queries (no
 # continuous collision detection here).
 SUBSTEPS = 4
+#: Gravity, in box diagonals per second squared, and the frames per second of the simulation.
+GRAVITY = 2.0
+FPS = 30.0
+#: Largest finite float32: the particles, their velocities and gravity go to the kernel in float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def diagonal(vertices) -> float:
+    """The length of the box diagonal, in float64: float32's squares overflow past 1.8e19."""
+    v = np.asarray(vertices, dtype=np.float64)
+    return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+
+
+def particle_reach(vertices, num_frames: int) -> float:
+    """An upper bound, in float64, on every coordinate, velocity and gravity the particles reach
+    over ``num_frames`` frames: they start within a box diagonal of the mesh, and one that misses
+    the mesh falls at most GRAVITY * T^2 diagonals in T seconds (the substeps' Euler steps never
+    move it more than that), at a speed of at most GRAVITY * T diagonals a second."""
+    seconds = max(int(num_frames), 1) / FPS
+    diag = diagonal(vertices)
+    largest = float(np.abs(np.asarray(vertices, dtype=np.float64)).max())
+    return largest + diag * (1.0 + GRAVITY * (1.0 + seconds + seconds * seconds))
 
 
 @wp.kernel
@@ -71,7 +93,9 @@ class Example:
         self.builder = Builder(len(faces), policy="auto")
         self.builder.build(self.mesh.vertices, self.mesh.faces)
         lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-        diag = float(np.linalg.norm(hi - lo))
+        # In float64: float32's squares overflowed past a diagonal of 1.8e19, and a NaN gravity
+        # left every particle NaN, touching nothing.
+        diag = diagonal(vertices)
         # Gravity against the bend axis, so the particles land on the side that curls.
         self.down = -self.mesh.bend_axis
         rng = np.random.default_rng(seed)
@@ -80,8 +104,8 @@ class Example:
         start = lo + rng.random((num_particles, 3)) * (hi - lo)
         start += (hi - lo) * self.mesh.bend_axis * (0.5 * rng.random((num_particles, 1)) + 0.5)
         self.radius = radius * diag
-        self.dt = 1.0 / 30.0
-        self.gravity = wp.vec3(*(self.down * 2.0 * diag))
+        self.dt = 1.0 / FPS
+        self.gravity = wp.vec3(*(self.down * GRAVITY * diag))
         self.positions = wp.array(start.astype(np.float32), dtype=wp.vec3)
         self.velocities = wp.zeros(num_particles, dtype=wp.vec3)
         self.touching = wp.zeros(num_particles, dtype=wp.int32)
@@ -159,6 +183,12 @@ def main(argv=None):
     # The mesh file and the picture's path before the first frame, not after the last.
     with argument_errors(parser):
         mesh = read_mesh(args.mesh) if args.mesh else None
+        # A finite mesh near float32's limit (coordinates of 3e38) left the particles Inf and NaN:
+        # named here, before any frame.
+        if mesh is not None and not particle_reach(mesh[0], args.num_frames) <= FLOAT32_MAX:
+            raise ValueError(f"{args.mesh}: over --num-frames {args.num_frames} the falling particles may reach "
+                             f"{particle_reach(mesh[0], args.num_frames):.3g}, past float32's largest "
+                             f"{FLOAT32_MAX:.3g}; scale the mesh down or choose fewer frames")
         if not args.headless:
             check_out_file(args.out, "--out")
 

@@ -30,15 +30,18 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 def check_rays(bvh, vertices, faces, origins, directions, reference, rtol=1e-4) -> int:
     """Rays whose hit disagrees with the reference: another primitive at another t, another
-    primitive at the same t that the ray does not meet there (`unmet_ties`), or hit/miss."""
+    primitive at the same t that the ray does not meet there (`unmet_ties`), or hit/miss (but for
+    a hit at float32's largest distance, `past_range_ties`)."""
     from .query import intersect
-    from .reference import unmet_ties
+    from .reference import past_range_ties, unmet_ties
 
     t, prim = intersect(bvh, origins, directions)
     t_ref, prim_ref = reference
     hit, hit_ref = prim >= 0, prim_ref >= 0
     same = (prim == prim_ref) | (hit & hit_ref & np.isclose(t, t_ref, rtol=rtol, atol=0.0))
     same &= ~unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, rtol)
+    # A hit against a miss at float32's largest distance: rounding decides whether it overflows.
+    same |= past_range_ties(t, prim, t_ref, prim_ref, rtol)
     return int((~same).sum())
 
 

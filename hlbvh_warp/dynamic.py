@@ -110,7 +110,7 @@ class BendingMesh:
         origin = self.origin + (inner - self.origin @ self.bend_axis) * self.bend_axis
         wp.launch(dynamic.bend_kernel, dim=self.vertices.shape[0],
                   inputs=[self._rest, wp.vec3(*origin), wp.vec3(*self.length_axis), wp.vec3(*self.bend_axis),
-                          curvature, self.vertices], device=self.device)
+                          wp.float64(curvature), self.vertices], device=self.device)
         return self.vertices
 
 

@@ -146,14 +146,23 @@ def epo_weight(rows: list, kind: str, steps: int = 101) -> dict:
     # spatial split against sweep_sah) differs in the last bits of its SAH and EPO.
     distinct = {tuple(float(f"{x:.12g}") for x in (r["sah"], r["epo"], r[kind]["m"])): r for r in rows}
     sah, epo, m = (np.array(v, dtype=np.float64) for v in zip(*distinct))
+    no_fit = {"alpha": float("nan"), "r": float("nan"), "r_sah": float("nan"), "trees": int(len(m))}
     if len(m) < 3 or np.ptp(m) == 0:
-        return {"alpha": float("nan"), "r": float("nan"), "r_sah": float("nan"), "trees": int(len(m))}
+        return no_fit
+    # Every measure scales with the costs c_t and c_i; a correlation does not. Brought near 1
+    # first: corrcoef squares the values, which overflowed at costs of 1e200 and vanished at 1e-200.
+    with np.errstate(all="ignore"):
+        scale = max(np.abs(sah).max(), np.abs(epo).max())
+        sah, epo, m = sah / scale, epo / scale, m / np.abs(m).max()
 
     def pearson(p):
         return float(np.corrcoef(p, m)[0, 1]) if np.ptp(p) > 0 else float("nan")
 
     alphas = np.linspace(0.0, 1.0, steps)
     r = np.array([pearson(sah * (1.0 - a) + epo * a) for a in alphas])
+    if np.isnan(r).all():
+        # Trees alike in SAH and EPO but not in m: no mix of the two tells them apart.
+        return no_fit
     best = int(np.nanargmax(r))
     return {"alpha": float(alphas[best]), "r": float(r[best]), "r_sah": float(r[0]), "trees": int(len(m))}
 

@@ -57,7 +57,11 @@ def shade(vertices, faces, prim, directions, width: int, height: int, light=(0.4
     image[:] = sky[:, None] * np.array([0.75, 0.85, 1.0])
     tri = f[prim[hit]]
     n = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    # Divided by its own length, whatever the scale: float64 holds the cross product of float32
+    # edges (1e-90 to 1e78). A floor of 1e-30 shrank the normals of a mesh of size 1e-20 to
+    # nearly zero and left it unlit; only a zero-area triangle (length 0) keeps n = 0.
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n /= np.where(length > 0.0, length, 1.0)
     # Face the normal towards the viewer, then light it.
     n *= -np.sign(np.einsum("ij,ij->i", n, directions[hit]))[:, None]
     lambert = np.clip(n @ light, 0.0, 1.0)

@@ -115,6 +115,9 @@ def load_mesh(path):
     if os.path.isdir(path):
         # trimesh reads a folder's name as a mesh's text and says "string is not a file".
         raise ValueError(f"{path} is a directory, not a mesh file")
+    if os.path.exists(path) and not os.path.isfile(path):
+        # A device or a named pipe (/dev/null): trimesh says "string is not a file", naming no cause.
+        raise ValueError(f"{path} is not a regular file (a device or a pipe), not a mesh file")
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
     except (ValueError, OSError, NotImplementedError) as error:

@@ -27,7 +27,7 @@ import argparse
 import numpy as np
 
 from .cli import command_prog, device_name, non_negative_int, quiet_warp
-from .reference import brute_force_closest_hit, unmet_ties
+from .reference import brute_force_closest_hit, past_range_ties, unmet_ties
 
 #: Relative tolerance of a near-tie: about 170 float32 ulps of the coordinates involved.
 NEAR_TIE_TOL = 1e-5
@@ -262,6 +262,8 @@ def classify(vertices, faces, origins, directions, t, prim, t_ref, prim_ref):
     # distance alone, a hit reported under a wrong id passed.
     unmet = unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, T_RTOL)
     agree = ((~hit & ~hit_ref) | (hit & hit_ref & (((prim == prim_ref) & ~far_t) | same_t))) & ~unmet
+    # A hit against a miss at float32's largest distance: rounding decides whether it overflows.
+    agree |= past_range_ties(t, prim, t_ref, prim_ref, T_RTOL)
     unexplained = int(unmet.sum())
     for r in np.nonzero(~agree & ~unmet)[0]:
         involved = []

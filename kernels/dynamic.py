@@ -248,7 +248,7 @@ def bend_kernel(
     origin: wp.vec3,
     length_axis: wp.vec3,
     bend_axis: wp.vec3,
-    curvature: float,
+    curvature: wp.float64,
     vertices: wp.array(dtype=wp.vec3),
 ):
     """One frame of a bending mesh (after the Bending Armadillo of Pantaleoni & Luebke 2010, section 4,
@@ -259,16 +259,22 @@ def bend_kernel(
     along = wp.dot(p, length_axis)
     across = wp.dot(p, bend_axis)
     other = p - along * length_axis - across * bend_axis
-    if wp.abs(curvature) < 1.0e-12:
+    # Only an exact zero is the identity, and the arc is computed in float64: the curvature is
+    # 1 / radius in the mesh's own units, so any fixed floor (it was 1e-12, in float32) left a
+    # mesh longer than about 1e12 unbent at every amount, and float32 holds the curvature of a
+    # mesh near 1e38 long only as a subnormal, with a few bits.
+    if curvature == wp.float64(0.0):
         vertices[tid] = rest[tid]
         return
     # radius - (radius - across) cos(theta), written as radius (1 - cos(theta)) + across cos(theta)
     # with 1 - cos(theta) = 2 sin^2(theta / 2): the plain difference of two values near the radius
     # lost `across` to float32 rounding as the radius grew (a unit mesh bent by 1e-8 of pi has a
     # radius of about 3e7, where float32 steps by 4: its vertices moved by the mesh's whole size).
-    theta = along * curvature
+    along64 = wp.float64(along)
+    across64 = wp.float64(across)
+    theta = along64 * curvature
     s = wp.sin(theta)
-    h = wp.sin(0.5 * theta)
-    new_along = s / curvature - across * s
-    new_across = 2.0 * h * h / curvature + across * wp.cos(theta)
+    h = wp.sin(wp.float64(0.5) * theta)
+    new_along = float(s / curvature - across64 * s)
+    new_across = float(wp.float64(2.0) * h * h / curvature + across64 * wp.cos(theta))
     vertices[tid] = origin + new_along * length_axis + new_across * bend_axis + other

@@ -639,3 +639,56 @@ def test_turn_order_balances_what_runs_first_and_before(count):
     assert set(firsts) == set(labels) and len(set(firsts.values())) == 1
     if count > 1:
         assert len(pairs) == count * (count - 1) and len(set(pairs.values())) == 1, pairs
+
+
+def _plate_past_float32s_reach(path):
+    """A square plate at z = -3e38 and a small triangle at the origin, written to ``path``: the
+    commands' rays from above start near z = 2e38 and meet the plate more than float32's largest
+    value (3.4e38) away, a distance the library documents as a miss."""
+    import trimesh
+
+    w = 5e37
+    vertices = np.array([[-w, -w, -3e38], [w, -w, -3e38], [w, w, -3e38], [-w, w, -3e38], [0, 0, 0], [1e30, 0, 0],
+                         [0, 1e30, 0]], np.float32)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6]], np.int32)
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    return vertices, faces
+
+
+def test_ray_commands_take_hits_past_float32s_range_as_misses(tmp_path, capsys):
+    # The float64 brute force of bench-rays and bench found the plate past float32's largest
+    # distance where the library, as documented, misses: both commands reported the library's
+    # misses as wrong. The tests' own oracle (tests/oracles.py) on the run's very rays: every ray
+    # it finds within float32's range the library hits, and the ones it finds past it are misses.
+    from oracles import assert_hits_match, brute_force_closest_hit
+
+    from hlbvh_warp import api, cli, query, ray_bench, reference
+
+    path = tmp_path / "plate.ply"
+    vertices, faces = _plate_past_float32s_reach(path)
+    limit = float(np.finfo(np.float32).max)
+    bvh = api.build(vertices, faces, device="cpu")
+    rng = np.random.default_rng(0)
+    for o, d in (ray_bench.random_rays(rng, vertices, 64), ray_bench.camera_rays(vertices, 64),
+                 reference.rays_at_box(np.random.default_rng(1), vertices, 64)):
+        t_all, prim_all = brute_force_closest_hit(vertices, faces, o, d)
+        assert ((prim_all >= 0) & (t_all > limit)).sum() >= 2  # the case this test is about
+        t, prim = query.intersect(bvh, o, d)
+        assert_hits_match(t, prim, *brute_force_closest_hit(vertices, faces, o, d, t_max=limit))
+    assert cli.main(["bench-rays", "--mesh", str(path), "--rays", "64", "--repeats", "1"]) == 0, capsys.readouterr()
+    out = capsys.readouterr().out
+    assert all(r[7] == "0" for r in _rows(out, "plate")) and "0 wrong of" in out, out
+
+    json_path = tmp_path / "bench.json"
+    assert cli.main(["bench", "--mesh", str(path), "--builders", "hlbvh,lbvh", "--rays", "64", "--repeats", "1",
+                     "--warmup", "0", "--json", str(json_path), "--plot", str(tmp_path / "bench.png")]) == 0
+    rows = json.loads(json_path.read_text())["rows"]
+    assert [r["builder"] for r in rows] == ["hlbvh", "lbvh"] and all("error" not in r for r in rows), rows
+    # quality and bench-wide check their primary rays against the same brute force (quality ended
+    # in a RuntimeError's traceback); every tree then agrees with the reference tree.
+    for command in ("quality", "bench-wide"):
+        json_path = tmp_path / f"{command}.json"
+        extra = ["--builders", "hlbvh,lbvh"] if command == "quality" else ["--repeats", "1"]
+        assert cli.main([command, "--mesh", str(path), "--views", "2", "--side", "16", "--json", str(json_path),
+                         *extra]) == 0
+        assert all(r["disagree"] == 0 for r in json.loads(json_path.read_text())["rows"])

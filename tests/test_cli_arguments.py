@@ -157,6 +157,19 @@ def test_a_mesh_must_be_a_regular_file(capsys, no_builds):
     assert f"argument --mesh: no such mesh file: {os.devnull}" in err, err
 
 
+@pytest.mark.parametrize("command", ["bench-rays", "bench-points", "bench-pairs"])
+def test_a_device_or_pipe_as_mesh_is_named_as_such(command, tmp_path, capsys, no_builds):
+    # bench-rays, bench-points and bench-pairs check only that a --mesh exists: /dev/null or a
+    # named pipe reached trimesh, whose "string is not a file: `/dev/null`" told the user nothing.
+    import os
+
+    pipe = tmp_path / "mesh.ply"
+    os.mkfifo(pipe)
+    for path in (os.devnull, str(pipe)):
+        err = error_of([command, "--mesh", path], capsys)
+        assert f"{path} is not a regular file" in err and "string is not a file" not in err, err
+
+
 @pytest.mark.parametrize("error", [OSError(28, "No space left on device"), NotImplementedError("no such format"),
                                    ValueError("an empty scene")])
 def test_a_commands_input_errors_end_in_one_line(error, capsys, monkeypatch):

@@ -191,6 +191,24 @@ def test_auto_beats_rebuild_every_frame_on_bending(device):
     assert {r["decision"] for r in list(auto.reports)[1:]} >= {"refit"}
 
 
+@pytest.mark.parametrize("exponent", [40, 100, 126, -100])
+def test_bending_mesh_bends_alike_at_every_scale(exponent):
+    """The scene scaled by 2^exponent bends as the scene itself, scaled: a bend is a function of
+    the shape, not of its units. The kernel's floor on the curvature (1e-12) left a mesh longer
+    than about 1e12 (2^40) unbent at every amount, and near 1e38 (2^126) float32 held the
+    curvature as a subnormal of a few bits."""
+    v, f = default_scene(2000)
+    scale = np.float32(2.0 ** exponent)
+    unit = BendingMesh(v, f, device="cpu")
+    scaled = BendingMesh(v * scale, f, device="cpu")
+    extent = float(np.abs(v).max())
+    for amount in (0.02, 0.5, -1.0):
+        expected = unit.update(amount).numpy().astype(np.float64)
+        assert np.abs(expected - v).max() > 1e-3 * extent  # it bends
+        got = scaled.update(amount).numpy().astype(np.float64) / float(scale)
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6 * extent)
+
+
 @pytest.mark.parametrize("amount", [1.0, -1.0])
 def test_bending_mesh_folds_no_triangle(device, amount):
     """A full bend keeps every well-shaped triangle's orientation (its normal, turned back by the

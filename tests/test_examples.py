@@ -46,6 +46,29 @@ def test_exploding_mesh(device, headless, tmp_path):
         assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0
 
 
+@pytest.mark.parametrize("scale", [2.0 ** -66, 2.0 ** -100, 2.0 ** 100])
+def test_shading_does_not_depend_on_the_meshs_scale(scale):
+    # The examples' and the demo's images light each hit by its triangle's normal, a direction:
+    # scaling the mesh by a power of two (exact in every coordinate) must leave every pixel as it
+    # was. The normal was divided by max(|n|, 1e-30), so on a mesh of size 1e-20 (|n| about
+    # 1e-42) it came out near zero and 231 of 1024 pixels of a sphere lost their light.
+    import trimesh
+
+    from hlbvh_warp import render
+
+    sphere = trimesh.creation.icosphere(2)
+    vertices = np.asarray(sphere.vertices, np.float32)
+    faces = np.asarray(sphere.faces, np.int32)
+    _, directions = render.Camera.framing(vertices).rays(32, 32)
+    # Every face, some more than once, lit from every side (the image need not be a true view).
+    prim = np.arange(32 * 32) % len(faces)
+    prim[::7] = -1
+    unit = render.shade(vertices, faces, prim, directions, 32, 32)
+    scaled = render.shade(vertices * np.float32(scale), faces, prim, directions, 32, 32)
+    assert unit.std() > 0
+    np.testing.assert_array_equal(scaled, unit)
+
+
 def test_bending_mesh(device, tmp_path):
     module = load_example("example_bending_mesh")
     with wp.ScopedDevice(device):
@@ -645,5 +668,34 @@ def test_mesh_collision_at_any_scale(tmp_path, capsys, monkeypatch):
     huge = tmp_path / "huge.ply"
     trimesh.Trimesh(vertices * 3e38, faces, process=False).export(huge)
     last = argument_error("example_mesh_collision", [*TINY_ARGS["example_mesh_collision"], "--mesh", str(huge)],
+                          capsys, monkeypatch)
+    assert f"{huge}: " in last and "float32" in last, last
+
+
+def test_mesh_contact_at_a_large_scale(tmp_path, capsys, monkeypatch):
+    """The generated scene scaled by 2^70 (coordinates near 1e21, well inside float32): the
+    particles land on it and stay out of it, as at scale 1. The diagonal was taken in float32,
+    whose squares overflow past 1.8e19: gravity came out NaN, every particle NaN, and no particle
+    ever touched the mesh, silently. A mesh whose particles would leave float32's range
+    (coordinates of 3e38) is an argument error naming the file."""
+    import trimesh
+
+    import hlbvh_warp
+    from hlbvh_warp.scenes import default_scene
+
+    module = load_example("example_mesh_contact")
+    vertices, faces = default_scene(num_tris=2000)
+    example = module.Example((vertices * np.float32(2.0 ** 70), faces), num_particles=500, num_frames=12,
+                             headless=True)
+    for _ in range(4):
+        example.step()
+        positions = example.positions.numpy()
+        assert np.isfinite(positions).all()
+        _, distance, prim = hlbvh_warp.closest_point(example.builder.bvh, positions)
+        assert (prim >= 0).all() and distance.min() >= 0.99 * example.radius, distance.min() / example.radius
+    assert sum(r["touching"] for r in example.rows) > 0, example.rows
+    huge = tmp_path / "huge.ply"
+    trimesh.Trimesh(vertices * np.float32(1e38), faces, process=False).export(huge)
+    last = argument_error("example_mesh_contact", [*TINY_ARGS["example_mesh_contact"], "--mesh", str(huge)],
                           capsys, monkeypatch)
     assert f"{huge}: " in last and "float32" in last, last

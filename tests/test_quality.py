@@ -104,6 +104,31 @@ def test_epo_weight_recovers_a_known_mix():
     assert np.isnan(quality.epo_weight(rows[:2], "diffuse")["alpha"])
 
 
+@pytest.mark.parametrize("scale", [1e200, 1e-200])
+def test_epo_weight_does_not_depend_on_the_costs_scale(scale):
+    # Every measure scales with --ct and --ci, and a correlation does not change with the scale.
+    # corrcoef squared the values: at costs of 1e200 its sums overflowed, at 1e-200 they vanished,
+    # every r came out NaN, and `quality --ct 1.2e200 --ci 1e200` ended, after every build, in
+    # "error: All-NaN slice encountered".
+    rng = np.random.default_rng(5)
+    sah, epo = rng.uniform(50, 90, 7), rng.uniform(4, 16, 7)
+    rows = [{"sah": a, "epo": b, "diffuse": {"m": 3.0 + 0.4 * a + 0.6 * b * 7.0}} for a, b in zip(sah, epo)]
+    scaled = [{"sah": r["sah"] * scale, "epo": r["epo"] * scale, "diffuse": {"m": r["diffuse"]["m"] * scale}}
+              for r in rows]
+    fit, fit_scaled = quality.epo_weight(rows, "diffuse", steps=4601), quality.epo_weight(scaled, "diffuse", steps=4601)
+    assert fit_scaled["alpha"] == pytest.approx(fit["alpha"], abs=1e-3)
+    assert fit_scaled["r"] == pytest.approx(fit["r"], abs=1e-9)
+    assert fit_scaled["r_sah"] == pytest.approx(fit["r_sah"], abs=1e-9)
+
+
+def test_epo_weight_of_trees_alike_in_sah_and_epo_is_no_fit():
+    # Three trees of one SAH and one EPO that trace differently: no mix of the two tells them
+    # apart, so there is no fit (NumPy's nanargmax raised on the all-NaN correlations).
+    rows = [{"sah": 60.0, "epo": 9.0, "diffuse": {"m": m}} for m in (20.0, 21.0, 23.0)]
+    fit = quality.epo_weight(rows, "diffuse")
+    assert np.isnan(fit["alpha"]) and np.isnan(fit["r"]) and fit["trees"] == 3
+
+
 def test_spatial_splits_in_the_quality_table(tmp_path):
     """The generated scene with large triangles across it: sbvh's row beats the sweep on every
     measure the table reports (Stich et al.'s case), and its rays agree with the brute force."""
