@@ -103,3 +103,25 @@ def test_climb_kernels_fence_around_their_visit_counters(name, kernel, arch, tmp
     assert len(atoms) == 1, kernel
     assert any(fence.search(line) for line in lines[: atoms[0]]), f"{kernel}: no fence before the visit counter"
     assert any(fence.search(line) for line in lines[atoms[0] + 1 :]), f"{kernel}: no fence after the visit counter"
+
+
+# Kernels whose rays meet triangles through `traversal.intersect_triangle_watertight`.
+WATERTIGHT_KERNELS = [("traversal", "closest_hit_kernel"), ("traversal", "all_hits_kernel"),
+                      ("wide", "wide_closest_hit_range_kernel")]
+
+
+@pytest.mark.parametrize("name,kernel", WATERTIGHT_KERNELS)
+def test_edge_functions_are_never_fused_into_multiply_adds(name, kernel, tmp_path):
+    """Woop et al.'s watertight test needs the two triangles at an edge to compute its edge
+    function as exact negatives: each product rounded, then the difference. PTX's plain
+    ``mul.f32`` / ``sub.f32`` let the assembler fuse them into an ``fma`` (NVRTC's default
+    --fmad=true), which breaks that, so rays leaked through edges; ``.rn`` forbids it."""
+    import re
+
+    module = importlib.import_module(f"hlbvh_warp.kernels.{name}")
+    ptx = compile_for_cuda(module, ARCHES[-1], tmp_path)
+    body = re.search(r"\.entry %s_[0-9a-f]+_cuda_kernel_forward\(.*?\n}\n" % kernel, ptx, re.S)
+    assert body is not None, kernel
+    # u, v and w: two products rounded apart, then their difference rounded.
+    edge = re.compile(r"mul\.rn\.f32[^\n]*\n\s*mul\.rn\.f32[^\n]*\n\s*sub\.rn\.f32")
+    assert len(edge.findall(body.group(0))) >= 3, f"{kernel}: edge functions left free to fuse"
