@@ -145,8 +145,9 @@ def _triangle_rows(values, name: str) -> np.ndarray:
         # Straight to float32, rounded once, as a mesh's vertices are (`inputs._check_points`):
         # through float64 an integer past 2^53 is rounded twice, to another float32 at times.
         return np.ascontiguousarray(arr.astype(np.float32))
-    if arr.dtype != np.float32:
-        arr = arr.astype(np.float64, copy=False)
+    # Checked and narrowed from the given dtype, as a mesh's vertices are: through float64 a long
+    # double is rounded twice (to another float32 at times), and one past float64's range would
+    # be refused as the infinity it became.
     inputs.check_float32_range(arr.reshape(-1, 3), name)
     return np.ascontiguousarray(arr, dtype=np.float32)
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import warnings
 from fractions import Fraction
 
 import numpy as np
@@ -1148,6 +1149,31 @@ def test_integer_coordinates_are_rounded_once(device):
         a = hlbvh_warp.build(point, face, device=device)
         b = hlbvh_warp.build(np.array([[other, 0, 0]] * 3, np.int64), face, device=device)
         assert len(hlbvh_warp.intersecting_pairs(a, b)) == int(expected)
+
+
+def test_long_double_coordinates_are_rounded_once(device):
+    """Long doubles go to float32 in one rounding, as a mesh's vertices do: through float64 first,
+    1 + 2^-24 + 2^-60 lost its last bit to the float64 midpoint 1 + 2^-24 and then tied to even,
+    1, where the nearest float32 is 1 + 2^-23. One past float64's range is refused as past
+    float32's (as `build` refuses it), not as an infinity it is not, and without an overflow
+    warning."""
+    if np.finfo(np.longdouble).nmant < 60:
+        pytest.skip("long double is no wider than float64 here")
+    x = np.longdouble(1) + np.longdouble(2) ** -24 + np.longdouble(2) ** -60
+    plane = np.array([[x, 0, 0], [x, 1, 0], [x, 0, 1]], np.longdouble)  # the plane x = x
+    for at, expected in ((1 + 2.0**-23, True), (1.0, False)):
+        point = np.array([[at, 0.25, 0.25]] * 3, np.longdouble)
+        assert hlbvh_warp.triangles_intersect(plane, point, device=device).tolist() == [expected], at
+        face = np.array([[0, 1, 2]], np.int32)
+        a, b = hlbvh_warp.build(plane, face, device=device), hlbvh_warp.build(point, face, device=device)
+        assert len(hlbvh_warp.intersecting_pairs(a, b)) == int(expected)
+    if np.finfo(np.longdouble).max > np.finfo(np.float64).max:
+        huge = plane.copy()
+        huge[1, 1] = np.longdouble("1e400")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match="float32 range"):
+                hlbvh_warp.triangles_intersect(huge, plane, device=device)
 
 
 def test_trees_on_different_devices_are_refused():
