@@ -561,3 +561,41 @@ def test_a_pair_query_on_a_tree_its_builder_keeps_updating_finishes(device):
         updater.join(30)
     assert results, "the pair query did not finish while the other thread kept updating"
     assert any(np.array_equal(results[0], pairs) for pairs in expected)
+
+
+class _InterruptedWait:
+    """A lock whose timed wait is interrupted (Ctrl-C), as a pair query's wait for a second tree
+    busy with its builder's frame is, while the first tree's lock is held."""
+
+    def acquire(self, blocking=True, timeout=-1):
+        if timeout >= 0:
+            raise KeyboardInterrupt
+        return True
+
+    def release(self):
+        pass
+
+
+def test_an_interrupt_while_a_pair_query_waits_lets_go_of_the_lock_it_held(device):
+    """`held` takes two trees' locks by holding one and waiting a while for the other. An
+    interrupt in that wait (Ctrl-C while both builders updated in other threads) left the held
+    one taken for good: its builder's next frame, on another thread, hung forever."""
+    import threading
+
+    from hlbvh_warp.bvh import held
+
+    rng = np.random.default_rng(5)
+    v, f = random_soup(rng, 60)
+    builder = hw.Builder(60, device=device)
+    tree = builder.build(v, f)
+    other = hw.build(v, f, device=device)
+    other._lock = _InterruptedWait()
+    with pytest.raises(KeyboardInterrupt):
+        with held(tree, other):
+            pass
+    finished = []
+    frame = threading.Thread(target=lambda: finished.append(builder.update(v)), daemon=True)
+    frame.start()
+    frame.join(10)
+    assert finished, "the builder's lock was left taken: its next frame on another thread hung"
+
