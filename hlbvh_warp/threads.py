@@ -82,7 +82,17 @@ def run(jobs, threads: int):
     with _POOL_LOCK:
         _SIDE_BY_SIDE += 1
     try:
-        futures = [_pool().submit(job) for job in others]
+        futures = []
+        for index, job in enumerate(others):
+            try:
+                futures.append(_pool().submit(job))
+            except RuntimeError:
+                # The pool is shut down: `concurrent.futures` does so when the main thread ends,
+                # before the threads still running are joined, and a build in such a thread (a
+                # worker started by a script that then returned) failed with "cannot schedule
+                # new futures after shutdown". The rest run in this thread, the same work.
+                mine = mine + others[index:]
+                break
         try:
             for job in mine:
                 job()

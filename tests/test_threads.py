@@ -599,3 +599,56 @@ def test_an_interrupt_while_a_pair_query_waits_lets_go_of_the_lock_it_held(devic
     frame.join(10)
     assert finished, "the builder's lock was left taken: its next frame on another thread hung"
 
+
+AFTER_MAIN_RETURNED_SCRIPT = r"""
+import threading
+import time
+
+import numpy as np
+import warp as wp
+
+wp.config.quiet = True
+import hlbvh_warp as hw
+
+rng = np.random.default_rng(2)
+n = 9000  # past the size from which a build's stages run side by side
+v = (rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(0, 0.05, (n, 3, 3))).astype(np.float32).reshape(-1, 3)
+f = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+config = hw.BuildConfig(cpu_threads=2)
+builder, twin = hw.Builder(n, config, device="cpu"), hw.Builder(n, config, device="cpu")
+builder.build(v, f)
+twin.build(v, f)
+# The same calls while the main thread runs, its parts on the pool's threads.
+expected = [twin.rebuild(v * np.float32(1.5)).to_numpy(), hw.build(v * np.float32(1.5), f, device="cpu",
+                                                                   config=config).to_numpy()]
+main = threading.main_thread()
+
+
+def frames_after_main_returned():
+    while main.is_alive():
+        time.sleep(0.01)
+    time.sleep(0.2)
+    got = [builder.rebuild(v * np.float32(1.5)).to_numpy(), hw.build(v * np.float32(1.5), f, device="cpu",
+                                                                     config=config).to_numpy()]
+    for tree, want in zip(got, expected):
+        for name in ("prim_order", "node_left", "node_right", "node_begin", "node_end", "node_lowers",
+                     "node_uppers"):
+            assert np.array_equal(tree[name], want[name]), name
+    print("done", flush=True)
+
+
+threading.Thread(target=frames_after_main_returned).start()
+"""
+
+
+def test_builds_in_a_thread_still_running_after_the_main_thread_returned():
+    """`concurrent.futures` shuts its pools down when the main thread ends, before the threads
+    still running are joined: a build on several cores in such a thread (a script that starts a
+    worker and returns) raised "cannot schedule new futures after shutdown", leaving the
+    `Builder`'s frame unfinished. The parts then run in the calling thread. In a child process,
+    whose main thread can end."""
+    import subprocess
+
+    result = subprocess.run([sys.executable, "-c", AFTER_MAIN_RETURNED_SCRIPT], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
