@@ -22,6 +22,8 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor, wait
 
+import warp as wp
+
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
 # How many `run` calls have jobs on several threads right now (see `side_by_side`).
@@ -72,7 +74,12 @@ def run(jobs, threads: int):
     """Run the callables `jobs` on up to `threads` threads (the caller's included); re-raises."""
     global _SIDE_BY_SIDE
     jobs = list(jobs)
-    if threads <= 1 or len(jobs) <= 1:
+    # Warp 1.19's CPU kernels compiled in its debug mode (a user debugging kernels of their own)
+    # crash the process when two run at once: each launch points one static variable at tile
+    # storage on its own stack (`wp.config.enable_tiles_in_stack_memory`, x86-64), and unoptimized
+    # code reads it back after the other launch has reset it. There the jobs run one after
+    # another, the same work.
+    if threads <= 1 or len(jobs) <= 1 or wp.config.mode == "debug":
         for job in jobs:
             job()
         return
@@ -118,8 +125,6 @@ def launch_parts(kernel, device, parts: list, threads: int):
     """Launch `kernel` once per ``(dim, inputs)`` of `parts` on up to `threads` threads: one
     elementwise launch cut into slices whose inputs are views of the whole arrays. The views are
     made once by the caller, so a per-frame launch creates no arrays."""
-    import warp as wp
-
     # Load (on a fresh cache: compile) the kernel's module here, once: launched first from
     # several threads at once, each compiled the same module into the same cache files. CPU
     # launches load it for a block size of 1 (Warp's default there), so that is the one loaded.

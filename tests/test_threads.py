@@ -652,3 +652,45 @@ def test_builds_in_a_thread_still_running_after_the_main_thread_returned():
     result = subprocess.run([sys.executable, "-c", AFTER_MAIN_RETURNED_SCRIPT], capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+
+
+DEBUG_MODE_BUILD_SCRIPT = r"""
+import sys
+
+import numpy as np
+import trimesh
+import warp as wp
+
+wp.config.mode = "debug"
+wp.config.quiet = True
+import hlbvh_warp as hw
+
+mesh = trimesh.creation.icosphere(subdivisions=5)  # 20,480 triangles: emitted in runs side by side
+v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+for _ in range(10):
+    tree = hw.build(v, f, device="cpu", config=hw.BuildConfig(cpu_threads=2)).to_numpy()
+np.savez(sys.argv[1], **tree)
+print("done", flush=True)
+"""
+
+
+def test_a_build_with_warps_debug_mode_on_gives_the_release_tree(tmp_path):
+    """Warp 1.19's CPU kernels compiled in its debug mode (``wp.config.mode = "debug"``, which a
+    user sets to debug kernels of their own) crash the process when two launches run at once
+    (their tile storage is found through one static pointer that each launch sets and resets):
+    a build on several cores segfaulted in its side-by-side emission. In that mode the parts
+    now run one after another. In a child process, so a crash fails this test alone."""
+    import subprocess
+
+    import trimesh
+
+    path = tmp_path / "tree.npz"
+    result = subprocess.run([sys.executable, "-c", DEBUG_MODE_BUILD_SCRIPT, str(path)], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+    mesh = trimesh.creation.icosphere(subdivisions=5)
+    v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    expected = hw.build(v, f, device="cpu", config=hw.BuildConfig(cpu_threads=2)).to_numpy()
+    with np.load(path) as got:
+        for name, array in expected.items():
+            np.testing.assert_array_equal(got[name], array, err_msg=name)
