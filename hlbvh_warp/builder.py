@@ -491,18 +491,25 @@ class Builder:
         if faces_np.shape[0] != self.num_prims:
             raise ValueError(f"faces has {faces_np.shape[0]} rows, the builder was set up for {self.num_prims}")
         self.frame_unfinished = True
-        if self.vertices is None or self.vertices.shape[0] != verts_np.shape[0]:
-            if self.vertices is not None:
+        vertices, faces, previous = self.vertices, self.faces, self.previous_vertices
+        if vertices is None or vertices.shape[0] != verts_np.shape[0]:
+            if vertices is not None:
                 # New faces too: a view taken earlier keeps the old vertex array, and the new
                 # faces' indices would read past its end; with the old faces it stays in bounds.
-                self.faces = wp.empty((self.num_prims, 3), dtype=wp.int32, device=self.device)
-            self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
-            self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
-            if self.pipeline.launches is not None:
-                self.pipeline.launches.clear()
-        self.vertices.assign(verts_np)
-        self.faces.assign(faces_np)
-        self.kind, self.snapshots = "triangles", [self.previous_vertices]
+                faces = wp.empty((self.num_prims, 3), dtype=wp.int32, device=self.device)
+            vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+            previous = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+        vertices.assign(verts_np)
+        faces.assign(faces_np)
+        # New buffers become the builder's only now, filled, and in one statement with the
+        # snapshots that go with them (no interrupt lands inside it): taken before the copies, a
+        # set-up interrupted between them (Ctrl-C, a failed allocation) left the new vertex count
+        # with faces never written, and the next frame built over garbage indices and crashed.
+        renewed = vertices is not self.vertices
+        self.vertices, self.faces, self.previous_vertices, self.kind, self.snapshots = (
+            vertices, faces, previous, "triangles", [previous])
+        if renewed and self.pipeline.launches is not None:
+            self.pipeline.launches.clear()
         return self._first_build(vertices=self.vertices, faces=self.faces)
 
     @_one_call_at_a_time

@@ -77,3 +77,71 @@ def test_a_huge_scene_gets_the_tree_of_the_same_scene_at_unit_scale(device, meth
         bvh = hw.build(vertices * np.float32(scale), faces, method=method, device=device)
         costs.append(_sah(bvh.to_numpy(), 1.0, 1.0))
     assert costs[1] == pytest.approx(costs[0], rel=1e-9)
+
+
+INTERRUPTED_SETUP_SCRIPT = r"""
+import sys
+
+import numpy as np
+import warp as wp
+
+wp.config.quiet = True
+sys.path.insert(0, sys.argv[2])
+import hlbvh_warp as hw
+from oracles import brute_force_closest_hit, random_rays, random_soup
+
+device, n = sys.argv[1], 2000
+rng = np.random.default_rng(0)
+old_v, old_f = random_soup(rng, n)  # 3n vertices
+# The mesh the interrupted set-up was given: as many faces, fewer vertices (a strip).
+new_v = rng.uniform(-1, 1, (n + 2, 3)).astype(np.float32)
+new_f = np.stack([np.arange(n), np.arange(n) + 1, np.arange(n) + 2], 1).astype(np.int32)
+builder = hw.Builder(n, device=device)
+builder.build(old_v, old_f)
+copy = wp.array.assign
+
+
+def interrupted(array, values):
+    # Ctrl-C while the set-up copies the new vertices in.
+    wp.array.assign = copy
+    raise KeyboardInterrupt
+
+
+wp.array.assign = interrupted
+try:
+    builder.build(new_v, new_f)
+    raise AssertionError("not interrupted")
+except KeyboardInterrupt:
+    pass
+# The builder still has the mesh it was set up with: its next frame is that mesh's tree...
+builder.update(old_v)
+o, d = random_rays(rng, old_v, 200)
+t, prim = hw.intersect(builder.bvh, o, d)
+t_ref, prim_ref = brute_force_closest_hit(old_v, old_f, o, d)
+assert np.array_equal(prim >= 0, prim_ref >= 0)
+np.testing.assert_allclose(t[prim_ref >= 0], t_ref[prim_ref >= 0], rtol=1e-5)
+# ... and the new mesh's vertices, without the set-up that failed, are refused by their count.
+try:
+    builder.update(new_v)
+    raise AssertionError("a frame of the other vertex count was taken")
+except ValueError as error:
+    assert "rows" in str(error), error
+print("done", flush=True)
+"""
+
+
+def test_a_set_up_interrupted_while_copying_a_mesh_of_another_vertex_count_keeps_the_old_one(device):
+    """`Builder.build` with another vertex count replaced the builder's vertex and face buffers
+    before copying the new mesh into them. Interrupted in between (Ctrl-C during the vertex
+    copy, or an allocation failing), the builder was left with the new vertex count and faces
+    never written: the old mesh's frames were refused, and a frame of the new mesh's vertices
+    built over uninitialized face indices and crashed the process. The new buffers are now the
+    builder's only once the mesh is in them. In a child process, so a crash fails this alone."""
+    import pathlib
+    import subprocess
+    import sys
+
+    tests = str(pathlib.Path(__file__).resolve().parent)
+    result = subprocess.run([sys.executable, "-c", INTERRUPTED_SETUP_SCRIPT, device, tests], capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
