@@ -145,3 +145,46 @@ def test_a_set_up_interrupted_while_copying_a_mesh_of_another_vertex_count_keeps
     result = subprocess.run([sys.executable, "-c", INTERRUPTED_SETUP_SCRIPT, device, tests], capture_output=True,
                             text=True, timeout=300)
     assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+
+
+@pytest.mark.parametrize("before", ["triangles", "boxes"])
+def test_frames_after_a_set_up_interrupted_at_its_first_launch_answer_for_the_new_mesh(device, monkeypatch, before):
+    """`Builder.build` points its tree at the new vertex and face buffers in its first build,
+    after the launch that resets the order. Interrupted at that launch (Ctrl-C), the next frame
+    rebuilt the tree over the new mesh while the tree still read the old mesh's triangles (or,
+    set up with boxes before, none): rays hit the old mesh (4% of the new mesh's hits right).
+    An unfinished frame now points the tree at the buffers the builder is set up with first."""
+    import warp as wp
+
+    from hlbvh_warp.kernels import compress
+    from oracles import brute_force_closest_hit, random_rays, random_soup
+
+    n = 500
+    rng = np.random.default_rng(8)
+    old_v, old_f = random_soup(rng, n)
+    new_v = rng.uniform(-1, 1, (n + 2, 3)).astype(np.float32)
+    new_f = np.stack([np.arange(n), np.arange(n) + 1, np.arange(n) + 2], 1).astype(np.int32)
+    builder = hw.Builder(n, device=device)
+    if before == "triangles":
+        builder.build(old_v, old_f)
+        hw.intersect(builder.bvh, old_v[:1], old_v[1:2] - old_v[:1])  # the ray layout made
+    else:
+        tri = old_v[old_f]
+        builder.build_from_bounds(tri.min(1), tri.max(1))
+    launch = wp.launch
+
+    def interrupted(kernel, *args, **kwargs):
+        launch(kernel, *args, **kwargs)
+        if kernel is compress.iota_kernel:
+            monkeypatch.setattr(wp, "launch", launch)
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(wp, "launch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        builder.build(new_v, new_f)
+    builder.update(new_v)
+    o, d = random_rays(rng, new_v, 200)
+    t, prim = hw.intersect(builder.bvh, o, d)
+    t_ref, prim_ref = brute_force_closest_hit(new_v, new_f, o, d)
+    assert np.array_equal(prim >= 0, prim_ref >= 0)
+    np.testing.assert_allclose(t[prim_ref >= 0], t_ref[prim_ref >= 0], rtol=1e-5)
