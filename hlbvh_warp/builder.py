@@ -491,18 +491,25 @@ class Builder:
         if faces_np.shape[0] != self.num_prims:
             raise ValueError(f"faces has {faces_np.shape[0]} rows, the builder was set up for {self.num_prims}")
         self.frame_unfinished = True
-        if self.vertices is None or self.vertices.shape[0] != verts_np.shape[0]:
-            if self.vertices is not None:
+        vertices, faces, previous = self.vertices, self.faces, self.previous_vertices
+        if vertices is None or vertices.shape[0] != verts_np.shape[0]:
+            if vertices is not None:
                 # New faces too: a view taken earlier keeps the old vertex array, and the new
                 # faces' indices would read past its end; with the old faces it stays in bounds.
-                self.faces = wp.empty((self.num_prims, 3), dtype=wp.int32, device=self.device)
-            self.vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
-            self.previous_vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
-            if self.pipeline.launches is not None:
-                self.pipeline.launches.clear()
-        self.vertices.assign(verts_np)
-        self.faces.assign(faces_np)
-        self.kind, self.snapshots = "triangles", [self.previous_vertices]
+                faces = wp.empty((self.num_prims, 3), dtype=wp.int32, device=self.device)
+            vertices = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+            previous = wp.empty(verts_np.shape[0], dtype=wp.vec3, device=self.device)
+        vertices.assign(verts_np)
+        faces.assign(faces_np)
+        # New buffers become the builder's only now, filled, and in one statement with the
+        # snapshots that go with them (no interrupt lands inside it): taken before the copies, a
+        # set-up interrupted between them (Ctrl-C, a failed allocation) left the new vertex count
+        # with faces never written, and the next frame built over garbage indices and crashed.
+        renewed = vertices is not self.vertices
+        self.vertices, self.faces, self.previous_vertices, self.kind, self.snapshots = (
+            vertices, faces, previous, "triangles", [previous])
+        if renewed and self.pipeline.launches is not None:
+            self.pipeline.launches.clear()
         return self._first_build(vertices=self.vertices, faces=self.faces)
 
     @_one_call_at_a_time
@@ -542,18 +549,7 @@ class Builder:
                 node_count=pipe.node_count, vertices=vertices, faces=faces)
             self.bvh._lock = self._lock
         else:
-            # One Bvh for the builder's life: its node arrays are the pipeline's, overwritten by
-            # this build, so a second object would leave the first one's traversal layout stale
-            # (rays through it reported the old mesh's distances with the new tree's face ids).
-            # Over the same vertex and face arrays the layout is kept and refreshed by the build,
-            # so earlier views see this mesh; over new ones (another vertex count, or boxes) the
-            # views must be taken again: an old one keeps the old vertex and face arrays (its reads
-            # stay in bounds) beside the node arrays this build overwrites, a mix of the two meshes.
-            bvh = self.bvh
-            layout = bvh._cache.get("traversal_layout")
-            same_arrays = vertices is not None and bvh.vertices is vertices and bvh.faces is faces
-            bvh._cache = {"traversal_layout": layout} if layout is not None and same_arrays else {}
-            bvh.vertices, bvh.faces = vertices, faces
+            self._point_tree_at_buffers()
         self.frame = 0
         self.reports.clear()
         self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait
@@ -588,6 +584,22 @@ class Builder:
             raise RuntimeError("call build(vertices, faces) or build_from_bounds(lowers, uppers) once before "
                                "rebuild/refit/update/sah_cost")
 
+    def _point_tree_at_buffers(self):
+        """Point the tree at the vertex and face buffers the builder is set up with (none for
+        boxes). One Bvh for the builder's life: its node arrays are the pipeline's, overwritten by
+        each build, so a second object would leave the first one's traversal layout stale (rays
+        through it reported the old mesh's distances with the new tree's face ids). Over the same
+        vertex and face arrays the layout is kept and refreshed by the build, so earlier views see
+        this mesh; over new ones (another vertex count, or boxes) the views must be taken again:
+        an old one keeps the old vertex and face arrays (its reads stay in bounds) beside the node
+        arrays this build overwrites, a mix of the two meshes."""
+        vertices, faces = (self.vertices, self.faces) if self.kind == "triangles" else (None, None)
+        bvh = self.bvh
+        layout = bvh._cache.get("traversal_layout")
+        same_arrays = vertices is not None and bvh.vertices is vertices and bvh.faces is faces
+        bvh._cache = {"traversal_layout": layout} if layout is not None and same_arrays else {}
+        bvh.vertices, bvh.faces = vertices, faces
+
     def _begin_frame(self) -> bool:
         """Mark a frame as changing the buffers (until its report) and return whether the previous
         one raised partway. Such a frame may have stopped inside its sort or emission: its tree is
@@ -597,6 +609,10 @@ class Builder:
         lived on (under `auto` the same vertices again were "no vertex moved")."""
         unfinished = self.frame_unfinished
         if unfinished:
+            # A set-up interrupted before its first build pointed the tree at the new mesh's
+            # buffers: the frames after it rebuilt over the new mesh while the tree read the old
+            # one's triangles (or, after boxes, none).
+            self._point_tree_at_buffers()
             if self.resort:
                 wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
             self.has_last_codes = False

@@ -248,24 +248,33 @@ def held(*trees):
             yield
         return
     first, wait = 0, LOCK_WAIT_S
-    while True:
-        locks[first].acquire()
-        taken = [locks[first]]
-        busy = None
-        for index, lock in enumerate(locks):
-            if index != first:
-                if not lock.acquire(timeout=wait):
-                    busy = index
-                    break
-                taken.append(lock)
-        if busy is None:
-            break
+    taken = []
+    try:
+        while True:
+            locks[first].acquire()
+            taken = [locks[first]]
+            busy = None
+            for index, lock in enumerate(locks):
+                if index != first:
+                    if not lock.acquire(timeout=wait):
+                        busy = index
+                        break
+                    taken.append(lock)
+            if busy is None:
+                break
+            for lock in reversed(taken):
+                lock.release()
+            taken = []
+            # Let go before waiting for the busy one: a thread inside `hold()` on it may be
+            # waiting for the one taken here. The longer waits let two builders' frames, each
+            # longer than the last wait, end while one lock is held.
+            first, wait = busy, 2.0 * wait
+    except BaseException:
+        # An interrupt (Ctrl-C) in the wait for the second lock: kept, the first one stayed taken
+        # for good, and its builder's next frame on another thread hung.
         for lock in reversed(taken):
             lock.release()
-        # Let go before waiting for the busy one: a thread inside `hold()` on it may be waiting
-        # for the one taken here. The longer waits let two builders' frames, each longer than
-        # the last wait, end while one lock is held.
-        first, wait = busy, 2.0 * wait
+        raise
     try:
         yield
     finally:

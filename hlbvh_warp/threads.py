@@ -22,6 +22,8 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor, wait
 
+import warp as wp
+
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
 # How many `run` calls have jobs on several threads right now (see `side_by_side`).
@@ -72,7 +74,12 @@ def run(jobs, threads: int):
     """Run the callables `jobs` on up to `threads` threads (the caller's included); re-raises."""
     global _SIDE_BY_SIDE
     jobs = list(jobs)
-    if threads <= 1 or len(jobs) <= 1:
+    # Warp 1.19's CPU kernels compiled in its debug mode (a user debugging kernels of their own)
+    # crash the process when two run at once: each launch points one static variable at tile
+    # storage on its own stack (`wp.config.enable_tiles_in_stack_memory`, x86-64), and unoptimized
+    # code reads it back after the other launch has reset it. There the jobs run one after
+    # another, the same work.
+    if threads <= 1 or len(jobs) <= 1 or wp.config.mode == "debug":
         for job in jobs:
             job()
         return
@@ -82,7 +89,17 @@ def run(jobs, threads: int):
     with _POOL_LOCK:
         _SIDE_BY_SIDE += 1
     try:
-        futures = [_pool().submit(job) for job in others]
+        futures = []
+        for index, job in enumerate(others):
+            try:
+                futures.append(_pool().submit(job))
+            except RuntimeError:
+                # The pool is shut down: `concurrent.futures` does so when the main thread ends,
+                # before the threads still running are joined, and a build in such a thread (a
+                # worker started by a script that then returned) failed with "cannot schedule
+                # new futures after shutdown". The rest run in this thread, the same work.
+                mine = mine + others[index:]
+                break
         try:
             for job in mine:
                 job()
@@ -108,8 +125,6 @@ def launch_parts(kernel, device, parts: list, threads: int):
     """Launch `kernel` once per ``(dim, inputs)`` of `parts` on up to `threads` threads: one
     elementwise launch cut into slices whose inputs are views of the whole arrays. The views are
     made once by the caller, so a per-frame launch creates no arrays."""
-    import warp as wp
-
     # Load (on a fresh cache: compile) the kernel's module here, once: launched first from
     # several threads at once, each compiled the same module into the same cache files. CPU
     # launches load it for a block size of 1 (Warp's default there), so that is the one loaded.

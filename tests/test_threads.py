@@ -561,3 +561,136 @@ def test_a_pair_query_on_a_tree_its_builder_keeps_updating_finishes(device):
         updater.join(30)
     assert results, "the pair query did not finish while the other thread kept updating"
     assert any(np.array_equal(results[0], pairs) for pairs in expected)
+
+
+class _InterruptedWait:
+    """A lock whose timed wait is interrupted (Ctrl-C), as a pair query's wait for a second tree
+    busy with its builder's frame is, while the first tree's lock is held."""
+
+    def acquire(self, blocking=True, timeout=-1):
+        if timeout >= 0:
+            raise KeyboardInterrupt
+        return True
+
+    def release(self):
+        pass
+
+
+def test_an_interrupt_while_a_pair_query_waits_lets_go_of_the_lock_it_held(device):
+    """`held` takes two trees' locks by holding one and waiting a while for the other. An
+    interrupt in that wait (Ctrl-C while both builders updated in other threads) left the held
+    one taken for good: its builder's next frame, on another thread, hung forever."""
+    import threading
+
+    from hlbvh_warp.bvh import held
+
+    rng = np.random.default_rng(5)
+    v, f = random_soup(rng, 60)
+    builder = hw.Builder(60, device=device)
+    tree = builder.build(v, f)
+    other = hw.build(v, f, device=device)
+    other._lock = _InterruptedWait()
+    with pytest.raises(KeyboardInterrupt):
+        with held(tree, other):
+            pass
+    finished = []
+    frame = threading.Thread(target=lambda: finished.append(builder.update(v)), daemon=True)
+    frame.start()
+    frame.join(10)
+    assert finished, "the builder's lock was left taken: its next frame on another thread hung"
+
+
+AFTER_MAIN_RETURNED_SCRIPT = r"""
+import threading
+import time
+
+import numpy as np
+import warp as wp
+
+wp.config.quiet = True
+import hlbvh_warp as hw
+
+rng = np.random.default_rng(2)
+n = 9000  # past the size from which a build's stages run side by side
+v = (rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(0, 0.05, (n, 3, 3))).astype(np.float32).reshape(-1, 3)
+f = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+config = hw.BuildConfig(cpu_threads=2)
+builder, twin = hw.Builder(n, config, device="cpu"), hw.Builder(n, config, device="cpu")
+builder.build(v, f)
+twin.build(v, f)
+# The same calls while the main thread runs, its parts on the pool's threads.
+expected = [twin.rebuild(v * np.float32(1.5)).to_numpy(), hw.build(v * np.float32(1.5), f, device="cpu",
+                                                                   config=config).to_numpy()]
+main = threading.main_thread()
+
+
+def frames_after_main_returned():
+    while main.is_alive():
+        time.sleep(0.01)
+    time.sleep(0.2)
+    got = [builder.rebuild(v * np.float32(1.5)).to_numpy(), hw.build(v * np.float32(1.5), f, device="cpu",
+                                                                     config=config).to_numpy()]
+    for tree, want in zip(got, expected):
+        for name in ("prim_order", "node_left", "node_right", "node_begin", "node_end", "node_lowers",
+                     "node_uppers"):
+            assert np.array_equal(tree[name], want[name]), name
+    print("done", flush=True)
+
+
+threading.Thread(target=frames_after_main_returned).start()
+"""
+
+
+def test_builds_in_a_thread_still_running_after_the_main_thread_returned():
+    """`concurrent.futures` shuts its pools down when the main thread ends, before the threads
+    still running are joined: a build on several cores in such a thread (a script that starts a
+    worker and returns) raised "cannot schedule new futures after shutdown", leaving the
+    `Builder`'s frame unfinished. The parts then run in the calling thread. In a child process,
+    whose main thread can end."""
+    import subprocess
+
+    result = subprocess.run([sys.executable, "-c", AFTER_MAIN_RETURNED_SCRIPT], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+
+
+DEBUG_MODE_BUILD_SCRIPT = r"""
+import sys
+
+import numpy as np
+import trimesh
+import warp as wp
+
+wp.config.mode = "debug"
+wp.config.quiet = True
+import hlbvh_warp as hw
+
+mesh = trimesh.creation.icosphere(subdivisions=5)  # 20,480 triangles: emitted in runs side by side
+v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+for _ in range(10):
+    tree = hw.build(v, f, device="cpu", config=hw.BuildConfig(cpu_threads=2)).to_numpy()
+np.savez(sys.argv[1], **tree)
+print("done", flush=True)
+"""
+
+
+def test_a_build_with_warps_debug_mode_on_gives_the_release_tree(tmp_path):
+    """Warp 1.19's CPU kernels compiled in its debug mode (``wp.config.mode = "debug"``, which a
+    user sets to debug kernels of their own) crash the process when two launches run at once
+    (their tile storage is found through one static pointer that each launch sets and resets):
+    a build on several cores segfaulted in its side-by-side emission. In that mode the parts
+    now run one after another. In a child process, so a crash fails this test alone."""
+    import subprocess
+
+    import trimesh
+
+    path = tmp_path / "tree.npz"
+    result = subprocess.run([sys.executable, "-c", DEBUG_MODE_BUILD_SCRIPT, str(path)], capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0 and "done" in result.stdout, (result.returncode, result.stderr[-2000:])
+    mesh = trimesh.creation.icosphere(subdivisions=5)
+    v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    expected = hw.build(v, f, device="cpu", config=hw.BuildConfig(cpu_threads=2)).to_numpy()
+    with np.load(path) as got:
+        for name, array in expected.items():
+            np.testing.assert_array_equal(got[name], array, err_msg=name)
