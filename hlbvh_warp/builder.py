@@ -89,7 +89,17 @@ def _one_call_at_a_time(method):
     @functools.wraps(method)
     def locked(self, *args, **kwargs):
         with self._lock:
-            return method(self, *args, **kwargs)
+            self._calls_in_progress += 1
+            try:
+                return method(self, *args, **kwargs)
+            finally:
+                self._calls_in_progress -= 1
+                # A frame that raised partway leaves its tree half written: the queries refuse it
+                # (`bvh.held`) until a frame starts over it (`_frame_writes`). Read, it gave wrong
+                # hit ids and a fraction of the pairs. Set as the outermost call ends: a frame's
+                # own `sah_cost()` ends while the frame is still writing.
+                if self._calls_in_progress == 0 and self.bvh is not None:
+                    self.bvh._unfinished = self.frame_unfinished
 
     return locked
 
@@ -159,6 +169,7 @@ class Builder:
             raise ValueError(f"num_prims must be below {MAX_PRIMS} (int32 node ids, 2N - 1 nodes), got {n}")
         # Reentrant: `update` runs `rebuild` or `refit` under the same lock.
         self._lock = threading.RLock()
+        self._calls_in_progress = 0
         self.config = config
         self.device = device = wp.get_device(device)
         self.method = method
@@ -490,7 +501,7 @@ class Builder:
         verts_np, faces_np = inputs.mesh_arrays(vertices, faces)
         if faces_np.shape[0] != self.num_prims:
             raise ValueError(f"faces has {faces_np.shape[0]} rows, the builder was set up for {self.num_prims}")
-        self.frame_unfinished = True
+        self._frame_writes()
         vertices, faces, previous = self.vertices, self.faces, self.previous_vertices
         if vertices is None or vertices.shape[0] != verts_np.shape[0]:
             if vertices is not None:
@@ -524,7 +535,7 @@ class Builder:
         lo, hi = inputs.bounds_arrays(lowers, uppers)
         if lo.shape[0] != self.num_prims:
             raise ValueError(f"lowers has {lo.shape[0]} rows, the builder was set up for {self.num_prims}")
-        self.frame_unfinished = True
+        self._frame_writes()
         if self.previous_bounds is None:
             self.previous_bounds = [wp.empty(self.num_prims, dtype=wp.vec3, device=self.device) for _ in range(2)]
         self.prim_lowers.assign(lo)
@@ -600,6 +611,14 @@ class Builder:
         bvh._cache = {"traversal_layout": layout} if layout is not None and same_arrays else {}
         bvh.vertices, bvh.faces = vertices, faces
 
+    def _frame_writes(self):
+        """Mark the buffers as being rewritten, until the frame's report clears the mark; the
+        tree is the frame's own again, so its queries inside the frame (the SAH reference, the
+        views) read it."""
+        self.frame_unfinished = True
+        if self.bvh is not None:
+            self.bvh._unfinished = False
+
     def _begin_frame(self) -> bool:
         """Mark a frame as changing the buffers (until its report) and return whether the previous
         one raised partway. Such a frame may have stopped inside its sort or emission: its tree is
@@ -616,7 +635,7 @@ class Builder:
             if self.resort:
                 wp.launch(compress.iota_kernel, dim=self.num_prims, inputs=[self.prim_order], device=self.device)
             self.has_last_codes = False
-        self.frame_unfinished = True
+        self._frame_writes()
         return unfinished
 
     def _rebuild(self, timer: StageTimer):

@@ -207,7 +207,9 @@ class Bvh:
         The ray traversal layout, once `view` has made one, is derived from the node boxes and the
         vertices: it is rewritten in place (launches only), so views handed out earlier stay valid.
         """
-        with held(self):  # a query on another thread reads the layout: not while it is rewritten
+        # A query on another thread reads the layout: not while it is rewritten. An unfinished
+        # tree is invalidated too (its builder's next frame does so before it is whole again).
+        with held(self, finished=False):
             self.generation += 1
             layout = self._cache.get("traversal_layout")
             # A new dict, the layout already in it: emptied first, a `view` made in between (from
@@ -224,8 +226,21 @@ class Bvh:
     __init__.__signature__ = inspect.signature(_setup)
 
 
+#: Why a query refuses a tree its `Builder` left half written (`held`).
+UNFINISHED_TREE = ("this tree is unfinished: its Builder's last frame raised partway, so its nodes mix two "
+                   "frames; the Builder's next build, rebuild, refit or update builds it from scratch")
+
+
+def _refuse_unfinished(trees):
+    # Set by the Builder under its lock when a frame raised partway (`Builder._one_call_at_a_time`);
+    # read here with the lock taken, so a frame in progress on another thread is waited for first.
+    for tree in trees:
+        if getattr(tree, "_unfinished", False):
+            raise RuntimeError(UNFINISHED_TREE)
+
+
 @contextlib.contextmanager
-def held(*trees):
+def held(*trees, finished: bool = True):
     """Hold the locks of the given trees that a `Builder` rebuilds in place (one per builder): a
     query then reads one frame's whole tree, never one another thread is halfway through
     rewriting. Without it, the two-pass queries (count, then write) met a tree that had changed
@@ -237,7 +252,10 @@ def held(*trees):
     last. A fixed order alone deadlocked a thread already inside one tree's `hold()` against
     another taking both in that order; and trying both without waiting (let go and try again
     after a short random sleep) never found both free while their builders updated frame after
-    frame in other threads, each lock free only between two frames: the query hung."""
+    frame in other threads, each lock free only between two frames: the query hung.
+
+    With ``finished`` (every query), a tree whose `Builder` left its last frame half written is
+    refused (`UNFINISHED_TREE`): read, it gave wrong hit ids and a fraction of the pairs."""
     locks = []
     for tree in trees:
         lock = getattr(tree, "_lock", None)
@@ -245,6 +263,8 @@ def held(*trees):
             locks.append(lock)
     if len(locks) <= 1:
         with locks[0] if locks else contextlib.nullcontext():
+            if finished:
+                _refuse_unfinished(trees)
             yield
         return
     first, wait = 0, LOCK_WAIT_S
@@ -276,6 +296,8 @@ def held(*trees):
             lock.release()
         raise
     try:
+        if finished:
+            _refuse_unfinished(trees)
         yield
     finally:
         for lock in reversed(taken):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import sys
 
 import numpy as np
@@ -477,22 +478,11 @@ def test_depth_read_while_another_thread_updates_is_not_kept_past_the_update(dev
     assert tree.depth == expected[1], (tree.depth, expected)
 
 
-@pytest.mark.parametrize("policy", ["auto", "refit", "rebuild"])
-def test_a_frame_that_raised_in_a_worker_is_not_kept_by_the_next(device, monkeypatch, policy):
-    """A rebuild whose emission raised in a worker thread (one run of seeds never written) left
-    half a tree behind, and the next frame kept it: under `auto` the same vertices again were "no
-    vertex moved", under `refit` the half tree was refit. The next frame now builds from scratch,
-    whatever the policy, and gives the tree a one-shot build of that frame gives."""
+def _fail_a_frame_in_its_emission(builder, vertices, monkeypatch):
+    """One frame of ``builder`` (a rebuild under every policy: large motion) over ``vertices``
+    whose emission raises in a worker thread, leaving half a tree."""
     import sys as _sys
 
-    if device != "cpu":
-        pytest.skip("worker threads run only the CPU device's launches")
-    n = 10_000  # past PARALLEL_MIN_PRIMS: the emission runs its seeds on two threads
-    rng = np.random.default_rng(7)
-    v0, f = random_soup(rng, n)
-    v1 = (v0 * np.float32(1.5) + rng.random(v0.shape).astype(np.float32)).astype(np.float32)
-    builder = hw.Builder(n, hw.BuildConfig(cpu_threads=2), device=device, policy=policy)
-    builder.build(v0, f)
     real_run = threads.run
 
     def emission_fails_in_a_worker(jobs, count):
@@ -507,11 +497,80 @@ def test_a_frame_that_raised_in_a_worker_is_not_kept_by_the_next(device, monkeyp
 
     monkeypatch.setattr(threads, "run", emission_fails_in_a_worker)
     with pytest.raises(RuntimeError, match="injected worker failure"):
-        if policy == "auto":
-            builder.update(v1)  # large motion: a rebuild
+        if builder.policy == "auto":
+            builder.update(vertices)
         else:
-            builder.rebuild(v1)
+            builder.rebuild(vertices)
     monkeypatch.setattr(threads, "run", real_run)
+
+
+def test_queries_refuse_the_half_tree_of_a_frame_that_raised(device, monkeypatch):
+    """After a frame that raised partway, and until the next frame, the tree mixes two frames:
+    queries on it gave wrong hit ids (4% right) and a fraction of the pairs, as if it were whole.
+    Every query, the views for user kernels and `hold()` now refuse it, naming why; a refused
+    input in between leaves it refused; the next frame answers for its own vertices again."""
+    from hlbvh_warp import metrics
+    from hlbvh_warp.bvh import UNFINISHED_TREE
+    from hlbvh_warp.reference import brute_force_closest_hit
+
+    if device != "cpu":
+        pytest.skip("worker threads run only the CPU device's launches")
+    n = 10_000
+    rng = np.random.default_rng(3)
+    v0, f = random_soup(rng, n)
+    v1 = (v0 * np.float32(1.5) + rng.random(v0.shape).astype(np.float32)).astype(np.float32)
+    builder = hw.Builder(n, hw.BuildConfig(cpu_threads=2), device=device, policy="auto")
+    builder.build(v0, f)
+    tree = builder.bvh
+    _fail_a_frame_in_its_emission(builder, v1, monkeypatch)
+    o = np.zeros((4, 3), np.float32)
+    d = np.tile(np.float32([0.3, 0.5, 1.0]), (4, 1))
+    queries = {
+        "intersect": lambda: hw.intersect(tree, o, d),
+        "closest_point": lambda: hw.closest_point(tree, o),
+        "query_aabb": lambda: hw.query_aabb(tree, o - 1, o + 1),
+        "intersecting_pairs": lambda: hw.intersecting_pairs(tree),
+        "sah_cost": lambda: metrics.sah_cost(tree),
+        "builder.sah_cost": builder.sah_cost,
+        "to_numpy": tree.to_numpy,
+        "depth": lambda: tree.depth,
+        "view": tree.view,
+        "save_bvh": lambda: hw.save_bvh(tree, io.BytesIO()),
+    }
+    for name, query in queries.items():
+        with pytest.raises(RuntimeError, match="unfinished"):
+            query()
+    with pytest.raises(RuntimeError, match="unfinished"):
+        with tree.hold():
+            pass
+    with pytest.raises(ValueError):
+        builder.update(v1[:-1])  # refused before it writes: the tree stays half written
+    with pytest.raises(RuntimeError, match="unfinished"):
+        hw.intersect(tree, o, d)
+    assert "Builder" in UNFINISHED_TREE
+    builder.update(v1)
+    assert builder.bvh is tree
+    t, prim = hw.intersect(tree, o, d)
+    t_ref, prim_ref = brute_force_closest_hit(v1, f, o, d)
+    np.testing.assert_array_equal(prim, prim_ref)
+    np.testing.assert_allclose(t, t_ref, rtol=1e-5)
+
+
+@pytest.mark.parametrize("policy", ["auto", "refit", "rebuild"])
+def test_a_frame_that_raised_in_a_worker_is_not_kept_by_the_next(device, monkeypatch, policy):
+    """A rebuild whose emission raised in a worker thread (one run of seeds never written) left
+    half a tree behind, and the next frame kept it: under `auto` the same vertices again were "no
+    vertex moved", under `refit` the half tree was refit. The next frame now builds from scratch,
+    whatever the policy, and gives the tree a one-shot build of that frame gives."""
+    if device != "cpu":
+        pytest.skip("worker threads run only the CPU device's launches")
+    n = 10_000  # past PARALLEL_MIN_PRIMS: the emission runs its seeds on two threads
+    rng = np.random.default_rng(7)
+    v0, f = random_soup(rng, n)
+    v1 = (v0 * np.float32(1.5) + rng.random(v0.shape).astype(np.float32)).astype(np.float32)
+    builder = hw.Builder(n, hw.BuildConfig(cpu_threads=2), device=device, policy=policy)
+    builder.build(v0, f)
+    _fail_a_frame_in_its_emission(builder, v1, monkeypatch)
     report = builder.update(v1)
     assert report["decision"] == "rebuild", report
     tree = builder.bvh.to_numpy()
