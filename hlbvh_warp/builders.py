@@ -364,7 +364,15 @@ class HlbvhSahPipeline(HlbvhPipeline):
         n, cfg = self.num_prims, self.config
         bound = min(n, 1 << (3 * self.coarse_bits))
         if cfg.coarse_bits is None and cfg.cluster_min_prims > 0.0:
-            bound = min(bound, max(8, int(n / cfg.cluster_min_prims)))
+            most = int(n / cfg.cluster_min_prims)
+            # The coarsening stops once n >= cluster_min_prims x C in float64, which can hold at
+            # one count past the rounded quotient (17 / 1.7000000000000002 = 9.999..., while
+            # 1.7000000000000002 x 10 = 17.0): the reserve was one cluster short. One step is
+            # enough where the quotient is below n (counts above n are capped anyway): there the
+            # products of adjacent counts differ by more than 1.
+            if (most + 1) * cfg.cluster_min_prims <= n:
+                most += 1
+            bound = min(bound, max(8, most))
         return max(bound, 1)
 
     def reserve_top_tree(self):

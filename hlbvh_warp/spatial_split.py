@@ -53,7 +53,9 @@ def build_sbvh(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
     vertices, faces = triangles
     n = prim_lowers.shape[0]
     num_bins = config.sbvh_bins
-    max_refs = int(np.floor((1.0 + config.sbvh_max_duplication) * n))
+    # (1 + d) N overflows float64 to inf for a finite d near its largest value (1e308, which the
+    # config takes), and int(inf) raises: capped far past any tree's references instead.
+    max_refs = int(min(np.floor((1.0 + config.sbvh_max_duplication) * n), 2.0**62))
     timer.stage("top_down")
     lowers_np = prim_lowers.numpy()
     uppers_np = prim_uppers.numpy()

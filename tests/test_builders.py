@@ -141,6 +141,24 @@ def test_cluster_tree_reserve_bounds_every_build(device, rng, num_tris, coarse_b
     check_tree_invariants(builder.bvh.to_numpy(), num_tris, 1, exact_node_count=2 * num_tris - 1)
 
 
+def test_cluster_tree_reserve_holds_a_count_the_quotient_rounds_below(device):
+    # 17 primitives and cluster_min_prims = 1.7000000000000002 (17 x 0.1): 17 / 1.7000000000000002
+    # rounds to 9.999..., but 1.7000000000000002 x 10 rounds to 17.0, so the coarsening stops at 10
+    # clusters. The reserve was int(17 / 1.7000000000000002) = 9, one short: the frame allocated a
+    # new cluster tree. Ten points on a diagonal, seven of them twice: 10 voxels at m = 6.
+    min_prims = 17 * 0.1
+    assert 17 / min_prims < 10 and not 17 < min_prims * 10
+    points = np.linspace(0.0, 1.0, 10)[:, None].repeat(3, axis=1)
+    centers = np.concatenate([points, points[:7]]).astype(np.float32)
+    builder = hw.Builder(17, hw.BuildConfig(cluster_min_prims=min_prims), device=device, method="hlbvh_sah")
+    pipe = builder.pipeline
+    top = pipe.top
+    builder.build_from_bounds(centers, centers)
+    assert pipe.top.num_clusters == 10
+    assert pipe.top is top and top.num_clusters <= top.capacity == pipe.max_clusters()
+    check_tree_invariants(builder.bvh.to_numpy(), 17, 1, exact_node_count=2 * 17 - 1)
+
+
 def test_cluster_min_prims_validated():
     with pytest.raises(ValueError, match="cluster_min_prims"):
         hw.BuildConfig(cluster_min_prims=-1.0)

@@ -231,6 +231,17 @@ def test_a_budget_meant_as_no_limit_allocates_only_the_tree(device, rng):
         np.testing.assert_array_equal(trees[0][name], trees[1][name], err_msg=name)
 
 
+def test_a_budget_past_float64_once_multiplied_is_no_limit(device, rng):
+    # sbvh_max_duplication = 1e308 is finite, so the config takes it, but (1 + 1e308) N is inf
+    # in float64: the build raised OverflowError from int(). It is a budget no tree can spend.
+    verts, faces = large_and_small(rng, 200, 8)
+    trees = [hw.build(verts, faces, method="sbvh", device=device,
+                      config=hw.BuildConfig(sbvh_alpha=0.0, sbvh_max_duplication=budget)).to_numpy()
+             for budget in (1e12, 1e308)]
+    for name in ("node_left", "node_right", "node_begin", "node_end", "prim_order", "node_lowers", "node_uppers"):
+        np.testing.assert_array_equal(trees[0][name], trees[1][name], err_msg=name)
+
+
 def test_degenerate_and_coincident_triangles(device, rng):
     verts, faces = slivers(rng, 60)
     tris = verts.reshape(-1, 3, 3).copy()
