@@ -125,3 +125,21 @@ def test_edge_functions_are_never_fused_into_multiply_adds(name, kernel, tmp_pat
     # u, v and w: two products rounded apart, then their difference rounded.
     edge = re.compile(r"mul\.rn\.f32[^\n]*\n\s*mul\.rn\.f32[^\n]*\n\s*sub\.rn\.f32")
     assert len(edge.findall(body.group(0))) >= 3, f"{kernel}: edge functions left free to fuse"
+
+
+@pytest.mark.parametrize("name,kernel", WATERTIGHT_KERNELS)
+def test_shear_products_are_never_fused_into_multiply_adds(name, kernel, tmp_path):
+    """The shear of Woop et al. 2013, p[kx] - sx * p[kz], gives a point the ray passes through
+    exactly a zero edge function only with the product rounded before the difference; fused into
+    an ``fma``, rays aimed at a cube's silhouette edge missed it. Six per triangle test: a
+    ``sub.rn.f32`` from a coordinate (not a product) of a ``mul.rn.f32`` just before it."""
+    import re
+
+    module = importlib.import_module(f"hlbvh_warp.kernels.{name}")
+    ptx = compile_for_cuda(module, ARCHES[-1], tmp_path)
+    body = re.search(r"\.entry %s_[0-9a-f]+_cuda_kernel_forward\(.*?\n}\n" % kernel, ptx, re.S)
+    assert body is not None, kernel
+    products = set(re.findall(r"mul\.rn\.f32\s+(%f\d+),", body.group(0)))
+    shears = [(x, y) for x, y in re.findall(r"sub\.rn\.f32\s+%f\d+,\s*(%f\d+),\s*(%f\d+);", body.group(0))
+              if y in products and x not in products]
+    assert len(shears) >= 6, f"{kernel}: shear products left free to fuse"

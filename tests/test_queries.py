@@ -552,6 +552,30 @@ def test_rays_through_shared_edges_stay_watertight_where_multiply_adds_fuse(devi
     assert (query.intersect(bvh, o, d)[1] >= 0).all()
 
 
+def test_rays_aimed_at_a_silhouette_edge_hit_it_where_multiply_adds_fuse(device):
+    """Rays aimed exactly at points of a cube's edge x = 0, y = 1 (the grazing rays above) must hit
+    it. The shear of Woop et al. 2013 gives such a point a zero edge function only while
+    ``sx * p[kz]`` is rounded before it is subtracted: rounded, it gives ``p[kx]`` back exactly;
+    fused into a multiply-add (CUDA's default, and the CPU with contraction allowed), the
+    difference keeps the rounding error of ``sx`` and 21 of the 30 rays missed the cube."""
+    mesh = trimesh.creation.box(extents=(1, 1, 1))
+    verts = (np.asarray(mesh.vertices) + 0.5).astype(np.float32)
+    faces = np.asarray(mesh.faces, np.int32)
+    o, d = [], []
+    for dy in (41, 47, 55, 61, 82, 83, 94, 97, 107, 109):
+        for z0 in (0.25, 0.5, 0.625):
+            o.append([-3, 1 - dy, z0])
+            d.append([3, dy, 0])  # reaches (0, 1, z0) at t = 1 exactly
+    o, d = np.float32(o), np.float32(d)
+    bvh = hlbvh_warp.build(verts, faces, device=device)
+    prims = wp.empty(len(o), dtype=wp.int32, device=device)
+    wp.launch(_fused_closest_hit_kernel, dim=len(o), device=device,
+              inputs=[query.view(bvh), wp.array(o, dtype=wp.vec3, device=device),
+                      wp.array(d, dtype=wp.vec3, device=device), prims])
+    missed = int((prims.numpy() < 0).sum())
+    assert missed == 0, f"{missed} of {len(o)} rays aimed at the cube's edge missed it"
+
+
 def test_any_hit_stops_at_the_first_hit_in_a_leaf(device):
     """Four triangles on one ray in one leaf: the any-hit query stops at the first one it finds,
     the closest-hit query tests all four."""
