@@ -490,6 +490,28 @@ def two_sum_error(a: wp.float64, b: wp.float64, s: wp.float64):
     return (a - (s - z)) + (b - z)
 
 
+# x * y rounded on its own, never fused into a multiply-add with what uses it: Veltkamp's split
+# below takes c = 134217729 s rounded, then c - (c - s). Fused into c - (c - s) (CUDA's default,
+# NVRTC's --fmad=true; the CPU with -ffp-contract=fast), the head keeps all of s's bits, its
+# products with the direction are no longer exact, and a far origin's start point leaves the ray
+# by 2^-53 of the origin's coordinates: a whole box at 1e16 box sizes. Products of the split's
+# halves with float32 values are exact and need no such care.
+_ROUNDED_PRODUCT64 = """
+#if defined(__CUDA_ARCH__)
+    return __dmul_rn(x, y);
+#else
+    {
+#pragma clang fp contract(off)
+    return x * y;
+    }
+#endif
+"""
+
+
+@wp.func_native(_ROUNDED_PRODUCT64)
+def rounded_product64(x: wp.float64, y: wp.float64) -> wp.float64: ...
+
+
 @wp.func
 def point_on_ray(origin: wp.vec3, direction: wp.vec3, s: wp.float64):
     """``origin + s * direction`` with each coordinate rounded once, to float32, from a sum whose
@@ -502,7 +524,7 @@ def point_on_ray(origin: wp.vec3, direction: wp.vec3, s: wp.float64):
     puts it along.
     """
     # Veltkamp's split: a head of 26 bits and a tail of 27, each exact times a 24-bit float32.
-    c = wp.float64(134217729.0) * s
+    c = rounded_product64(wp.float64(134217729.0), s)
     s_head = c - (c - s)
     s_tail = s - s_head
     out = wp.vec3()

@@ -110,6 +110,17 @@ WATERTIGHT_KERNELS = [("traversal", "closest_hit_kernel"), ("traversal", "all_hi
                       ("wide", "wide_closest_hit_range_kernel")]
 
 
+def _kernel_ptx(name: str, kernel: str, tmp_path) -> str:
+    """The PTX of one kernel's forward entry in module ``kernels.<name>``, for the newest arch."""
+    import re
+
+    module = importlib.import_module(f"hlbvh_warp.kernels.{name}")
+    ptx = compile_for_cuda(module, ARCHES[-1], tmp_path)
+    body = re.search(r"\.entry %s_[0-9a-f]+_cuda_kernel_forward\(.*?\n}\n" % kernel, ptx, re.S)
+    assert body is not None, kernel
+    return body.group(0)
+
+
 @pytest.mark.parametrize("name,kernel", WATERTIGHT_KERNELS)
 def test_edge_functions_are_never_fused_into_multiply_adds(name, kernel, tmp_path):
     """Woop et al.'s watertight test needs the two triangles at an edge to compute its edge
@@ -118,13 +129,10 @@ def test_edge_functions_are_never_fused_into_multiply_adds(name, kernel, tmp_pat
     --fmad=true), which breaks that, so rays leaked through edges; ``.rn`` forbids it."""
     import re
 
-    module = importlib.import_module(f"hlbvh_warp.kernels.{name}")
-    ptx = compile_for_cuda(module, ARCHES[-1], tmp_path)
-    body = re.search(r"\.entry %s_[0-9a-f]+_cuda_kernel_forward\(.*?\n}\n" % kernel, ptx, re.S)
-    assert body is not None, kernel
+    body = _kernel_ptx(name, kernel, tmp_path)
     # u, v and w: two products rounded apart, then their difference rounded.
     edge = re.compile(r"mul\.rn\.f32[^\n]*\n\s*mul\.rn\.f32[^\n]*\n\s*sub\.rn\.f32")
-    assert len(edge.findall(body.group(0))) >= 3, f"{kernel}: edge functions left free to fuse"
+    assert len(edge.findall(body)) >= 3, f"{kernel}: edge functions left free to fuse"
 
 
 @pytest.mark.parametrize("name,kernel", WATERTIGHT_KERNELS)
@@ -135,11 +143,25 @@ def test_shear_products_are_never_fused_into_multiply_adds(name, kernel, tmp_pat
     ``sub.rn.f32`` from a coordinate (not a product) of a ``mul.rn.f32`` just before it."""
     import re
 
-    module = importlib.import_module(f"hlbvh_warp.kernels.{name}")
-    ptx = compile_for_cuda(module, ARCHES[-1], tmp_path)
-    body = re.search(r"\.entry %s_[0-9a-f]+_cuda_kernel_forward\(.*?\n}\n" % kernel, ptx, re.S)
-    assert body is not None, kernel
-    products = set(re.findall(r"mul\.rn\.f32\s+(%f\d+),", body.group(0)))
-    shears = [(x, y) for x, y in re.findall(r"sub\.rn\.f32\s+%f\d+,\s*(%f\d+),\s*(%f\d+);", body.group(0))
+    body = _kernel_ptx(name, kernel, tmp_path)
+    products = set(re.findall(r"mul\.rn\.f32\s+(%f\d+),", body))
+    shears = [(x, y) for x, y in re.findall(r"sub\.rn\.f32\s+%f\d+,\s*(%f\d+),\s*(%f\d+);", body)
               if y in products and x not in products]
     assert len(shears) >= 6, f"{kernel}: shear products left free to fuse"
+
+
+def test_veltkamp_split_of_a_far_origins_start_is_never_fused(tmp_path):
+    """`traversal.point_on_ray` splits s as c = 134217729 s, head = c - (c - s): with c left as a
+    plain ``mul.f64`` the assembler may fuse it into either difference (NVRTC's --fmad=true), the
+    head keeps every bit, and a far origin's start point leaves the ray. Every product by the
+    split constant (0d41A0000002000000) must be a ``mul.rn.f64``, which forbids that."""
+    import re
+
+    ptx = compile_for_cuda(importlib.import_module("hlbvh_warp.kernels.traversal"), ARCHES[-1], tmp_path)
+    # The constant as an immediate operand (a plain product), or moved to a register first.
+    immediate = re.findall(r"(mul(?:\.rn)?\.f64)\s+%fd\d+,\s*%fd\d+,\s*0d41A0000002000000;", ptx, re.I)
+    moved = re.findall(r"mov\.f64\s+(%fd\d+),\s*0d41A0000002000000;\s*\n\s*(mul(?:\.rn)?\.f64)\s+%fd\d+,\s*\1,",
+                       ptx, re.I)
+    products = immediate + [op for _, op in moved]
+    assert products, "no product by the split constant found"
+    assert all(op == "mul.rn.f64" for op in products), f"the split's product left free to fuse: {products}"
