@@ -396,6 +396,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # the primitive order of HLBVH, unchanged.
         self.compute_codes(timer, inputs_ready)
         self.sort_codes(timer, need_voxels=True)
+        self.order_tied_ids(timer)
 
         # Clusters: the non-empty voxels, merged into coarser voxels while they are too small
         # on average (BuildConfig.cluster_min_prims).

@@ -560,6 +560,17 @@ class HlbvhPipeline:
             wp.utils.radix_sort_pairs(self.sorted_codes, self.sorted_prim_ids, n,
                                       end_bit=3 * self.config.bits_per_axis)
 
+    def order_tied_ids(self, timer: StageTimer):
+        """After the sort of a build fed in another order than the faces' (`set_input_ids`: a
+        resorted `Builder` frame), put the ids of equal codes in face order, as a build from
+        scratch has them, so that the tree is that build's (`compress.order_tied_ids_kernel`).
+        Builds in face order have them so already and skip it."""
+        if self.input_ids.shape[0] == 0:
+            return
+        timer.stage("tie_order")
+        self._launch(compress.order_tied_ids_kernel, self.num_prims,
+                     [self.sorted_codes, self.sorted_prim_ids, self.num_prims])
+
     def _global_sort_halves(self, threads: int):
         """The global sort on two cores: each half of the codes (with its ids) gathered and radix
         sorted in its own thread, then the sorted halves merged into `sorted_codes` /
@@ -919,6 +930,7 @@ class HlbvhPipeline:
             self.global_sort()
         else:
             raise ValueError(f"unknown pipeline method {method!r}")
+        self.order_tied_ids(timer)
 
         # Emit the hierarchy by treelets, p bit planes per pass, then split what the bits cannot.
         timer.stage("hierarchy")

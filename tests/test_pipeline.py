@@ -151,7 +151,8 @@ def test_voxel_sort_equals_stable_argsort(device, rng, capacity):
 @pytest.mark.parametrize("method", ["hlbvh", "lbvh"])
 def test_sort_carries_input_ids(device, rng, method):
     """With input ids (a resorted frame: position i holds user face ids[i]), the sorted ids are
-    those faces in the stable code order of the positions, and the boxes are read by face id."""
+    those faces in code order, equal codes in face id order (as a build from scratch has them,
+    not in the input's), and the boxes are read by face id."""
     lo, hi = soup_bounds(rng, 3000, clusters=True)
     ids = rng.permutation(len(lo)).astype(np.int32)
     # The pipeline's boxes are in the user's order; its Morton codes are in input order.
@@ -160,7 +161,8 @@ def test_sort_carries_input_ids(device, rng, method):
     pipe.morton_codes.assign(wp.array(codes, dtype=wp.int32, device=device))
     pipe.set_input_ids(wp.array(ids, dtype=wp.int32, device=device))
     pipe.build(method, inputs_ready="codes")
-    expected = ids[np.argsort(codes, kind="stable")]
+    expected = ids[np.lexsort((ids, codes))]
+    assert not np.array_equal(expected, ids[np.argsort(codes, kind="stable")]), "no tie out of face order"
     np.testing.assert_array_equal(pipe.sorted_prim_ids.numpy()[: len(lo)], expected)
     # Every leaf's box is its face's own box, so the boxes were read by face id.
     tree = {name: arr.numpy() for name, arr in (("left", pipe.node_left), ("begin", pipe.node_begin),
