@@ -494,10 +494,9 @@ def test_closest_hit_skips_a_deferred_node_hit_inside_the_near_box(device):
         assert stats.nodes_visited.tolist() == [2] and stats.prims_tested.tolist() == [1]
 
 
-def test_rays_grazing_an_edge_of_a_box_mesh_hit_it(device):
-    """Rays through the edge x = 0, y = 1 of a unit cube, tilted so the slab test's float32
-    distances to the two faces meeting there round apart: the far-distance pad of Ize's robust
-    slab test (traversal.FAR_PAD) keeps the box entered. Without it every one missed."""
+def _rays_at_a_cube_edge():
+    """A unit cube's vertices and faces, and 30 rays each reaching a point of its edge x = 0,
+    y = 1 at t = 1 exactly, tilted so that float32 distances to the two faces there round apart."""
     mesh = trimesh.creation.box(extents=(1, 1, 1))
     verts = (np.asarray(mesh.vertices) + 0.5).astype(np.float32)
     faces = np.asarray(mesh.faces, np.int32)
@@ -506,7 +505,14 @@ def test_rays_grazing_an_edge_of_a_box_mesh_hit_it(device):
         for z0 in (0.25, 0.5, 0.625):
             o.append([-3, 1 - dy, z0])
             d.append([3, dy, 0])  # reaches (0, 1, z0) at t = 1 exactly
-    o, d = np.float32(o), np.float32(d)
+    return verts, faces, np.float32(o), np.float32(d)
+
+
+def test_rays_grazing_an_edge_of_a_box_mesh_hit_it(device):
+    """Rays through the edge x = 0, y = 1 of a unit cube, tilted so the slab test's float32
+    distances to the two faces meeting there round apart: the far-distance pad of Ize's robust
+    slab test (traversal.FAR_PAD) keeps the box entered. Without it every one missed."""
+    verts, faces, o, d = _rays_at_a_cube_edge()
     t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
     assert (prim_ref >= 0).all()
     for method in ("hlbvh", "sweep_sah"):
@@ -558,15 +564,7 @@ def test_rays_aimed_at_a_silhouette_edge_hit_it_where_multiply_adds_fuse(device)
     ``sx * p[kz]`` is rounded before it is subtracted: rounded, it gives ``p[kx]`` back exactly;
     fused into a multiply-add (CUDA's default, and the CPU with contraction allowed), the
     difference keeps the rounding error of ``sx`` and 21 of the 30 rays missed the cube."""
-    mesh = trimesh.creation.box(extents=(1, 1, 1))
-    verts = (np.asarray(mesh.vertices) + 0.5).astype(np.float32)
-    faces = np.asarray(mesh.faces, np.int32)
-    o, d = [], []
-    for dy in (41, 47, 55, 61, 82, 83, 94, 97, 107, 109):
-        for z0 in (0.25, 0.5, 0.625):
-            o.append([-3, 1 - dy, z0])
-            d.append([3, dy, 0])  # reaches (0, 1, z0) at t = 1 exactly
-    o, d = np.float32(o), np.float32(d)
+    verts, faces, o, d = _rays_at_a_cube_edge()
     bvh = hlbvh_warp.build(verts, faces, device=device)
     prims = wp.empty(len(o), dtype=wp.int32, device=device)
     wp.launch(_fused_closest_hit_kernel, dim=len(o), device=device,
