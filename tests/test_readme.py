@@ -36,3 +36,15 @@ def test_readme_usage_example_runs():
     printed = out.getvalue().strip().splitlines()[-1]
     np.testing.assert_array_equal(np.array(printed.strip("[]").split(), dtype=int), expected)
     assert (expected >= 1).all()
+
+
+def test_every_public_name_is_in_the_readme():
+    # Each name the package exports is documented in the README's "Using it" section, quoted as
+    # code (`name`, a call `name(...`, or imported in the usage example), so that no part of the
+    # API is only in a docstring.
+    import hlbvh_warp
+
+    section = (REPO_ROOT / "README.md").read_text().split("## Using it", 1)[1].split("## The pipeline", 1)[0]
+    missing = [name for name in hlbvh_warp.__all__
+               if not re.search(rf"`(hb\.|hlbvh_warp\.)?{re.escape(name)}[`(.]|import {re.escape(name)}\b", section)]
+    assert not missing, f"public names the README does not document: {missing}"
