@@ -862,6 +862,12 @@ class Builder:
         the topology."""
         self._require_built()
         sources = self._frame_sources(vertices, bounds)
+        # On the CPU the sweep of a tree emitted side by side runs its parts on worker threads,
+        # which a capture on the calling thread does not record: the replayed graph reloaded the
+        # boxes and left every node box at the captured frame's.
+        if self.device.is_cpu and self.device.is_capturing:
+            raise RuntimeError(f"a refit on {self.device} runs launches on worker threads and cannot be captured in "
+                               "a graph; capture a CUDA Builder instead")
         start = time.perf_counter()
         if self._begin_frame():
             # No whole topology to refit: the last frame stopped partway through writing it.

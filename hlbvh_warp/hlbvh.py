@@ -90,9 +90,14 @@ class StageTimer:
             self._label = None
 
     def finish(self) -> dict:
-        """Close the running stage and return the timings with their ``total`` (empty when disabled)."""
+        """Close the running stage and return the timings with their ``total`` and ``skipped``
+        (empty when disabled)."""
         if self.enabled:
             self._close()
+            # Always there, empty when nothing was skipped: where it came and went with the
+            # schedule (the CPU's depth-first emission skips bbox, the treelet passes do not),
+            # ``timings["skipped"]`` raised a KeyError on one device and not on the other.
+            self.timings.setdefault("skipped", [])
             self.timings["total"] = sum(v for k, v in self.timings.items() if k not in ("skipped",))
         return self.timings
 

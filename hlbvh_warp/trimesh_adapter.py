@@ -244,8 +244,12 @@ class ProximityQuery:
 
         trimesh's own (a KD-tree over the vertices, SciPy's; no triangle is involved, so a BVH
         over the faces has nothing to add), here so that this class stands in for every method
-        of ``mesh.nearest``.
+        of ``mesh.nearest``. A single ``(3,)`` point is answered as one row, as `on_surface`
+        answers it (SciPy's KD-tree alone gave two scalars).
         """
         from trimesh.proximity import ProximityQuery as TrimeshProximity
 
+        points = _real_float64(points, "points")
+        if points.shape == (3,):
+            points = points.reshape(1, 3)
         return TrimeshProximity(self.mesh).vertex(points)

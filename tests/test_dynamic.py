@@ -453,6 +453,27 @@ def test_cpu_rebuild_refuses_graph_capture(method, rng):
     check_rays(builder.bvh, moved, f, rng)
 
 
+@pytest.mark.parametrize("call", ["refit", "update"])
+def test_cpu_refit_refuses_graph_capture(call, rng):
+    # The README: a capture of any CPU Builder raises. A CPU refit of a tree emitted side by side
+    # sweeps its parts on worker threads, which the capture does not record: replayed, the graph
+    # reloaded the vertices and left every node box where the captured frame had it. A clear
+    # error instead, before any launch, and the builder still works afterwards.
+    v, f = default_scene(2000)
+    builder = Builder(len(f), device="cpu", policy="refit")
+    builder.build(v, f)
+    frame = builder.frame
+    with pytest.raises(RuntimeError, match="captured in a graph"):
+        with wp.ScopedCapture(device="cpu"):
+            getattr(builder, call)(wp.array(v * np.float32(1.25), dtype=wp.vec3, device="cpu"))
+    assert builder.frame == frame
+    np.testing.assert_array_equal(builder.vertices.numpy(), v)
+    moved = v * np.float32(1.25)
+    builder.refit(moved)
+    check_tree_invariants(builder.bvh.to_numpy(), len(f))
+    check_rays(builder.bvh, moved, f, rng)
+
+
 @pytest.mark.parametrize("chaotic", [False, True])
 def test_auto_update_refuses_graph_capture(device, rng, chaotic):
     # `auto` decides each frame on the host from its motion measure (or, in its chaotic wait, its

@@ -322,6 +322,23 @@ def test_nearest_vertex_is_trimeshs(device, rng):
     np.testing.assert_array_equal(vertex, all_distances.argmin(axis=1))
 
 
+def test_nearest_vertex_of_a_single_point_is_one_row(device):
+    # The README: a single (3,) point is answered as one row. on_surface and signed_distance did;
+    # vertex handed the point to SciPy's KD-tree, which gave two scalars. The nearest vertex by
+    # brute force is the oracle.
+    pytest.importorskip("scipy")  # trimesh's KD-tree
+    from hlbvh_warp import ProximityQuery
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    pq = ProximityQuery(mesh, device=device)
+    for point in ([0.0, 0.0, 3.0], [0.3, -0.2, 0.1], (2, 1, 0)):
+        distance, vertex = pq.vertex(point)
+        all_distances = np.linalg.norm(mesh.vertices - np.asarray(point, dtype=np.float64), axis=1)
+        assert distance.shape == (1,) and vertex.shape == (1,), point
+        np.testing.assert_allclose(distance, [all_distances.min()], rtol=1e-12)
+        np.testing.assert_array_equal(vertex, [all_distances.argmin()])
+
+
 def test_signed_distance_of_a_point_in_a_face_plane_outside_the_mesh(device):
     # A point in the plane of its closest triangle, just outside that triangle's edge: the normal
     # cannot side it, and the answer must still say outside (negative, trimesh's sign).
