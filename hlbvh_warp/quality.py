@@ -23,6 +23,7 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
+from .reference import origins_within_float32
 from .cli import (argument_errors, check_out_file, check_ray_count, command_prog, device_name, finite_float,
                   image_side, mesh_file, non_negative_int, query_count, quiet_warp, read_meshes, scene_tris)
 
@@ -61,7 +62,8 @@ def orbit_rays(vertices: np.ndarray, views: int, side: int):
         d = forward[None] + px.ravel()[:, None] * right[None] + py.ravel()[:, None] * up[None]
         directions.append(d / np.linalg.norm(d, axis=1, keepdims=True))
         origins.append(np.repeat(eye[None], side * side, axis=0))
-    return np.concatenate(origins).astype(np.float32), np.concatenate(directions).astype(np.float32)
+    origins, directions = np.concatenate(origins), np.concatenate(directions)
+    return origins_within_float32(origins, directions), directions.astype(np.float32)
 
 
 def diffuse_rays(rng, vertices, faces, origins, directions, t, prim):
