@@ -725,3 +725,15 @@ def test_rays_of_a_mesh_near_float32s_limit_start_within_its_range(generator):
     assert_hits_match(t[inside], prim[inside], *brute_force_closest_hit(
         vertices, faces, origins[inside], directions[inside], t_max=float(np.finfo(np.float32).max)))
     assert (prim[~inside] == -1).all()
+
+
+def test_a_plot_of_wp_mesh_alone_has_no_empty_legend(tmp_path):
+    # "bench --sweep --builders wp.Mesh" printed Matplotlib's "No artists with labels found to put
+    # in legend": wp.Mesh has no SAH, so its panel has no labelled points.
+    import warnings
+
+    rows = [{"mesh": "m", "builder": "wp.Mesh", "setting": "default", "time_ms": {"median": 1.0}, "num_tris": 10}]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bench.plot(rows, tmp_path / "plot.png")
+    assert (tmp_path / "plot.png").stat().st_size > 0
