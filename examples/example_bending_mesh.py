@@ -63,9 +63,11 @@ def main(argv=None):
             check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
-        example = Example(mesh, args.num_tris, args.num_frames, args.method, args.policy,
-                          not args.no_resort, image_size=args.image_size, headless=args.headless,
-                          sah_growth_limit=args.sah_growth_limit)
+        # A mesh too large to render (the camera past float32's reach) is one line, as a bad option.
+        with argument_errors(parser):
+            example = Example(mesh, args.num_tris, args.num_frames, args.method, args.policy,
+                              not args.no_resort, image_size=args.image_size, headless=args.headless,
+                              sah_growth_limit=args.sah_growth_limit)
         for _ in range(args.num_frames):
             example.step()
             example.render()

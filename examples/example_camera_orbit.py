@@ -39,6 +39,10 @@ class Example:
         self.reference_method = methods[0]
         self.trees = {(m, k): wide.collapse(bvh, k) for m, bvh in self.binaries.items() for k in widths}
         self.lower, self.upper = self.vertices.min(axis=0), self.vertices.max(axis=0)
+        # Every frame's camera made once before the first frame: one refuses a mesh too large to
+        # frame in float32, whose images were all sky.
+        for frame in range(num_frames):
+            self.camera(frame)
         n = resolution * resolution
         self.hit_t = wp.empty(n, dtype=float)
         self.hit_prim = wp.empty(n, dtype=wp.int32)
@@ -142,7 +146,9 @@ def main(argv=None):
             check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
-        example = Example(mesh, args.num_tris, methods, widths, args.resolution, args.num_frames, args.headless)
+        # A mesh too large to render (the camera past float32's reach) is one line, as a bad option.
+        with argument_errors(parser):
+            example = Example(mesh, args.num_tris, methods, widths, args.resolution, args.num_frames, args.headless)
         for _ in range(args.num_frames):
             example.step()
             example.render()

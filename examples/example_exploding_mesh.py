@@ -23,8 +23,9 @@ class Example:
         self.frame_dt = 1.0 / fps
         self.mesh = ExplodingMesh(vertices, faces, seed=0, speed=speed)
         builder = Builder(len(faces), method=method, policy=policy, resort=resort)
-        # A wider view than the intact mesh: the pieces fly outwards.
-        camera = Camera.framing(vertices, zoom=0.7)
+        # A wider view than the intact mesh: the pieces fly outwards. None headless: the camera
+        # refuses a mesh too large to frame in float32, which a run without images can take.
+        camera = None if headless else Camera.framing(vertices, zoom=0.7)
         self.animation = Animation(self.mesh, builder, lambda frame: frame * self.frame_dt, camera,
                                    image_size=0 if headless else image_size)
 
@@ -62,8 +63,10 @@ def main(argv=None):
             check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
-        example = Example(mesh, args.num_tris, args.method, args.policy, not args.no_resort,
-                          image_size=args.image_size, headless=args.headless)
+        # A mesh too large to render (the camera past float32's reach) is one line, as a bad option.
+        with argument_errors(parser):
+            example = Example(mesh, args.num_tris, args.method, args.policy, not args.no_resort,
+                              image_size=args.image_size, headless=args.headless)
         for _ in range(args.num_frames):
             example.step()
             example.render()

@@ -450,7 +450,9 @@ def plot(rows: list[dict], path: pathlib.Path):
         ax.set_ylabel(f"SAH cost / {REFERENCE}")
         ax.set_title(f"{mesh} ({pts[0]['num_tris'] if pts else 0} triangles)")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        # Only wp.Mesh (no SAH, so no points): a legend of nothing, which Matplotlib warns about.
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)

@@ -197,6 +197,10 @@ class BuildConfig:
             if box.shape != (2, 3):
                 raise ValueError(f"BuildConfig: morton_bounds must be ((x0, y0, z0), (x1, y1, z1)) "
                                  f"(got {self.morton_bounds!r})")
+            # NumPy reads "0" and True as numbers; every other number field refuses them.
+            if any(isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating))
+                   for row in self.morton_bounds for x in row):
+                raise ValueError(f"BuildConfig: morton_bounds must hold numbers (got {self.morton_bounds!r})")
             if not np.all(np.isfinite(box)):
                 raise ValueError(f"BuildConfig: morton_bounds must be finite (got {self.morton_bounds!r})")
             # The grid reaches the kernels as float32, where 1e39 is inf: every centroid then

@@ -134,7 +134,9 @@ class Animation:
         self.builder.build(scene.vertices, scene.faces)
         if reference is not None:
             reference.build(scene.vertices, scene.faces)
-        self.camera = camera or Camera.framing(scene.vertices.numpy())
+        # Only where frames are rendered: a camera refuses a mesh too large to frame in float32,
+        # which a headless run (builds only) can still take.
+        self.camera = camera or (Camera.framing(scene.vertices.numpy()) if self.image_size > 0 else None)
         self.frame = 0
         self.rows: list[dict] = []
         self.images: list[np.ndarray] = []

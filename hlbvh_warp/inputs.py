@@ -100,8 +100,10 @@ def mesh_arrays(mesh, faces=None) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("the mesh is empty: vertices has no rows")
     lo, hi = int(tris.min()), int(tris.max())
     if lo < 0 or hi >= verts.shape[0]:
-        bad = lo if lo < 0 else hi
-        row = int(np.argwhere((tris < 0) | (tris >= verts.shape[0]))[0][0])
+        # The index named is one the named face holds: the smallest or largest index overall may sit
+        # in another face, and a message pairing them sends the user to a face that looks right.
+        row, col = (int(i) for i in np.argwhere((tris < 0) | (tris >= verts.shape[0]))[0])
+        bad = int(tris[row, col])
         raise ValueError(f"face index {bad} out of range [0, {verts.shape[0]}) (first at face {row})")
     if tris.shape[0] >= MAX_PRIMS:
         raise ValueError(f"too many faces ({tris.shape[0]}): indices are int32 and the arena holds 2F - 1 nodes")

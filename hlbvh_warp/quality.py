@@ -23,6 +23,7 @@ import numpy as np
 import warp as wp
 
 from .api import OFFLINE_BUILDERS
+from .reference import origins_within_float32
 from .cli import (argument_errors, check_out_file, check_ray_count, command_prog, device_name, finite_float,
                   image_side, mesh_file, non_negative_int, query_count, quiet_warp, read_meshes, scene_tris)
 
@@ -31,6 +32,8 @@ BUILDERS = ("hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median")
 #: Also accepted by ``--builders``; left out by default for their build time.
 SLOW_BUILDERS = OFFLINE_BUILDERS
 REFERENCE = "sweep_sah"
+#: The largest --ct or --ci: the measures stay finite in float64 for any tree below it.
+MAX_COST = 1e200
 #: Primary rays checked against the float64 brute force per mesh.
 ORACLE_RAYS = 256
 
@@ -59,7 +62,8 @@ def orbit_rays(vertices: np.ndarray, views: int, side: int):
         d = forward[None] + px.ravel()[:, None] * right[None] + py.ravel()[:, None] * up[None]
         directions.append(d / np.linalg.norm(d, axis=1, keepdims=True))
         origins.append(np.repeat(eye[None], side * side, axis=0))
-    return np.concatenate(origins).astype(np.float32), np.concatenate(directions).astype(np.float32)
+    origins, directions = np.concatenate(origins), np.concatenate(directions)
+    return origins_within_float32(origins, directions), directions.astype(np.float32)
 
 
 def diffuse_rays(rng, vertices, faces, origins, directions, t, prim):
@@ -211,6 +215,13 @@ def parse_args(argv):
         args.builders.append(REFERENCE)
     if args.ct < 0 or args.ci <= 0:
         parser.error(f"need --ct >= 0 and --ci > 0, got --ct {args.ct} and --ci {args.ci}")
+    # The SAH sums term x area in float64: up to about 3 x 2^31 terms of a cost each, times a
+    # float32 box's area (under 3e78, its sides up to twice float32's limit), so up to 2e88 x
+    # cost; the measures overflowed (--ct 1e308 printed inf and NaN rows, and exit 0). Below
+    # MAX_COST they cannot, for any mesh; the ratios and fits are the same for both costs scaled alike.
+    if max(args.ct, args.ci) > MAX_COST:
+        parser.error(f"need --ct and --ci <= {MAX_COST:g} (the measures overflow past it; scaling both costs "
+                     f"alike changes no ratio), got --ct {args.ct} and --ci {args.ci}")
     # Before the run: a path that cannot be written failed only after every builder had run.
     with argument_errors(parser):
         check_out_file(args.json, "--json")

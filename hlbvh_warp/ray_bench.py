@@ -36,7 +36,7 @@ import warp as wp
 
 from .cli import (command_prog, device_name, finite_float, leaf_size, non_negative_int, positive_int, query_count,
                   quiet_warp, read_mesh)
-from .reference import brute_force_closest_hit
+from .reference import brute_force_closest_hit, origins_within_float32
 from .stress_report import classify
 
 DEFAULT_MESHES = ("bunny", "armadillo")
@@ -75,7 +75,7 @@ def random_rays(rng, vertices: np.ndarray, num_rays: int):
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     origins = center - 2.0 * radius * dirs
     d = lo + rng.random((num_rays, 3)) * (hi - lo) - origins
-    return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    return origins_within_float32(origins, d), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
 def far_rays(rng, vertices: np.ndarray, num_rays: int, distance: float):
@@ -109,7 +109,7 @@ def camera_rays(vertices: np.ndarray, num_rays: int):
     d = np.stack([x.ravel(), y.ravel(), -np.ones(side * side)], axis=1)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     eye = center + np.array([0.0, 0.0, 2.5 * radius])
-    return np.repeat(eye[None], side * side, axis=0).astype(np.float32), d.astype(np.float32)
+    return origins_within_float32(np.repeat(eye[None], side * side, axis=0), d), d.astype(np.float32)
 
 
 def disagreeing(t_a, prim_a, t_b, prim_b, rtol: float = 1e-5) -> np.ndarray:

@@ -154,6 +154,30 @@ def brute_force_closest_hit(vertices, faces, origins, directions, t_max=np.inf, 
     return t_out, p_out
 
 
+def origins_within_float32(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Float64 ray origins as float32, each one past float32's range first moved along its ray to
+    where the ray enters that range: every triangle lies within it, so the ray meets the same
+    ones. A ray that never enters it meets nothing, and keeps an Inf coordinate (such a ray finds
+    nothing). Cast as they were, origins past the range of a mesh near float32's limit became Inf
+    with NumPy's "overflow encountered in cast" warning, and rays that cross the mesh found nothing."""
+    origins = np.array(origins, dtype=np.float64)
+    # Below float32's largest value by a margin, so the moved origins round to finite float32.
+    limit = float(np.finfo(np.float32).max) * (1.0 - 1e-6)
+    out = np.flatnonzero((np.abs(origins) > limit).any(axis=1))
+    if len(out):
+        o, d = origins[out], np.broadcast_to(np.asarray(directions, dtype=np.float64), origins.shape)[out]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo, hi = (-limit - o) / d, (limit - o) / d
+        # The slabs of float32's range; an axis the ray runs along (d = 0) bounds nothing, its
+        # origin being within range there or the ray never entering.
+        near = np.where(d != 0.0, np.minimum(lo, hi), np.where(np.abs(o) <= limit, -np.inf, np.inf)).max(axis=1)
+        far = np.where(d != 0.0, np.maximum(lo, hi), np.inf).min(axis=1)
+        enters = (near <= far) & (far >= 0.0)
+        origins[out[enters]] = o[enters] + np.maximum(near[enters], 0.0)[:, None] * d[enters]
+    with np.errstate(over="ignore"):
+        return origins.astype(np.float32)
+
+
 def rays_at_box(rng, vertices, num_rays):
     """Rays from a sphere around the bounding box aimed at random points inside it."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -164,7 +188,7 @@ def rays_at_box(rng, vertices, num_rays):
     origins = center - 2.0 * radius * dirs
     targets = lo + rng.random((num_rays, 3)) * (hi - lo)
     d = targets - origins
-    return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    return origins_within_float32(origins, d), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
 def unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, rtol=1e-5) -> np.ndarray:

@@ -9,6 +9,8 @@ import numpy as np
 
 from .query import intersect
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 
 class Camera:
     """A pinhole camera looking at the centre of a box from a fixed direction."""
@@ -21,6 +23,14 @@ class Camera:
         back /= np.linalg.norm(back)
         self.tan_half = np.tan(np.radians(fov_degrees) / 2.0)
         self.eye = self.target + back * (radius / np.sin(np.radians(fov_degrees) / 2.0)) / zoom
+        # The rays start at the eye in float32, and a hit past float32's largest distance is a
+        # miss: for a box larger than about 5e37 the eye was cast to Inf (with NumPy's overflow
+        # warning), or the far part of the box lay out of reach, and the images were sky.
+        reach = max(float(np.abs(self.eye).max()), float(np.linalg.norm(self.eye - self.target)) + radius)
+        if not reach <= FLOAT32_MAX:
+            raise ValueError(f"a box of diagonal {2.0 * radius:.3g} is too large to render: the camera framing it "
+                             f"would reach {reach:.3g}, past float32's largest {FLOAT32_MAX:.3g}; scale the mesh "
+                             f"down by a factor of {reach / FLOAT32_MAX:.3g} or more")
         self.forward = -back
         up = np.array([0.0, 1.0, 0.0]) if abs(back[1]) < 0.95 else np.array([0.0, 0.0, 1.0])
         self.right = np.cross(self.forward, up)

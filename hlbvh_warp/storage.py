@@ -76,10 +76,21 @@ def save(bvh: Bvh, path, compressed: bool = False) -> None:
     else:
         raise ValueError(f"save() writes to a path or an open binary file, got {type(path).__name__}")
     tree = bvh.to_numpy()
+    # A Builder frame given as Warp arrays is not checked: a NaN or Inf in a triangle's vertex (its
+    # box skips it) or in a box would be written, and `load` refuses the file. Refused here,
+    # before a file is written that could not be read back.
+    for name in _BOX_FIELDS + ("prim_lowers", "prim_uppers"):
+        if not np.isfinite(tree[name]).all():
+            raise ValueError(f"save() takes a tree with finite boxes: its {name} hold a NaN or Inf (a frame with "
+                             "one), which load_bvh would refuse")
     arrays = {name: tree[name] for name in NODE_FIELDS + ("prim_order",)}
     if bvh.vertices is not None and bvh.faces is not None:
         arrays["vertices"] = bvh.vertices.numpy()
         arrays["faces"] = bvh.faces.numpy().reshape(-1, 3)
+        bad = ~np.isfinite(arrays["vertices"][arrays["faces"]]).all(axis=(1, 2))
+        if bad.any():
+            raise ValueError(f"save() takes a tree with finite triangles: face {int(np.argmax(bad))} has a NaN or "
+                             "Inf vertex (a frame with one), which load_bvh would refuse")
     else:
         arrays["prim_lowers"] = tree["prim_lowers"]
         arrays["prim_uppers"] = tree["prim_uppers"]
@@ -351,6 +362,28 @@ def _check_parts_covered(lo, hi, leaf, begin, end, order, triangles, prim_lo, pr
             raise ValueError(f"a point of triangle {int(np.argmax(missed))} is in none of the leaves that list it")
 
 
+def _mesh_arrays(arrays: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The file's vertices and faces, checked as a build checks them, except that a vertex no
+    face uses may hold a NaN or Inf: a `Builder` frame given as a Warp array is not checked, and
+    such a tree is right (queries read only the triangles), so `save` writes it and `Bvh(...)`
+    over the same arrays takes it. Those rows are checked as zeros and kept as written."""
+    raw = inputs._to_numpy(arrays.get("vertices", np.zeros((0, 3))), "vertices")
+    faces = arrays.get("faces", [])
+    stand_in, unused = raw, None
+    if raw.dtype.kind == "f" and raw.ndim == 2 and raw.shape[1] == 3 and not np.isfinite(raw).all():
+        f = inputs._to_numpy(faces, "faces")
+        if f.dtype.kind in "iu":
+            f = f.ravel()
+            unused = np.ones(raw.shape[0], dtype=bool)
+            unused[f[(f >= 0) & (f < raw.shape[0])]] = False
+            stand_in = np.where(unused[:, None], 0, raw).astype(raw.dtype)
+    vertices, faces = inputs.mesh_arrays(stand_in, faces)
+    if unused is not None:
+        with np.errstate(over="ignore"):  # a wider float past float32's range is Inf, as it was
+            vertices[unused] = raw[unused]
+    return vertices, faces
+
+
 def _from_arrays(arrays: dict, device) -> Bvh:
     meta = _meta(arrays)
     num_prims, config = meta["num_prims"], meta["config"]
@@ -358,7 +391,7 @@ def _from_arrays(arrays: dict, device) -> Bvh:
     tree.update({name: _array(arrays, name, "f", (3,)) for name in _BOX_FIELDS})
     mesh = "vertices" in arrays or "faces" in arrays
     if mesh:
-        vertices, faces = inputs.mesh_arrays(arrays.get("vertices", np.zeros((0, 3))), arrays.get("faces", []))
+        vertices, faces = _mesh_arrays(arrays)
         if faces.shape[0] != num_prims:
             raise ValueError(f"faces has {faces.shape[0]} rows for {num_prims} primitives")
         tri = vertices[faces]

@@ -692,3 +692,48 @@ def test_ray_commands_take_hits_past_float32s_range_as_misses(tmp_path, capsys):
         assert cli.main([command, "--mesh", str(path), "--views", "2", "--side", "16", "--json", str(json_path),
                          *extra]) == 0
         assert all(r["disagree"] == 0 for r in json.loads(json_path.read_text())["rows"])
+
+
+
+
+@pytest.mark.parametrize("generator", ["random_rays", "rays_at_box", "camera_rays", "orbit_rays"])
+def test_rays_of_a_mesh_near_float32s_limit_start_within_its_range(generator):
+    # Origins past float32's range were cast to Inf with NumPy's "overflow encountered in cast"
+    # warning, and those rays found nothing: every ray of a camera 2.5 radii out, and many of the
+    # rays aimed at the box. Each is now moved along its ray into the range, hitting what it did.
+    import warnings
+
+    import trimesh
+    from oracles import assert_hits_match, brute_force_closest_hit
+
+    from hlbvh_warp import api, quality, query, ray_bench, reference
+
+    make = {"random_rays": lambda v: ray_bench.random_rays(np.random.default_rng(0), v, 256),
+            "rays_at_box": lambda v: reference.rays_at_box(np.random.default_rng(0), v, 256),
+            "camera_rays": lambda v: ray_bench.camera_rays(v, 256),
+            "orbit_rays": lambda v: quality.orbit_rays(v, 4, 8)}[generator]
+    box = trimesh.creation.box(extents=(4.0, 2.0, 4.0))
+    vertices, faces = (np.asarray(box.vertices) * 1e38).astype(np.float32), np.asarray(box.faces, np.int32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        origins, directions = make(vertices)
+        t, prim = query.intersect(api.build(vertices, faces, device="cpu"), origins, directions)
+    assert np.isfinite(directions).all()
+    assert (prim >= 0).mean() > 0.2
+    inside = np.isfinite(origins).all(axis=1)
+    # Hits past float32's largest distance are misses, as documented (the box is 4e38 across).
+    assert_hits_match(t[inside], prim[inside], *brute_force_closest_hit(
+        vertices, faces, origins[inside], directions[inside], t_max=float(np.finfo(np.float32).max)))
+    assert (prim[~inside] == -1).all()
+
+
+def test_a_plot_of_wp_mesh_alone_has_no_empty_legend(tmp_path):
+    # "bench --sweep --builders wp.Mesh" printed Matplotlib's "No artists with labels found to put
+    # in legend": wp.Mesh has no SAH, so its panel has no labelled points.
+    import warnings
+
+    rows = [{"mesh": "m", "builder": "wp.Mesh", "setting": "default", "time_ms": {"median": 1.0}, "num_tris": 10}]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bench.plot(rows, tmp_path / "plot.png")
+    assert (tmp_path / "plot.png").stat().st_size > 0

@@ -174,6 +174,22 @@ def test_config_types_are_checked(field, value):
         hw.BuildConfig(**{field: value})
 
 
+@pytest.mark.parametrize("bounds", [(("0", "0", "0"), ("1", "1", "1")), ((False, False, False), (True, True, True)),
+                                    ((0, 0, 0), (1, 1, True)), np.array([["0", "0", "0"], ["1", "1", "1"]]),
+                                    np.array([[0, 0, 0], [1, 1, 1]], dtype=bool)])
+def test_morton_bounds_refuse_strings_and_booleans(bounds):
+    # NumPy read the strings and booleans as the numbers 0 and 1, where every other number field
+    # refuses them.
+    with pytest.raises(ValueError, match="morton_bounds must hold numbers"):
+        hw.BuildConfig(morton_bounds=bounds)
+
+
+def test_morton_bounds_take_numbers_of_any_kind():
+    config = hw.BuildConfig(morton_bounds=np.array([[0, 0, 0], [1, 2, 3]], dtype=np.float32))
+    assert config.morton_bounds == ((0.0, 0.0, 0.0), (1.0, 2.0, 3.0))
+    assert hw.BuildConfig(morton_bounds=[[np.int64(0), 0.0, 0], [1, np.float64(2), 3]]) == config
+
+
 @pytest.mark.parametrize("field", ["block_capacity", "cpu_threads", "planes_per_pass"])
 @pytest.mark.parametrize("value", [2**31, 2**32, 2**40, -(2**31) - 1])
 def test_config_integers_must_fit_the_kernels_int32(field, value):

@@ -97,6 +97,29 @@ def test_quality_rejects_costs_that_are_not_finite(option, value, capsys):
     assert exit_.value.code == 2 and f"argument {option}: must be a finite number, got {value}" in err, err
 
 
+@pytest.mark.parametrize("option", ["--ct", "--ci"])
+def test_quality_rejects_costs_that_overflow_the_measures(option, capsys):
+    # "--ct 1e308" was accepted, and the SAH, EPO and m came out inf or NaN in every row, exit 0.
+    with pytest.raises(SystemExit) as exit_:
+        quality.parse_args([option, "1e308"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "need --ct and --ci <= 1e+200" in err and "1e+308" in err, err
+    assert quality.parse_args([option, "1e200"])  # the bound itself is accepted
+
+
+def test_quality_costs_at_the_bound_keep_the_measures_finite(device):
+    # Through the metrics at the bound, on a mesh near float32's limit, where the areas are largest.
+    from hlbvh_warp import api
+    from hlbvh_warp.metrics import end_point_overlap, sah_cost
+
+    vertices = np.array([[-3e38, -3e38, -3e38], [3e38, -3e38, 3e38], [-3e38, 3e38, 3e38], [3e38, 3e38, -3e38]],
+                        np.float32)
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]], np.int32)
+    bvh = api.build(vertices, faces, method="sweep_sah", device=device)
+    cost = quality.MAX_COST
+    assert np.isfinite(sah_cost(bvh, cost, cost)) and np.isfinite(end_point_overlap(bvh, cost, cost))
+
+
 def test_quality_still_rejects_negative_costs(capsys):
     with pytest.raises(SystemExit):
         quality.parse_args(["--ci", "0"])

@@ -69,6 +69,65 @@ def test_shading_does_not_depend_on_the_meshs_scale(scale):
     np.testing.assert_array_equal(scaled, unit)
 
 
+def tetrahedron_ply(path, size: float):
+    """A tetrahedron of ``size`` in every coordinate, written as an ASCII PLY."""
+    corners = size * np.array([[-1, -1, -1], [1, -1, 1], [-1, 1, 1], [1, 1, -1]])
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+                    "property float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n"
+                    + "".join(f"{float(x)!r} {float(y)!r} {float(z)!r}\n" for x, y, z in corners)
+                    + "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n")
+    return path
+
+
+def test_a_camera_past_float32s_reach_is_refused():
+    # The examples' camera sits about 3 box diagonals out. For a box of 1e38 its eye was cast to
+    # Inf (NumPy's overflow warning) and every ray missed; for the box of 5e37 below the eye fits,
+    # but the box's far half lies more than float32's largest distance from it, where hits are
+    # misses: part of the mesh, or all of it, rendered as sky.
+    import trimesh
+
+    from hlbvh_warp import api, query, render
+
+    box = trimesh.creation.box(extents=(4.0, 2.0, 3.0))
+    faces = np.asarray(box.faces, np.int32)
+    limit = float(np.finfo(np.float32).max)
+    for scale, zoom in ((5e37, 1.0), (1e38, 0.7)):
+        vertices = np.asarray(box.vertices) * scale
+        with pytest.raises(ValueError, match="too large to render.*past float32's largest"):
+            render.Camera.framing(vertices, zoom=zoom)
+    # The case: at 5e37 the eye is within range, and hits go missing.
+    vertices = (np.asarray(box.vertices) * 5e37).astype(np.float32)
+    small = (np.asarray(box.vertices) * 2.0 ** -100).astype(np.float32)
+    camera, framed = render.Camera.__new__(render.Camera), render.Camera.framing(small)
+    camera.__dict__.update(framed.__dict__, eye=framed.eye * 2.0 ** 100 * 5e37, target=framed.target * 5e37)
+    assert np.abs(camera.eye).max() < limit
+    counts = [int((query.intersect(api.build(v, faces, device="cpu"), *c.rays(24, 24))[1] >= 0).sum())
+              for v, c in ((vertices, camera), (small, framed))]
+    assert counts[0] < counts[1]
+    # A box a little smaller renders.
+    assert np.isfinite(render.Camera.framing(np.asarray(box.vertices) * 2e37).rays(4, 4)[0]).all()
+
+
+@pytest.mark.parametrize("name", ["example_exploding_mesh", "example_bending_mesh", "example_camera_orbit"])
+def test_rendering_examples_refuse_a_mesh_too_large_to_frame(name, tmp_path, capsys):
+    # They wrote all-sky images, with no error, for a mesh larger than about 5e37.
+    path = tetrahedron_ply(tmp_path / "huge.ply", 2e38)
+    args = [*without_headless(TINY_ARGS[name]), "--out", str(tmp_path / "out")]
+    err = argument_error(name, [*args, "--mesh", str(path)], capsys)
+    assert "too large to render" in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name", ["example_exploding_mesh", "example_bending_mesh"])
+def test_headless_examples_make_no_camera(name, tmp_path):
+    # Builds only: a mesh too large to frame is no reason to refuse them.
+    from hlbvh_warp.cli import read_mesh
+
+    module = load_example(name)
+    example = module.Example(read_mesh(str(tetrahedron_ply(tmp_path / "huge.ply", 2e38))), headless=True)
+    assert example.animation.camera is None
+
+
 def test_bending_mesh(device, tmp_path):
     module = load_example("example_bending_mesh")
     with wp.ScopedDevice(device):

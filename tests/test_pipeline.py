@@ -680,6 +680,16 @@ def test_bad_input_raises(device, vertices, faces, message):
         hb.build(vertices, faces, device=device)
 
 
+def test_an_out_of_range_index_is_named_with_the_face_that_holds_it(device):
+    # Face 0 holds 5 and face 2 holds 7: the message said "face index 7 ... (first at face 0)",
+    # naming a face that does not hold 7.
+    faces = [[0, 1, 5], [0, 1, 2], [7, 1, 2]]
+    with pytest.raises(ValueError, match=r"face index 5 out of range \[0, 3\) \(first at face 0\)"):
+        hb.build(np.eye(3), faces, device=device)
+    with pytest.raises(ValueError, match=r"face index -2 out of range \[0, 3\) \(first at face 1\)"):
+        hb.build(np.eye(3), [[0, 1, 2], [0, -2, 9], [-3, 1, 2]], device=device)
+
+
 def test_bad_bounds_and_options(device):
     with pytest.raises(ValueError, match="lowers > uppers"):
         hb.build_from_bounds(np.ones((2, 3)), np.zeros((2, 3)), device=device)

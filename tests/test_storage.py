@@ -3,6 +3,7 @@ file refused with a ValueError naming the problem (a bad id would send the trave
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import zipfile
@@ -10,6 +11,7 @@ import zipfile
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracles import assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants, random_rays
@@ -159,6 +161,59 @@ def _corruptions(arrays):
         ("bad primitive count", {**arrays, "meta": _meta(arrays, num_prims=0)}, "num_prims"),
         ("meta not JSON", {**arrays, "meta": np.array("{")}, "JSON"),
     ]
+
+
+def test_a_nan_in_a_vertex_no_face_uses_saves_and_loads(device, rng):
+    # A Builder frame given as a Warp array is not checked: a NaN in a vertex no face uses left a
+    # right tree that save_bvh wrote and load_bvh refused ("vertices has a NaN or Inf coordinate").
+    verts, faces = _mesh()
+    verts = np.concatenate([verts, [[7, 7, 7], [8, 8, 8]]]).astype(np.float32)
+    builder = hb.Builder(len(faces), device=device)
+    builder.build(verts, faces)
+    frame = verts.copy()
+    frame[-2, 1], frame[-1, 0] = np.nan, np.inf
+    builder.update(wp.array(frame, dtype=wp.vec3, device=device))
+    buffer = io.BytesIO()
+    hb.save_bvh(builder.bvh, buffer)
+    buffer.seek(0)
+    loaded = hb.load_bvh(buffer, device=device)
+    np.testing.assert_array_equal(loaded.vertices.numpy(), frame)  # kept as written, NaN and Inf too
+    o, d = random_rays(rng, verts[:-2], 200)
+    t, prim = hb.intersect(loaded, o, d)
+    assert_hits_match(t, prim, *brute_force_closest_hit(verts[:-2], faces, o, d))
+    # A NaN in a vertex a face uses is still refused by name.
+    buffer.seek(0)
+    with np.load(buffer) as data:
+        arrays = {name: data[name].copy() for name in data.files}
+    arrays["vertices"][5, 0] = np.nan
+    edited = io.BytesIO()
+    np.savez(edited, **arrays)
+    edited.seek(0)
+    with pytest.raises(ValueError, match=r"NaN or Inf coordinate \(first at row 5"):
+        hb.load_bvh(edited, device=device)
+
+
+def test_save_refuses_a_tree_load_would_refuse(device, tmp_path):
+    # A NaN in a triangle's vertex (or in a box) from an unchecked Warp frame: save_bvh wrote the
+    # file, and load_bvh refused it ("vertices has a NaN or Inf coordinate", "the primitive boxes
+    # must be finite").
+    verts, faces = _mesh()
+    builder = hb.Builder(len(faces), device=device)
+    builder.build(verts, faces)
+    frame = verts.copy()
+    frame[faces[7, 1], 2] = np.nan
+    builder.update(wp.array(frame, dtype=wp.vec3, device=device))
+    first = int(np.nonzero((faces == faces[7, 1]).any(axis=1))[0][0])
+    with pytest.raises(ValueError, match=f"finite triangles: face {first} has a NaN"):
+        hb.save_bvh(builder.bvh, tmp_path / "nan.npz")
+    assert not (tmp_path / "nan.npz").exists()
+    lo = np.zeros((5, 3), np.float32)
+    boxes = hb.Builder(5, device=device)
+    boxes.build_from_bounds(lo, lo + 1)
+    lo[2, 0] = np.inf
+    boxes.update(bounds=(wp.array(lo, dtype=wp.vec3, device=device), wp.array(lo + 1, dtype=wp.vec3, device=device)))
+    with pytest.raises(ValueError, match="finite boxes"):
+        hb.save_bvh(boxes.bvh, io.BytesIO())
 
 
 def test_every_corrupted_file_is_refused_by_name(device, tmp_path):
