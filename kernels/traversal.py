@@ -60,7 +60,25 @@ STACK_SIZE = wp.constant(TRAVERSAL_STACK_SIZE)
 # most 2^96: 2^128 is past float32): below about 3e-39, 1 / d overflows and every box test missed.
 TINY_DIRECTION = wp.constant(5.421010862427522e-20)
 DIRECTION_STEP = wp.constant(4294967296.0)
+# One above 2^64 is scaled down by powers of 2^-32 (at most 2^-64): past 2^126 (8.5e37), 1 / d is
+# subnormal, so are the slab distances of a hit at t below 2^-126, and the padding of Ize 2013,
+# relative, no longer covers their rounding: rays from inside a unit sphere through its vertices
+# with directions of 1.7e38 found no hit, 5 of 4000.
+HUGE_DIRECTION = wp.constant(1.8446744073709552e19)
+DIRECTION_STEP_DOWN = wp.constant(2.3283064365386963e-10)
+# A nonzero component below 2^-126 beside one of at most 2^32 is scaled up by 2^24, into float32's
+# normal range: below about 2^-128, 1 / d overflows and the slab test missed every box off the
+# origin's slab on that axis, while the watertight test, which takes d / dz, still hit in it.
+SMALL_COMPONENT_STEP = wp.constant(16777216.0)
+SMALL_COMPONENT_LIMIT = wp.constant(4294967296.0)
 FLOAT32_MAX = wp.constant(3.4028234663852886e38)
+# The least normal float32 (2^-126) and the least subnormal (2^-149).
+FLOAT32_TINY = wp.constant(1.1754943508222875e-38)
+FLOAT32_SUBNORMAL = wp.constant(1.401298464324817e-45)
+# 1 - 2^-24 and 2^-24: y * BELOW_ONE is the float32 below y, y + y * ULP_FRACTION the one above,
+# for a normal y that is no power of two (both products exact or rounded once, never fused away).
+BELOW_ONE = wp.constant(0.9999999403953552)
+ULP_FRACTION = wp.constant(5.960464477539063e-08)
 # An origin farther from the root box than this many times the box's extent is first moved along
 # its ray to the box (`ray_far_shift`): float32 differences of triangle and origin coordinates
 # (the shear of the watertight test) lose a triangle's size as the distance grows, about 2^-24 of
@@ -390,28 +408,80 @@ def intersect_triangle_watertight(  # noqa: F811  (a Warp overload, chosen by ar
 
 @wp.func
 def ray_direction_scale(direction: wp.vec3):
-    """A power of two s that brings a tiny direction's largest component to at least 2^-64; 1.0
-    for every other direction (NaN, Inf and zero included), whose rays are left bit for bit alone.
+    """A power of two s that brings a tiny direction's largest component to at least 2^-64, a huge
+    one's to at most 2^64, and a component below 2^-126 beside ones of at most 2^32 into float32's
+    normal range; 1.0 for every other direction (NaN, Inf and zero included), whose rays are left
+    bit for bit alone.
 
-    Scaling the direction by s is exact, and so is the hit distance: the query runs with
-    ``direction * s`` and ``min(t_max, FLT_MAX) / s`` and multiplies the t it finds by s. The clamp
-    keeps that product finite: a true distance past float32's range is a miss, as it is unscaled.
+    The query runs with ``direction * s`` and the range moved into its units
+    (`ray_scaled_t_min`, `ray_scaled_t_max`), and multiplies the t it finds by s. Scaling up is
+    exact, and so is the hit distance. Scaling down rounds only a component below 2^-158 of the
+    largest one, whose d / dz the watertight test rounds to zero either way; the t found, times s,
+    is rounded once, where unscaled a hit's subnormal t was rounded at every step of the test.
     """
     m = wp.max(wp.abs(direction[0]), wp.max(wp.abs(direction[1]), wp.abs(direction[2])))
     s = float(1.0)
-    if m > 0.0:
+    if m > 0.0 and m <= FLOAT32_MAX:
         while m * s < TINY_DIRECTION:
             s = s * DIRECTION_STEP
+        while m * s > HUGE_DIRECTION:
+            s = s * DIRECTION_STEP_DOWN
+        n = m
+        for k in range(3):
+            a = wp.abs(direction[k])
+            if a > 0.0 and a < n:
+                n = a
+        # d / dz rounds to zero for a component below 2^-150 dz: only beside dz up to 2^22 does
+        # an overflowing 1 / d make the box test miss what the triangle test hits.
+        if n * s < FLOAT32_TINY and m * s <= SMALL_COMPONENT_LIMIT:
+            s = s * SMALL_COMPONENT_STEP
     return s
 
 
 @wp.func
+def ray_scaled_t_min(t_min: float, scale: float):
+    """`t_min` in units of the direction scaled by ``scale`` (see `ray_direction_scale`): the
+    largest float32 L such that a hit t > L is exactly one whose reported ``t * scale`` lies above
+    ``t_min``. Rounded among the subnormals, ``t_min / scale`` alone would refuse a hit on L
+    itself (scaled up), or count hits whose product rounds down onto ``t_min`` (scaled down)."""
+    # NaN (or a negative t_min) passes through unchanged, for `ray_is_valid` to refuse.
+    if scale == 1.0 or not (t_min >= 0.0):
+        return t_min
+    # Scaled up, t * scale is exact: L is t_min / scale rounded down. Scaled down, exact (or past
+    # every hit: inf).
+    low = t_min / scale
+    if scale > 1.0:
+        if low * scale > t_min:
+            low = low - FLOAT32_SUBNORMAL
+    elif t_min < FLOAT32_TINY:
+        # t * scale rounds among the subnormals: products up to half a step above t_min round
+        # onto it. The half-way point, (2 j + 1) 2^-150 / scale, is a float32; it rounds to even.
+        low = low + 0.5 * (FLOAT32_SUBNORMAL / scale)
+        if low * scale > t_min:
+            low = low * BELOW_ONE
+    return low
+
+
+@wp.func
 def ray_scaled_t_max(t_max: float, scale: float):
-    """`t_max` in units of the scaled direction (see `ray_direction_scale`)."""
+    """`t_max` in units of the scaled direction, as `ray_scaled_t_min`: the least float32 H such
+    that a hit t < H is exactly one whose reported ``t * scale`` lies below ``t_max``. Clamped to
+    float32's range first: a true distance past it is a miss, scaled or not."""
     # NaN (or no positive range) passes through unchanged, for `ray_is_valid` to refuse.
     if scale == 1.0 or not (t_max > 0.0):
         return t_max
-    return wp.min(t_max, FLOAT32_MAX) / scale
+    limit = wp.min(t_max, FLOAT32_MAX)
+    high = limit / scale
+    if scale > 1.0:
+        if high * scale < limit:
+            high = high + FLOAT32_SUBNORMAL
+    elif t_max <= FLOAT32_TINY:
+        # The half-way point below t_max, as in `ray_scaled_t_min`. (For t_max = 2^-149 it is a
+        # power of two and stays: every t below it reports 0, which no range holds.)
+        high = high - 0.5 * (FLOAT32_SUBNORMAL / scale)
+        if high * scale < t_max:
+            high = high + high * ULP_FRACTION
+    return high
 
 
 @wp.func
@@ -959,7 +1029,7 @@ def bvh_ray_query(
     # A miss's t is inf, and inf times the scale is inf: no test needed before scaling back.
     scale = ray_direction_scale(direction)
     d = direction * scale
-    low = ray_scaled_t_max(t_min, scale)
+    low = ray_scaled_t_min(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
     h = RayHit()
     if bvh.packed_nodes.shape[0] > 0:
@@ -1074,7 +1144,7 @@ def bvh_ray_all_hits(
     inv = wp.vec3(0.0)
     scale = ray_direction_scale(direction)
     d = direction * scale
-    low = ray_scaled_t_max(t_min, scale)
+    low = ray_scaled_t_min(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
     start = origin
     shift = wp.float64(0.0)

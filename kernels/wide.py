@@ -20,7 +20,7 @@ import warp as wp
 from .metrics import box_area64
 from .traversal import (INF, PackedTriangle, far_hit_in_range, intersect_triangle_watertight, query_limit,
                         query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid,
-                        ray_scaled_t_max, walk_start)
+                        ray_scaled_t_max, ray_scaled_t_min, walk_start)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -283,10 +283,10 @@ def wide_closest_hit(
     stack_t = vec256f()
     top = int(0)
     inv = wp.vec3(0.0)
-    # A tiny direction is scaled into range, exactly (see `ray_direction_scale`).
+    # A tiny or huge direction is scaled into range (see `ray_direction_scale`).
     scale = ray_direction_scale(direction)
     d = direction * scale
-    low = ray_scaled_t_max(t_min, scale)
+    low = ray_scaled_t_min(t_min, scale)
     best_t = ray_scaled_t_max(t_max, scale)
     range_min = low
     range_max = best_t

@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 from conftest import shared_mesh
-from handmade_trees import caterpillar
+from handmade_trees import canonical_view, caterpillar
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracles import brute_force_closest_hit
@@ -137,7 +138,7 @@ import warp as wp
 wp.config.mode = "debug"  # bounds-checked vector indexing: a write past a local stack aborts
 wp.config.log_level = wp.LOG_WARNING
 sys.path.insert(0, sys.argv[2])
-from handmade_trees import caterpillar
+from handmade_trees import canonical_view, caterpillar
 from oracles import brute_force_closest_hit, brute_overlaps
 import hlbvh_warp as hw
 from hlbvh_warp import query
@@ -296,6 +297,139 @@ def test_tiny_directions_find_what_the_same_ray_scaled_up_finds(device, rng, met
     d = ((aim - o) * 1e-12).astype(np.float32)
     t, prim = query.intersect(bvh, o * np.float32(1e30), d)
     assert (prim == -1).all() and np.isinf(t).all()
+
+
+@wp.kernel
+def _user_ray_queries_kernel(bvh: query.BvhView, origins: wp.array(dtype=wp.vec3),
+                             directions: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=float)):
+    i = wp.tid()
+    h = query.bvh_closest_hit(bvh, origins[i], directions[i], 1.0e30)
+    out[i, 0] = h.t
+    out[i, 1] = float(h.prim)
+    out[i, 2] = float(query.bvh_any_hit(bvh, origins[i], directions[i], 1.0e30).prim)
+    out[i, 3] = float(query.bvh_occluded(bvh, origins[i], directions[i], 1.0e30))
+
+
+def _every_ray_query(bvh, o, d, device):
+    """(t, prim) of `query.intersect`, checked against every other query that takes rays: the
+    user's wp.funcs on the packed and the canonical view, `occluded`, `intersect_all` (its nearest
+    hit) and the wide trees of k = 4, 8, 16. A miss is (inf, -1)."""
+    t, prim = query.intersect(bvh, o, d)
+    hit = prim >= 0
+    np.testing.assert_array_equal(query.occluded(bvh, o, d), hit)
+    ray, all_prim, all_t = query.intersect_all(bvh, o, d)
+    first = np.full(len(o), np.inf, np.float32)
+    np.minimum.at(first, ray, all_t)
+    np.testing.assert_array_equal(first, t)
+    # Triangles met at the same t (through a shared vertex or edge) tie: any of them is the hit.
+    nearest = {(r, p) for r, p, tt in zip(ray.tolist(), all_prim.tolist(), all_t.tolist()) if tt == t[r]}
+    assert all((i, prim[i]) in nearest for i in np.nonzero(hit)[0].tolist())
+    for width in (4, 8, 16):
+        wide_t, wide_prim = wide.intersect(wide.collapse(bvh, width), o, d)
+        np.testing.assert_array_equal(wide_t, t, err_msg=f"k = {width}")
+        assert all((i, wide_prim[i]) in nearest for i in np.nonzero(hit)[0].tolist()), width
+    rays = [wp.array(x, dtype=wp.vec3, device=device) for x in (o, d)]
+    for v in (query.view(bvh), canonical_view(bvh)):
+        out = wp.zeros((len(o), 4), dtype=float, device=device)
+        wp.launch(_user_ray_queries_kernel, dim=len(o), inputs=[v] + rays + [out], device=device)
+        out = out.numpy()
+        np.testing.assert_array_equal(out[:, 0], t)
+        assert all((i, int(out[i, 1])) in nearest for i in np.nonzero(hit)[0].tolist())
+        np.testing.assert_array_equal(out[:, 2] >= 0, hit)
+        np.testing.assert_array_equal(out[:, 3], hit)
+    return t, prim
+
+
+def test_huge_directions_find_what_the_same_ray_scaled_down_finds(device, rng):
+    # Past 2^126 (8.5e37) in its largest component, 1 / d is subnormal, and so are the slab
+    # distances of a hit at t below 2^-126: the padded box test (Ize 2013) pads relatively, which
+    # does not cover subnormal rounding, and rays from inside a closed sphere through its
+    # vertices and edges escaped (these two, with components of 1.7e38). The query now scales such
+    # a direction down by a power of two: a ray must give what the ray with 2^-127 times its
+    # direction gives, at 2^-127 times the distance rounded once to float32; a hit whose distance
+    # rounds to 0 (or onto either end of the range) lies outside the open range and is a miss.
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    verts = mesh.vertices.astype(np.float32)
+    faces = np.asarray(mesh.faces, np.int32)
+    bvh = api.build(verts, faces, method="hlbvh", device=device)
+    escaped_o = np.array([[0.13164713978767395, -0.35822156071662903, 0.9242982864379883],
+                          [0.3861798644065857, -0.23867833614349365, 0.890997588634491]], np.float32)
+    escaped_d = np.array([[1.7014118346046923e38, -1.4979822072294586e38, 1.3068815467679486e38],
+                          [1.4291858964466404e38, 2.665545200786548e37, 1.7014118346046923e38]], np.float32)
+    t, prim = _every_ray_query(bvh, escaped_o, escaped_d, device)
+    assert (prim >= 0).all()
+    # Rays from just inside the surface (t down among float32's subnormals once scaled) to well
+    # inside it: toward a vertex, an edge, or anywhere from a point under a face.
+    n = 300
+    edges = mesh.edges_unique[rng.integers(0, len(mesh.edges_unique), n)]
+    corners = verts[faces[rng.integers(0, len(faces), n)]].astype(np.float64)
+    aim = np.concatenate([verts[rng.integers(0, len(verts), n)], verts[edges].mean(axis=1),
+                          (rng.dirichlet([1, 1, 1], n)[:, :, None] * corners).sum(axis=1)]).astype(np.float64)
+    o = (aim * (1 - 10.0 ** rng.uniform(-6, -1, (3 * n, 1)))).astype(np.float32)
+    unit = aim - o
+    unit[2 * n:] = rng.normal(size=(n, 3))
+    unit = (unit / np.abs(unit).max(axis=1, keepdims=True)).astype(np.float32)
+    t_unit, prim_unit = query.intersect(bvh, o, unit)
+    ray_unit, prim_all_unit, t_all_unit = query.intersect_all(bvh, o, unit)
+    assert (prim_unit >= 0).all()
+    for exponent in (70, 100, 127):
+        d = (unit.astype(np.float64) * 2.0**exponent).astype(np.float32)
+        assert (d.astype(np.float64) == unit.astype(np.float64) * 2.0**exponent).all()
+        reported = (t_all_unit.astype(np.float64) * 2.0**-exponent).astype(np.float32)
+        expected_t = (t_unit.astype(np.float64) * 2.0**-exponent).astype(np.float32)
+        assert (expected_t > 0).mean() > 0.9, exponent
+        t, prim = _every_ray_query(bvh, o, d, device)
+        ray, prim_all, t_all = query.intersect_all(bvh, o, d)
+        kept = reported > 0
+        assert (set(zip(ray.tolist(), prim_all.tolist(), t_all.tolist()))
+                == set(zip(ray_unit[kept].tolist(), prim_all_unit[kept].tolist(), reported[kept].tolist())))
+        np.testing.assert_array_equal(t[expected_t > 0], expected_t[expected_t > 0])
+        # The open range (t_min, t_max) holds the distances as reported: a few subnormal steps
+        # either side of the closest hit.
+        step = 2.0**-149
+        t_min = np.maximum(expected_t + rng.integers(-2, 3, 3 * n) * step, 0).astype(np.float32)
+        t_min[rng.random(3 * n) < 0.3] = 0
+        t_max = (expected_t + rng.integers(-1, 4, 3 * n) * step).astype(np.float32)
+        t_max[rng.random(3 * n) < 0.3] = np.inf
+        inside = (reported > t_min[ray_unit]) & (reported < t_max[ray_unit])
+        ray, prim_all, t_all = query.intersect_all(bvh, o, d, t_min=t_min, t_max=t_max)
+        assert (set(zip(ray.tolist(), prim_all.tolist(), t_all.tolist()))
+                == set(zip(ray_unit[inside].tolist(), prim_all_unit[inside].tolist(), reported[inside].tolist())))
+        nearest = np.full(3 * n, np.inf, np.float32)
+        np.minimum.at(nearest, ray_unit[inside], reported[inside])
+        np.testing.assert_array_equal(query.intersect(bvh, o, d, t_min=t_min, t_max=t_max)[0], nearest)
+        np.testing.assert_array_equal(query.occluded(bvh, o, d, t_min=t_min, t_max=t_max), nearest < np.inf)
+        wide_t, _ = wide.intersect(wide.collapse(bvh, 8), o, d, t_min=t_min, t_max=t_max)
+        np.testing.assert_array_equal(wide_t, nearest)
+
+
+def test_a_subnormal_direction_component_enters_boxes_off_the_origins_slab(device):
+    # A nonzero component below about 2^-128 (2.9e-39) has 1 / d = inf: the slab test took every
+    # box off the origin's slab on that axis to lie at t = inf and missed it, while the
+    # watertight test (which takes d / dz, finite) hits in it. That needs the ray to reach the
+    # box: a gap below |d| t, i.e. geometry within 2.9e-39 / |dz| of its distance from the
+    # origin's coordinate, so near 1e-39 for |dz| = 1, but near 1e-20 for |dz| = 1e-19 (below
+    # 2^-64 the whole direction is scaled up). The ray (1e-39, 0, 1) from the origin missed a
+    # square at z = 1 over x in [5e-40, 1]. The query now scales such a direction up by 2^24.
+    rows = []
+    for x0, dz, dxs in [(5e-40, 1.0, (1e-39, 2.5e-39, 7e-40)), (5e-21, 1e-19, (1e-39, 2.5e-39, 7e-40)),
+                        (1e-44, 0.5, (1e-44, 2e-44, 1e-43))]:
+        square = np.array([[x0, -1, 1], [1, -1, 1], [x0, 1, 1], [1, 1, 1]], np.float32)
+        rows.append((square, dz, dxs))
+    for square, dz, dxs in rows:
+        # The square, and more triangles beside it, for a tree with interior nodes.
+        verts = np.concatenate([square] + [square + np.float32([0, 3 * k, 0]) for k in range(1, 8)])
+        faces = np.concatenate([np.array([[0, 1, 2], [1, 3, 2]]) + 4 * k for k in range(8)]).astype(np.int32)
+        bvh = api.build(verts, faces, device=device)
+        y = np.linspace(-0.9, 0.9, 7)
+        o = np.array([[0, yy, 0] for yy in y for _ in dxs], np.float32)
+        d = np.array([[dx, 0.01 * yy * dz, dz] for yy in y for dx in dxs], np.float32)
+        assert (np.abs(d[:, 0]) < 2.0**-128).all() and (d[:, 0] > 0).all()
+        t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+        assert (prim_ref >= 0).all()
+        t, prim = _every_ray_query(bvh, o, d, device)
+        np.testing.assert_array_equal(prim, prim_ref)
+        np.testing.assert_allclose(t, t_ref, rtol=1e-6)
 
 
 def test_nan_inf_rays_miss_and_bad_shapes_raise(device, rng):
