@@ -567,3 +567,32 @@ def test_spatial_splits_of_a_box_past_the_float32_range(device, rng):
     bvh = hw.build(big, f, method="sbvh", device=device, config=config)
     check_parts_bounded(bvh, big, f)
     assert sah_cost(bvh) == pytest.approx(sah_cost(expected), rel=0.01)
+
+
+@pytest.mark.parametrize("bins", [4, 16])
+@pytest.mark.parametrize("scene", ["diagonals", "fan"])
+def test_no_spatial_split_that_keeps_every_reference_on_one_side(device, bins, scene):
+    """Slivers along the cube's diagonal, every one starting in the first slab of every axis:
+    each spatial boundary has all N references on its left ("fan": the slivers end at different
+    lengths), or on both sides ("diagonals": each spans the whole box). Such a split duplicates
+    without making a side smaller, and the sweep's rule (both sides below N, Stich et al. 2009
+    split only what shrinks) leaves no spatial candidate; the object splits stay valid (the
+    centroids differ), so the tree is built from object splits alone, with no duplicates."""
+    n = 24
+    k = np.arange(n, dtype=np.float64)[:, None]
+    start = 1e-3 * k * np.ones(3)  # well inside the first slab of 16 on every axis
+    length = 1.0 if scene == "diagonals" else 0.4 + 0.6 * k / n
+    end = start + length * np.ones(3)
+    middle = 0.5 * (start + end) + 0.01 * np.array([1.0, -1.0, 0.0])  # inside the sliver's box
+    verts = np.stack([start, end, middle], axis=1).reshape(-1, 3).astype(np.float32)
+    faces = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+    candidates = sbvh_root_candidates(verts, faces, bins)
+    assert candidates["spatial"] == np.inf and candidates["object"] < np.inf  # the scene does what it means
+    assert candidates["object_overlap"] > 0.0  # alpha = 0 lets the spatial search run
+    config = hw.BuildConfig(sbvh_bins=bins, sbvh_alpha=0.0)
+    found = spatial_split.root_split_costs(verts, faces, config, device)
+    assert found["object"] == pytest.approx(candidates["object"], rel=1e-12)
+    assert found["spatial"] == np.inf and found["spatial_axis"] == -1
+    bvh = hw.build(verts, faces, method="sbvh", device=device, config=config)
+    assert not bvh.has_duplicates and bvh.num_refs == n
+    check_parts_bounded(bvh, verts, faces)
