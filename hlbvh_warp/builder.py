@@ -963,7 +963,10 @@ class Builder:
             skipped = ["prim_bounds", "refit", "rebuild"]
         elif relative is not None and relative > self.large_motion:
             decision = "rebuild"
-            reason = (f"large motion: a vertex moved {relative:.1%} of the scene diagonal "
+            # A box builder measures its boxes' corners: "a vertex" would send a simulation's
+            # author looking for vertices it never gave.
+            what = "a vertex" if self.kind == "triangles" else "a box corner"
+            reason = (f"large motion: {what} moved {relative:.1%} of the scene diagonal "
                       f"(limit {self.large_motion:.1%})")
             large = True
             self._rebuild(timer)

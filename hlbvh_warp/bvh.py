@@ -239,6 +239,17 @@ def _refuse_unfinished(trees):
             raise RuntimeError(UNFINISHED_TREE)
 
 
+def not_a_bvh(name: str, obj) -> str:
+    """The message of the ValueError a function `name` raises when given `obj`, not a `Bvh`.
+
+    None is nearly always a `Builder`'s ``bvh`` read before its first build, which "got
+    NoneType" alone did not say."""
+    if obj is None:
+        return (f"{name}() takes a Bvh, got None (a Builder's bvh is None until its first "
+                "build() or build_from_bounds())")
+    return f"{name}() takes a Bvh, got {type(obj).__name__}"
+
+
 @contextlib.contextmanager
 def held(*trees, finished: bool = True):
     """Hold the locks of the given trees that a `Builder` rebuilds in place (one per builder): a

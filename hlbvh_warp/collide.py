@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from . import inputs
-from .bvh import Bvh, held
+from .bvh import Bvh, held, not_a_bvh
 from .kernels import collide, traversal
 from .query import _offsets, _require_mesh, _require_whole_boxes, view
 
@@ -24,7 +24,7 @@ def _check_tree(bvh, name: str, mesh: bool):
     if mesh:
         _require_mesh(bvh, name)
     elif not isinstance(bvh, Bvh):
-        raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
+        raise ValueError(not_a_bvh(name, bvh))
     _require_whole_boxes(bvh, name)
 
 

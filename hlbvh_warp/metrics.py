@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .bvh import Bvh, holding_tree
+from .bvh import Bvh, holding_tree, not_a_bvh
 from .kernels import metrics as kernels
 
 
@@ -42,7 +42,7 @@ def check_costs(t_traversal, t_intersect) -> tuple[float, float]:
 def require_bvh(bvh, name: str):
     """Raise a ValueError naming the function `name` unless `bvh` is a `Bvh`."""
     if not isinstance(bvh, Bvh):
-        raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
+        raise ValueError(not_a_bvh(name, bvh))
 
 
 @holding_tree

@@ -17,7 +17,7 @@ import warp as wp
 
 from . import inputs
 from .host_morton import morton_order
-from .bvh import Bvh, holding_tree
+from .bvh import Bvh, holding_tree, not_a_bvh
 from .kernels import proximity, traversal
 from .kernels.proximity import ClosestPoint, bvh_closest_point  # noqa: F401  (re-exported for user kernels)
 from .kernels.traversal import (  # noqa: F401  (re-exported for user kernels)
@@ -105,7 +105,7 @@ def view(bvh: Bvh) -> BvhView:
     same BVH.
     """
     if not isinstance(bvh, Bvh):
-        raise ValueError(f"view() takes a Bvh, got {type(bvh).__name__}")
+        raise ValueError(not_a_bvh("view", bvh))
     cached = bvh._cache.get("view")
     if cached is not None:
         return cached
@@ -138,7 +138,7 @@ def view(bvh: Bvh) -> BvhView:
 
 def _require_mesh(bvh: Bvh, name: str):
     if not isinstance(bvh, Bvh):
-        raise ValueError(f"{name}() takes a Bvh, got {type(bvh).__name__}")
+        raise ValueError(not_a_bvh(name, bvh))
     if bvh.vertices is None or bvh.faces is None:
         raise ValueError(f"{name}() needs a BVH built over a mesh (build()), not over bare boxes")
 
@@ -470,7 +470,7 @@ def query_aabb(bvh: Bvh, lowers, uppers, return_pairs: bool = False):
         ``(Q,)`` int32 counts, then the pairs when asked.
     """
     if not isinstance(bvh, Bvh):
-        raise ValueError(f"query_aabb() takes a Bvh, got {type(bvh).__name__}")
+        raise ValueError(not_a_bvh("query_aabb", bvh))
     _require_whole_boxes(bvh, "query_aabb")
     lo, hi = _box_arrays(lowers, uppers)
     num_queries = lo.shape[0]

@@ -26,7 +26,7 @@ import numpy as np
 import warp as wp
 
 from . import inputs, metrics
-from .bvh import Bvh, held, holding_tree
+from .bvh import Bvh, held, holding_tree, not_a_bvh
 from .kernels import wide as kernels
 from .kernels.traversal import PackedTriangle
 from .kernels.wide import WideHit, WideView, bvh_wide_closest_hit  # noqa: F401  (re-exported for user kernels)
@@ -136,7 +136,7 @@ def collapse(bvh: Bvh, width: int = 4) -> WideBvh:
     read on the host per level: a conversion after the build, not a per-frame stage.
     """
     if not isinstance(bvh, Bvh):
-        raise ValueError(f"collapse() takes a Bvh, got {type(bvh).__name__}")
+        raise ValueError(not_a_bvh("collapse", bvh))
     if isinstance(width, bool) or not isinstance(width, (int, np.integer)) or not 2 <= width <= kernels.MAX_WIDTH:
         raise ValueError(f"width must be an integer in [2, {kernels.MAX_WIDTH}], got {width!r}")
     width = int(width)

@@ -297,6 +297,27 @@ def test_inputs_are_validated(small_scene):
             Builder(len(f), device="cpu", **kwargs)
 
 
+def test_a_builders_tree_read_before_its_first_build_is_refused_saying_so(tmp_path):
+    # `builder.bvh` is None until the first build; every host call given it named only
+    # "NoneType", which did not say that a build was missing.
+    builder = Builder(8, device="cpu")
+    point, box = np.zeros((1, 3)), np.ones((1, 3))
+    calls = {
+        "view": lambda: hw.view(builder.bvh),
+        "intersect": lambda: hw.intersect(builder.bvh, point, box),
+        "closest_point": lambda: hw.closest_point(builder.bvh, point),
+        "query_aabb": lambda: hw.query_aabb(builder.bvh, point, box),
+        "overlapping_pairs": lambda: hw.overlapping_pairs(builder.bvh),
+        "sah_cost": lambda: metrics.sah_cost(builder.bvh),
+        "save_bvh": lambda: hw.save_bvh(builder.bvh, tmp_path / "tree.npz"),
+        "collapse": lambda: hw.wide.collapse(builder.bvh),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=rf"^{name}\(\) takes a Bvh, got None .*first build\(\)"):
+            call()
+    assert not (tmp_path / "tree.npz").exists()
+
+
 @pytest.mark.parametrize("case", ["face -1", "face past the vertices", "fractional faces", "NaN vertex"])
 @pytest.mark.parametrize("cls", [ExplodingMesh, BendingMesh])
 def test_animated_meshes_reject_what_build_rejects(cls, case):

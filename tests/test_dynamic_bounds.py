@@ -126,7 +126,7 @@ def test_auto_policy_on_boxes(device, rng):
     # `auto` measures how far a box corner moved (checked against NumPy), does nothing when no
     # box moved, refits slow motion and rebuilds fast motion; every tree stays right.
     particles, builder, lowers, uppers = slow_particles_under_auto(rng, device, max_refits=3)
-    decisions = []
+    decisions, reasons = [], []
     for frame in range(8):
         if frame == 5:
             particles.velocities *= 200.0  # a burst
@@ -137,9 +137,12 @@ def test_auto_policy_on_boxes(device, rng):
         assert expected > 0.0
         assert report["max_displacement"] == pytest.approx(expected, rel=1e-5)
         decisions.append(report["decision"])
+        reasons.append(report["reason"])
         lowers, uppers = new_lowers, new_uppers
         check_frame(builder, lowers, uppers, rng)
     assert "refit" in decisions[:5] and decisions[5] == "rebuild", decisions
+    # The burst's reason names what was measured: boxes, which have corners, not vertices.
+    assert "large motion: a box corner moved" in reasons[5], reasons[5]
     report = builder.update(bounds=(lowers.copy(), uppers.copy()))
     assert report["decision"] == "none" and "no box moved" in report["reason"], report
     # Written in place: the first such frame has no snapshot to compare with, the next does.
