@@ -22,6 +22,8 @@ from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import (argument_errors, check_out_file, device_name, mesh_file, positive_int, query_count,
                             read_mesh, scene_tris)
 from hlbvh_warp.dynamic import BendingMesh
+# Largest finite float32: the particles, their velocities and gravity go to the kernel in float32.
+from hlbvh_warp.reference import FLOAT32_MAX
 from hlbvh_warp.scenes import scene
 
 # Projections per substep: a particle pushed out of one triangle may sit within its radius of a
@@ -34,8 +36,6 @@ SUBSTEPS = 4
 #: Gravity, in box diagonals per second squared, and the frames per second of the simulation.
 GRAVITY = 2.0
 FPS = 30.0
-#: Largest finite float32: the particles, their velocities and gravity go to the kernel in float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def diagonal(vertices) -> float:

@@ -162,7 +162,7 @@ def origins_within_float32(origins: np.ndarray, directions: np.ndarray) -> np.nd
     with NumPy's "overflow encountered in cast" warning, and rays that cross the mesh found nothing."""
     origins = np.array(origins, dtype=np.float64)
     # Below float32's largest value by a margin, so the moved origins round to finite float32.
-    limit = float(np.finfo(np.float32).max) * (1.0 - 1e-6)
+    limit = FLOAT32_MAX * (1.0 - 1e-6)
     out = np.flatnonzero((np.abs(origins) > limit).any(axis=1))
     if len(out):
         o, d = origins[out], np.broadcast_to(np.asarray(directions, dtype=np.float64), origins.shape)[out]

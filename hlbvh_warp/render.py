@@ -8,8 +8,7 @@ import pathlib
 import numpy as np
 
 from .query import intersect
-
-FLOAT32_MAX = float(np.finfo(np.float32).max)
+from .reference import FLOAT32_MAX
 
 
 class Camera:
