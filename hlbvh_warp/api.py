@@ -44,17 +44,17 @@ def _pipeline_builder(method: str):
     return run
 
 
-def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict) -> Bvh:
+def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict, prim_order: wp.array | None = None) -> Bvh:
     """A `Bvh` over a finished pipeline's output arrays, without copying them (the pipeline renews
-    its outputs before it builds again)."""
-    n = pipe.num_prims
+    its outputs before it builds again). ``prim_order``: the tree's order where the pipeline keeps
+    it elsewhere than in its sorted ids (the HLBVH + SAH pipeline's join writes its own)."""
     return Bvh._trusted(
         method=method,
         config=pipe.config,
         device=pipe.device,
         prim_lowers=pipe.prim_lowers,
         prim_uppers=pipe.prim_uppers,
-        prim_order=pipe.sorted_prim_ids[:n],
+        prim_order=pipe.sorted_prim_ids[:pipe.num_prims] if prim_order is None else prim_order,
         node_lowers=pipe.node_lowers,
         node_uppers=pipe.node_uppers,
         node_left=pipe.node_left,
