@@ -430,7 +430,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
                 [n, num_clusters, cfg.max_leaf_size, self.voxel_starts, self.head_to_node, self.head_to_end,
                  self.head_flags, self.node_begin, self.node_end, self.node_count],
             )
-            self.emit_hierarchy(voxel_bits, 0)
+            self.emit_hierarchy(voxel_bits)
             self.split_exhausted_segments()
 
         # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up (the depth-first
