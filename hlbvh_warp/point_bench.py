@@ -38,7 +38,7 @@ import numpy as np
 import warp as wp
 
 from .cli import command_prog
-from .reference import brute_force_closest, point_triangle_d2
+from .reference import FLOAT32_MAX, brute_force_closest, point_triangle_d2
 from .ray_bench import best_times, checked_verdict, far_distance, mesh_method_parser, run_rows
 
 #: Disagreement with wp.Mesh: distances further apart than this fraction of the box diagonal.
@@ -52,8 +52,6 @@ ORACLE_POINTS = 256
 #: tolerance of tests/test_proximity.py, and 5 or more orders of magnitude below the distances
 #: between a mesh's triangles.
 ORACLE_RTOL = 1e-6
-#: Largest finite float32: the queries are float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def bench_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
