@@ -11,7 +11,7 @@ import pytest
 from hlbvh_warp import bench
 
 
-def test_bench_rows_are_checked_and_priced(tmp_path, capsys):
+def test_bench_rows_are_checked_and_priced(tmp_path):
     out = tmp_path / "bench.json"
     code = bench.main(["--scene-tris", "3000", "--builders", "hlbvh,hlbvh_sah,sweep_sah,wp.Bvh:sah", "--repeats", "1",
                        "--warmup", "0", "--device", "cpu", "--cpu-threads", "1", "--json", str(out)])
