@@ -107,11 +107,6 @@ def disagreeing(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_R
     return ~((~found_a & ~found_b) | (found_a & found_b & close))
 
 
-def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> int:
-    """How many points `disagreeing` marks."""
-    return int(disagreeing(d_a, prim_a, d_b, prim_b, scale, rtol).sum())
-
-
 def count_wrong(vertices, faces, points, distance, prim, max_dist: float, reference) -> int:
     """Points whose answer (``distance``, ``prim``) is wrong by the brute force's ``reference``
     (``brute_force_closest``'s answer for the same points), within `ORACLE_RTOL` of the largest
