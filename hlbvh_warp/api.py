@@ -9,7 +9,8 @@ from .bvh import Bvh
 from .config import BuildConfig
 from .hlbvh import HlbvhPipeline, StageTimer
 
-#: method name -> callable(pipeline inputs) returning a Bvh; reference builders add themselves.
+#: method name -> ``fn(prim_lowers, prim_uppers, config, device, timer)`` returning a `Bvh`; the
+#: reference builders (`builders`) add themselves.
 BUILDERS = {}
 #: Offline quality references, seconds (``sbvh``) to minutes (``recursive_sah``) at 100k
 #: triangles: the demo and the default tables leave them out unless asked for.
@@ -20,16 +21,6 @@ def needs_mesh(method: str) -> bool:
     """True for builders that cut triangles (spatial splits): they take a mesh, not bare boxes."""
     _load_optional_builders()
     return getattr(BUILDERS.get(method), "needs_triangles", False)
-
-
-def register_builder(name: str):
-    """A decorator that registers the function it wraps in `BUILDERS` as the builder of method
-    `name`, called as ``fn(prim_lowers, prim_uppers, config, device, timer)`` and returning a `Bvh`."""
-    def wrap(fn):
-        BUILDERS[name] = fn
-        return fn
-
-    return wrap
 
 
 def _pipeline_builder(method: str):
@@ -53,17 +44,17 @@ def _pipeline_builder(method: str):
     return run
 
 
-def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict) -> Bvh:
+def bvh_from_pipeline(pipe: HlbvhPipeline, method: str, timings: dict, prim_order: wp.array | None = None) -> Bvh:
     """A `Bvh` over a finished pipeline's output arrays, without copying them (the pipeline renews
-    its outputs before it builds again)."""
-    n = pipe.num_prims
+    its outputs before it builds again). ``prim_order``: the tree's order where the pipeline keeps
+    it elsewhere than in its sorted ids (the HLBVH + SAH pipeline's join writes its own)."""
     return Bvh._trusted(
         method=method,
         config=pipe.config,
         device=pipe.device,
         prim_lowers=pipe.prim_lowers,
         prim_uppers=pipe.prim_uppers,
-        prim_order=pipe.sorted_prim_ids[:n],
+        prim_order=pipe.sorted_prim_ids[:pipe.num_prims] if prim_order is None else prim_order,
         node_lowers=pipe.node_lowers,
         node_uppers=pipe.node_uppers,
         node_left=pipe.node_left,

@@ -430,7 +430,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
                 [n, num_clusters, cfg.max_leaf_size, self.voxel_starts, self.head_to_node, self.head_to_end,
                  self.head_flags, self.node_begin, self.node_end, self.node_count],
             )
-            self.emit_hierarchy(voxel_bits, 0)
+            self.emit_hierarchy(voxel_bits)
             self.split_exhausted_segments()
 
         # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up (the depth-first
@@ -595,23 +595,7 @@ def _hlbvh_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: BuildConfig
     n = prim_lowers.shape[0]
     pipe = HlbvhSahPipeline.one_shot(n, config, device, prim_lowers, prim_uppers)
     timings = pipe.build_sah(timer)
-    bvh = Bvh._trusted(
-        method="hlbvh_sah",
-        config=config,
-        device=pipe.device,
-        prim_lowers=pipe.prim_lowers,
-        prim_uppers=pipe.prim_uppers,
-        prim_order=pipe.prim_order,
-        node_lowers=pipe.node_lowers,
-        node_uppers=pipe.node_uppers,
-        node_left=pipe.node_left,
-        node_right=pipe.node_right,
-        node_parent=pipe.node_parent,
-        node_begin=pipe.node_begin,
-        node_end=pipe.node_end,
-        node_count=pipe.node_count,
-        timings=timings,
-    )
+    bvh = api.bvh_from_pipeline(pipe, "hlbvh_sah", timings, prim_order=pipe.prim_order)
     # The caller's boxes, which the pipeline only reads, are not the build's: left out, as
     # build_top_down leaves them out.
     bvh.buffer_bytes = pipe.held_bytes() - pipe.prim_lowers.capacity - pipe.prim_uppers.capacity

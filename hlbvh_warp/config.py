@@ -6,17 +6,15 @@ import dataclasses
 
 import numpy as np
 
+# The traversal stack's depth, the kernels' own, for the callers that weigh a tree's depth against it.
+from .kernels.traversal import TRAVERSAL_STACK_SIZE  # noqa: F401
+
 #: Morton codes live in int32 (the radix sort's key type): 3 * 10 = 30 bits at most.
 MAX_BITS_PER_AXIS = 10
 #: A treelet pass keeps its 2^p - 1 split slots in a fixed-size local vector.
 MAX_PLANES_PER_PASS = 4
 #: Schedules of the hierarchy emission (stage 6); "auto" picks by device.
 EMISSIONS = ("auto", "treelets", "depth_first")
-#: Traversal stacks are this deep. HLBVH trees are at most 3n + ceil(log2 N) < 64 deep; the top-down
-#: builders split exact SAH ties at the middle, so duplicates do not chain; a deeper tree (possible
-#: for hand-made topologies) is still traversed exactly: a node met with a full stack is tested as
-#: one leaf over its whole primitive range.
-TRAVERSAL_STACK_SIZE = 64
 
 
 def _shown(value) -> str:

@@ -670,22 +670,21 @@ class HlbvhPipeline:
             [self.segment_count, self.split_count, self.split_offset, self.node_count],
         )
 
-    def emit_hierarchy(self, top_bit: int, bottom_bit: int):
-        """Treelet passes over the bit planes [bottom_bit, top_bit), p planes at a time, MSB first:
+    def emit_hierarchy(self, top_bit: int):
+        """Treelet passes over the bit planes [0, top_bit), p planes at a time, MSB first:
         the hierarchy emission of Pantaleoni & Luebke 2010 (section 3.2, Fig. 4)."""
         n = self.num_prims
         p = self.config.planes_per_pass
         stride = (1 << p) - 1
         hi = top_bit
-        while hi > bottom_bit:
-            planes = min(p, hi - bottom_bit)
+        while hi > 0:
+            planes = min(p, hi)
             shift = hi - planes
             num_segments = self._segment_pass()
             self._launch(
                 treelets.mark_splits_kernel,
                 n,
                 [
-                    self.config.max_leaf_size,
                     shift,
                     planes,
                     stride,
@@ -960,7 +959,7 @@ class HlbvhPipeline:
                     self.node_count,
                 ],
             )
-            self.emit_hierarchy(bits, 0)
+            self.emit_hierarchy(bits)
             self.split_exhausted_segments()
 
         # Bounding boxes of all nodes, bottom-up (the depth-first emission wrote them as it went).

@@ -52,7 +52,7 @@ def node_costs(bvh: Bvh, t_traversal: float = 1.0, t_intersect: float = 1.0, scr
     1990, bottom-up with the atomic visit counters of Karras 2012.
 
     ``scratch``: an optional ``(visits int32, costs float64)`` pair of arena-sized arrays, so that a
-    per-frame caller (``Builder``) allocates nothing; the returned array is then ``costs``.
+    caller pricing every frame allocates nothing; the returned array is then ``costs``.
     """
     require_bvh(bvh, "node_costs")
     t_traversal, t_intersect = check_costs(t_traversal, t_intersect)

@@ -41,10 +41,9 @@ import warp as wp
 from .cli import command_prog
 from .collide import _candidates, launch_box_pairs
 from .ray_bench import best_times, checked_verdict, mesh_method_parser, run_rows
+from .reference import FLOAT32_MAX
 
 
-#: Largest finite float32: the trees are built over float32 coordinates.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: Queries of each scene checked against the brute force: this many evenly spaced, and as many of
 #: the queries whose count wp.Mesh disagrees with. Each costs one pass over the mesh's boxes: about
 #: 0.1 s for 512 queries on a 100k-triangle mesh.

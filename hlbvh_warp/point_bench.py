@@ -38,7 +38,7 @@ import numpy as np
 import warp as wp
 
 from .cli import command_prog
-from .reference import brute_force_closest, point_triangle_d2
+from .reference import FLOAT32_MAX, brute_force_closest, point_triangle_d2
 from .ray_bench import best_times, checked_verdict, far_distance, mesh_method_parser, run_rows
 
 #: Disagreement with wp.Mesh: distances further apart than this fraction of the box diagonal.
@@ -52,8 +52,6 @@ ORACLE_POINTS = 256
 #: tolerance of tests/test_proximity.py, and 5 or more orders of magnitude below the distances
 #: between a mesh's triangles.
 ORACLE_RTOL = 1e-6
-#: Largest finite float32: the queries are float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def bench_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -107,11 +105,6 @@ def disagreeing(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_R
     with np.errstate(invalid="ignore"):  # inf - inf where neither found anything
         close = np.abs(d_a.astype(np.float64) - d_b.astype(np.float64)) <= rtol * scale
     return ~((~found_a & ~found_b) | (found_a & found_b & close))
-
-
-def count_disagreements(d_a, prim_a, d_b, prim_b, scale: float, rtol: float = DISAGREE_RTOL) -> int:
-    """How many points `disagreeing` marks."""
-    return int(disagreeing(d_a, prim_a, d_b, prim_b, scale, rtol).sum())
 
 
 def count_wrong(vertices, faces, points, distance, prim, max_dist: float, reference) -> int:

@@ -46,6 +46,10 @@ inline_func = functools.partial(wp.func, inline=True) if _HINTS else wp.func
 #: run (a far origin's float64 start), which inlined would crowd the walk every query runs.
 outline_func = functools.partial(wp.func, inline=False) if _HINTS else wp.func
 
+#: Traversal stacks are this deep. HLBVH trees are at most 3n + ceil(log2 N) < 64 deep; the top-down
+#: builders split exact SAH ties at the middle, so duplicates do not chain; a deeper tree (possible
+#: for hand-made topologies) is still traversed exactly: a node met with a full stack is tested as
+#: one leaf over its whole primitive range.
 TRAVERSAL_STACK_SIZE = 64
 vec64i = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.int32)
 vec64f = wp.types.vector(length=TRAVERSAL_STACK_SIZE, dtype=wp.float32)

@@ -143,7 +143,6 @@ def split_is_valid(
 
 @wp.kernel
 def mark_splits_kernel(
-    max_leaf_size: int,
     shift: int,
     planes: int,
     stride: int,

@@ -11,7 +11,7 @@ import pytest
 from hlbvh_warp import bench
 
 
-def test_bench_rows_are_checked_and_priced(tmp_path, capsys):
+def test_bench_rows_are_checked_and_priced(tmp_path):
     out = tmp_path / "bench.json"
     code = bench.main(["--scene-tris", "3000", "--builders", "hlbvh,hlbvh_sah,sweep_sah,wp.Bvh:sah", "--repeats", "1",
                        "--warmup", "0", "--device", "cpu", "--cpu-threads", "1", "--json", str(out)])
@@ -402,7 +402,7 @@ def test_pair_bench_disagreement_rule():
 
 def test_point_bench_disagreement_rule():
     """Distances within 1e-5 of the scale agree, further ones and found-against-none do not."""
-    from hlbvh_warp.point_bench import count_disagreements
+    from hlbvh_warp.point_bench import disagreeing
 
     d_a = np.array([1.0, 1.0, 2.0, np.inf, 0.5], np.float32)
     d_b = np.array([1.0 + 0.9e-5, 1.0 + 1.1e-5, 2.0, np.inf, np.inf], np.float32)
@@ -410,8 +410,8 @@ def test_point_bench_disagreement_rule():
     p_b = np.array([5, 1, 2, -1, -1], np.int32)
     # Row 0 agrees (another triangle at the same distance), row 1 is past the tolerance, row 2
     # agrees, row 3 both found nothing, row 4 one found nothing.
-    assert count_disagreements(d_a, p_a, d_b, p_b, scale=1.0) == 2
-    assert count_disagreements(d_a, p_a, d_b, p_b, scale=10.0) == 1
+    assert disagreeing(d_a, p_a, d_b, p_b, scale=1.0).tolist() == [False, True, False, False, True]
+    assert disagreeing(d_a, p_a, d_b, p_b, scale=10.0).tolist() == [False, False, False, False, True]
 
 
 def test_bench_rejects_an_empty_builder_list(capsys):
