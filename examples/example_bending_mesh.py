@@ -7,13 +7,32 @@
 
 import argparse
 
+import numpy as np
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, non_negative_float, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, BendingMesh
+from hlbvh_warp.render import Camera
 from hlbvh_warp.scenes import scene
+
+# Bend amounts sampled to frame the whole motion: a frame's pose lies within 1/64 of the bend of
+# a sampled one, closer than the camera's margin.
+SWEEP_SAMPLES = 33
+
+
+def sweep_camera(mesh: BendingMesh) -> Camera:
+    """A camera framing the mesh over its whole bend, from rest to ``update(1.0)``. The bend
+    stretches every layer outside the inner face, so the bent mesh leaves its rest box: a camera
+    framing the rest pose cut it off at the image's edges from a third of the bend on. Leaves
+    the mesh at rest."""
+    lower, upper = np.full(3, np.inf), np.full(3, -np.inf)
+    for amount in np.linspace(0.0, 1.0, SWEEP_SAMPLES):
+        v = mesh.update(float(amount)).numpy().astype(np.float64)
+        lower, upper = np.minimum(lower, v.min(axis=0)), np.maximum(upper, v.max(axis=0))
+    mesh.update(0.0)
+    return Camera(lower, upper)
 
 
 class Example:
@@ -25,8 +44,13 @@ class Example:
         builder = Builder(len(faces), method=method, policy=policy, resort=resort,
                           sah_growth_limit=sah_growth_limit)
         reference = Builder(len(faces), method=method, policy="rebuild", resort=resort) if compare else None
-        self.animation = Animation(self.mesh, builder, lambda frame: min(frame / self.num_frames, 1.0),
+        # None headless: the camera refuses a mesh too large to frame in float32, which a run
+        # without images can take.
+        camera = None if headless else sweep_camera(self.mesh)
+        self.animation = Animation(self.mesh, builder, lambda frame: min(frame / self.num_frames, 1.0), camera,
                                    image_size=0 if headless else image_size, reference=reference)
+        # The rest pose first in the GIF: the bend is seen from its start.
+        self.animation.render()
 
     def step(self):
         return self.animation.step()

@@ -28,6 +28,8 @@ class Example:
         camera = None if headless else Camera.framing(vertices, zoom=0.7)
         self.animation = Animation(self.mesh, builder, lambda frame: frame * self.frame_dt, camera,
                                    image_size=0 if headless else image_size)
+        # The intact mesh first in the GIF, as the demo's: the explosion is seen from its start.
+        self.animation.render()
 
     def step(self):
         return self.animation.step()

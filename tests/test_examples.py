@@ -42,6 +42,8 @@ def test_exploding_mesh(device, headless, tmp_path):
     else:
         paths = example.save(tmp_path)
         assert [p.suffix for p in paths] == [".png", ".gif"] and all(p.stat().st_size > 0 for p in paths)
+        # The intact mesh, then the 3 frames.
+        assert len(example.animation.images) == 4
         image = example.animation.images[-1]
         assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0
 
@@ -139,6 +141,36 @@ def test_bending_mesh(device, tmp_path):
     assert all(r["sah_ratio"] <= 1.10 for r in rows), rows
     assert "refit" in {r["decision"] for r in rows}
     assert len(example.save(tmp_path)) == 2
+
+
+def _border(image: np.ndarray) -> np.ndarray:
+    return np.concatenate([image[0], image[-1], image[1:-1, 0], image[1:-1, -1]])
+
+
+def test_bending_mesh_stays_in_the_picture_on_every_frame():
+    # The camera framed the mesh at rest; bent, the mesh grew past that box, and from the third
+    # of 6 frames on it was cut off at the image's edges. Every frame's border pixels, cast in
+    # float64 against that frame's vertices, must miss the mesh, and the mesh must fill a fair
+    # part of the picture (a camera far away would pass the first check with a speck).
+    from oracles import brute_force_closest_hit
+
+    module = load_example("example_bending_mesh")
+    size, num_frames = 24, 6
+    with wp.ScopedDevice("cpu"):
+        example = module.Example(num_tris=2000, num_frames=num_frames, image_size=size, compare=False)
+        animation = example.animation
+        origins, directions = animation.camera.rays(size, size)
+        for frame in range(num_frames + 1):
+            if frame:
+                example.step()
+                example.render()
+            vertices = animation.scene.vertices.numpy()
+            _, prim = brute_force_closest_hit(vertices, animation.scene.faces, origins, directions)
+            prim = prim.reshape(size, size)
+            assert (_border(prim) < 0).all(), f"frame {frame}: the mesh touches the image's edge"
+            assert (prim >= 0).mean() > 0.05, f"frame {frame}: the mesh covers {(prim >= 0).mean():.1%}"
+    # The rest pose is the GIF's first frame: the bend is seen from its start.
+    assert len(animation.images) == num_frames + 1
 
 
 def test_frame_timing(device, tmp_path):
