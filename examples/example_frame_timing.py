@@ -40,6 +40,16 @@ MODES = {
 }
 
 
+#: The plot's colour per builder and line style per way of running it (matplotlib's tab10).
+PLOT_STYLES = {
+    "hlbvh scratch": ("tab:blue", "-"), "hlbvh resorted": ("tab:blue", "--"), "hlbvh auto": ("tab:blue", ":"),
+    "hlbvh_sah scratch": ("tab:red", "-"), "hlbvh_sah resorted": ("tab:red", "--"),
+    "hlbvh_sah auto": ("tab:red", ":"),
+    "lbvh scratch": ("tab:green", "-"), "lbvh resorted": ("tab:green", "--"),
+    "wp.Bvh sah": ("tab:gray", "-"), "wp.Bvh lbvh": ("black", "-"),
+}
+
+
 #: The stages of a frame that sort the primitives, resorting's check and gather with them: what
 #: feeding the previous tree's order can shorten (the rest costs the same in any order).
 SORT_STAGES = ("resort_check", "resort_gather", "order_check", "run_length_encode", "top_level_sort",
@@ -97,6 +107,7 @@ class Example:
         elif face_order != "file":
             raise ValueError(f"face_order must be 'file' or 'shuffled', got {face_order!r}")
         self.num_frames = max(int(num_frames), 1)
+        self.num_tris = len(faces)
         self.headless = headless
         self.stages = bool(stages)
         self.order_stats = bool(order_stats)
@@ -238,21 +249,29 @@ class Example:
         return "\n".join(lines)
 
     def plot(self, path):
+        """Ms per frame of every mode, one panel per sequence. A colour per builder and a line
+        style per way of running it (scratch, resorted, auto), so ten curves read apart; the one
+        legend sits right of the panels, where it covers no curve."""
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, axes = plt.subplots(1, len(self.sequences), figsize=(6 * len(self.sequences), 4), squeeze=False)
+        fig, axes = plt.subplots(1, len(self.sequences), figsize=(5.5 * len(self.sequences) + 2.2, 4),
+                                 squeeze=False)
         for ax, (name, seq) in zip(axes[0], self.sequences.items()):
             for label, ms in seq["ms"].items():
-                ax.plot(np.arange(1, len(ms) + 1), ms, marker=".", label=label)
-            ax.set_title(f"{name}: BVH update per frame ({wp.get_device()})")
+                color, style = PLOT_STYLES.get(label, (None, "-"))
+                ax.plot(np.arange(1, len(ms) + 1), ms, marker=".", color=color, linestyle=style, label=label)
+            ax.set_title(f"{name}: {self.num_tris} triangles on {wp.get_device()}")
             ax.set_xlabel("frame")
-            ax.set_ylabel("ms")
+            ax.set_ylabel("BVH update time per frame (ms)")
             ax.set_ylim(bottom=0)
-            ax.legend(fontsize=7)
-        fig.tight_layout()
+            ax.grid(True, alpha=0.3)
+        handles, labels = axes[0][0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="center right", fontsize=8, title="mode")
+        # Room on the right for the legend: tight_layout alone lays the panels under it.
+        fig.tight_layout(rect=(0.0, 0.0, 1.0 - 2.0 / fig.get_figwidth(), 1.0))
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         fig.savefig(path, dpi=100)
         plt.close(fig)

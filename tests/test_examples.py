@@ -196,6 +196,64 @@ def test_frame_timing(device, tmp_path):
     assert pathlib.Path(path).stat().st_size > 0
 
 
+def test_frame_timing_plot_reads_without_the_code(tmp_path, monkeypatch):
+    """The figure the plot writes, read back as drawn: every panel's axes say what they measure
+    and in which unit, each mode's line holds that mode's times, every builder has a colour of its
+    own (its scratch, resorted and auto modes one line style each), and the legend, with every
+    mode, covers no panel's data (it sat over the curves, in the middle of the panel)."""
+    import matplotlib.figure
+
+    module = load_example("example_frame_timing")
+    modes = ["hlbvh scratch", "hlbvh resorted", "hlbvh auto", "lbvh scratch", "lbvh resorted", "wp.Bvh sah",
+             "wp.Bvh lbvh"]
+    with wp.ScopedDevice("cpu"):
+        example = module.Example(num_tris=1000, num_frames=3, modes=modes, headless=True)
+        for _ in range(3):
+            example.step()
+    figures = []
+    original = matplotlib.figure.Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        figures.append(fig)
+        return original(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    example.plot(str(tmp_path / "timing.png"))
+    (fig,) = figures
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)  # pyplot detached the closed figure from its canvas
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    panels = [ax for ax in fig.axes if ax.lines]
+    assert [ax.get_title().split(":")[0] for ax in panels] == list(example.sequences)
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()] + fig.legends
+    assert legends, "no legend"
+    labels = {text.get_text() for legend in legends for text in legend.get_texts()}
+    assert labels == set(modes)
+    for ax, seq in zip(panels, example.sequences.values()):
+        assert ax.get_xlabel() == "frame"
+        assert "(ms)" in ax.get_ylabel() and "frame" in ax.get_ylabel()
+        lines = {line.get_label(): line for line in ax.lines}
+        for label, ms in seq["ms"].items():
+            np.testing.assert_array_equal(lines[label].get_ydata(), ms)
+            np.testing.assert_array_equal(lines[label].get_xdata(), np.arange(1, len(ms) + 1))
+        colors = {label: matplotlib.colors.to_hex(line.get_color()) for label, line in lines.items()}
+        styles = {label: line.get_linestyle() for label, line in lines.items()}
+        builders = {label: label.split()[0] if not label.startswith("wp.Bvh") else label for label in lines}
+        for a in lines:
+            for b in lines:
+                if a < b:
+                    assert (colors[a] == colors[b]) == (builders[a] == builders[b]), (a, b, colors)
+                    if builders[a] == builders[b]:
+                        assert styles[a] != styles[b], (a, b)
+        # Pixel boxes: the legend lies outside every panel.
+        for legend in legends:
+            box = legend.get_window_extent(renderer)
+            for panel in panels:
+                assert not box.overlaps(panel.get_window_extent(renderer)), "the legend covers a panel"
+
+
 def test_frame_timing_table_without_references(device):
     """A run with no scratch or resorted mode of a method has no reference for its ratios: the
     cells say so ("-") instead of printing nan, while the measured columns are still numbers."""
