@@ -18,6 +18,7 @@ import warp as wp
 
 from hlbvh_warp.bench import MAX_SUBDIVIDE, WarpBvhPeer, collector_paused, turn_order
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_folder, device_name, int_in_range,
                             mesh_file, non_negative_float, non_negative_int, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.config import BuildConfig
@@ -279,7 +280,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No per-frame progress lines.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")

@@ -879,3 +879,35 @@ def test_mesh_contact_at_a_large_scale(tmp_path, capsys, monkeypatch):
     last = argument_error("example_mesh_contact", [*TINY_ARGS["example_mesh_contact"], "--mesh", str(huge)],
                           capsys, monkeypatch)
     assert f"{huge}: " in last and "float32" in last, last
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in EXAMPLES.glob("example_*.py")) + ["demo"])
+def test_every_option_has_help_with_one_default(name, capsys, monkeypatch):
+    # `--help` as a user reads it: an option with no help text showed no default either
+    # (--method, --policy, --image-size, --num-particles), and one whose text named its default
+    # got argparse's "(default: None)" after it ("A mesh file (default: the generated scene).
+    # (default: None)").
+    import re
+
+    monkeypatch.setattr(sys, "argv", [name])
+    if name == "demo":
+        from hlbvh_warp import cli
+
+        run = lambda: cli.main(["demo", "--help"])  # noqa: E731
+    else:
+        module = load_example(name)
+        run = lambda: module.main(["--help"])  # noqa: E731
+    with pytest.raises(SystemExit):
+        run()
+    text = capsys.readouterr().out
+    options = text[text.index("options:"):]
+    # One entry per option: its flag line and the indented lines of its text, joined.
+    entries = re.split(r"\n  (?=-)", options)[1:]
+    assert entries, text
+    for entry in entries:
+        flag, _, help_text = entry.partition("  ")
+        words = " ".join(entry.split())
+        assert help_text.strip() or "\n" in entry, f"{flag.strip()}: no help text"
+        # A default of None is the text's to describe ("Warp's default", "the generated scene").
+        assert "(default: None)" not in words, words
+        assert words.count("(default:") <= 1, words
