@@ -7,13 +7,33 @@
 
 import argparse
 
+import numpy as np
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, non_negative_float, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, BendingMesh
+from hlbvh_warp.render import Camera
 from hlbvh_warp.scenes import scene
+
+# Bend amounts sampled to frame the whole motion: a frame's pose lies within 1/64 of the bend of
+# a sampled one, closer than the camera's margin.
+SWEEP_SAMPLES = 33
+
+
+def sweep_camera(mesh: BendingMesh) -> Camera:
+    """A camera framing the mesh over its whole bend, from rest to ``update(1.0)``. The bend
+    stretches every layer outside the inner face, so the bent mesh leaves its rest box: a camera
+    framing the rest pose cut it off at the image's edges from a third of the bend on. Leaves
+    the mesh at rest."""
+    lower, upper = np.full(3, np.inf), np.full(3, -np.inf)
+    for amount in np.linspace(0.0, 1.0, SWEEP_SAMPLES):
+        v = mesh.update(float(amount)).numpy().astype(np.float64)
+        lower, upper = np.minimum(lower, v.min(axis=0)), np.maximum(upper, v.max(axis=0))
+    mesh.update(0.0)
+    return Camera(lower, upper)
 
 
 class Example:
@@ -25,8 +45,13 @@ class Example:
         builder = Builder(len(faces), method=method, policy=policy, resort=resort,
                           sah_growth_limit=sah_growth_limit)
         reference = Builder(len(faces), method=method, policy="rebuild", resort=resort) if compare else None
-        self.animation = Animation(self.mesh, builder, lambda frame: min(frame / self.num_frames, 1.0),
+        # None headless: the camera refuses a mesh too large to frame in float32, which a run
+        # without images can take.
+        camera = None if headless else sweep_camera(self.mesh)
+        self.animation = Animation(self.mesh, builder, lambda frame: min(frame / self.num_frames, 1.0), camera,
                                    image_size=0 if headless else image_size, reference=reference)
+        # The rest pose first in the GIF: the bend is seen from its start.
+        self.animation.render()
 
     def step(self):
         return self.animation.step()
@@ -39,19 +64,21 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Build only: no ray-cast images.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=scene_tris, default=60000, help="Size of the generated scene.")
-    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
-    parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="auto")
+    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh", help="Build method.")
+    parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="auto",
+                        help="Per frame: rebuild, refit, or let the builder decide.")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
-    parser.add_argument("--sah-growth-limit", type=non_negative_float, default=0.10)
+    parser.add_argument("--sah-growth-limit", type=non_negative_float, default=0.10,
+                        help="Auto policy: rebuild once refits grow the SAH cost by this fraction.")
     # Bounded as the command line's images: an unbounded size ended in NumPy's MemoryError.
-    parser.add_argument("--image-size", type=image_side, default=256)
+    parser.add_argument("--image-size", type=image_side, default=256, help="Image width and height in pixels.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
     args = parser.parse_args(argv)
     if not args.headless:

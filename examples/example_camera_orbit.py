@@ -23,6 +23,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import api, query, reference, render, scenes, wide
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.kernels import traversal
@@ -113,10 +114,10 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--num-frames", type=positive_int, default=36, help="Frames of the orbit.")
-    parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file (default: the generated scene).")
+    parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file; the generated scene if absent.")
     parser.add_argument("--num-tris", type=scene_tris, default=20000, help="Triangles of the generated scene.")
     parser.add_argument("--methods", type=str, default="hlbvh,hlbvh_sah,sweep_sah,median", help="Builders.")
     parser.add_argument("--widths", type=str, default="2,4,8,16", help="Branching factors.")

@@ -9,6 +9,7 @@ import argparse
 import warp as wp
 
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
@@ -28,6 +29,8 @@ class Example:
         camera = None if headless else Camera.framing(vertices, zoom=0.7)
         self.animation = Animation(self.mesh, builder, lambda frame: frame * self.frame_dt, camera,
                                    image_size=0 if headless else image_size)
+        # The intact mesh first in the GIF, as the demo's: the explosion is seen from its start.
+        self.animation.render()
 
     def step(self):
         return self.animation.step()
@@ -40,18 +43,19 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Build only: no ray-cast images.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=scene_tris, default=60000, help="Size of the generated scene.")
-    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
-    parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
+    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh", help="Build method.")
+    parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild",
+                        help="Per frame: rebuild, refit, or let the builder decide.")
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
     # Bounded as the command line's images: an unbounded size ended in NumPy's MemoryError.
-    parser.add_argument("--image-size", type=image_side, default=256)
+    parser.add_argument("--image-size", type=image_side, default=256, help="Image width and height in pixels.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
     args = parser.parse_args(argv)
     if not args.headless:

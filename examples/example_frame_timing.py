@@ -18,6 +18,7 @@ import warp as wp
 
 from hlbvh_warp.bench import MAX_SUBDIVIDE, WarpBvhPeer, collector_paused, turn_order
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (MAX_TRIS, TRIS_LIMIT, argument_errors, check_out_folder, device_name, int_in_range,
                             mesh_file, non_negative_float, non_negative_int, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.config import BuildConfig
@@ -37,6 +38,16 @@ MODES = {
     "lbvh resorted": dict(method="lbvh", resort=True, policy="rebuild"),
     "wp.Bvh sah": "sah",
     "wp.Bvh lbvh": "lbvh",
+}
+
+
+#: The plot's colour per builder and line style per way of running it (matplotlib's tab10).
+PLOT_STYLES = {
+    "hlbvh scratch": ("tab:blue", "-"), "hlbvh resorted": ("tab:blue", "--"), "hlbvh auto": ("tab:blue", ":"),
+    "hlbvh_sah scratch": ("tab:red", "-"), "hlbvh_sah resorted": ("tab:red", "--"),
+    "hlbvh_sah auto": ("tab:red", ":"),
+    "lbvh scratch": ("tab:green", "-"), "lbvh resorted": ("tab:green", "--"),
+    "wp.Bvh sah": ("tab:gray", "-"), "wp.Bvh lbvh": ("black", "-"),
 }
 
 
@@ -97,6 +108,7 @@ class Example:
         elif face_order != "file":
             raise ValueError(f"face_order must be 'file' or 'shuffled', got {face_order!r}")
         self.num_frames = max(int(num_frames), 1)
+        self.num_tris = len(faces)
         self.headless = headless
         self.stages = bool(stages)
         self.order_stats = bool(order_stats)
@@ -238,21 +250,29 @@ class Example:
         return "\n".join(lines)
 
     def plot(self, path):
+        """Ms per frame of every mode, one panel per sequence. A colour per builder and a line
+        style per way of running it (scratch, resorted, auto), so ten curves read apart; the one
+        legend sits right of the panels, where it covers no curve."""
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, axes = plt.subplots(1, len(self.sequences), figsize=(6 * len(self.sequences), 4), squeeze=False)
+        fig, axes = plt.subplots(1, len(self.sequences), figsize=(5.5 * len(self.sequences) + 2.2, 4),
+                                 squeeze=False)
         for ax, (name, seq) in zip(axes[0], self.sequences.items()):
             for label, ms in seq["ms"].items():
-                ax.plot(np.arange(1, len(ms) + 1), ms, marker=".", label=label)
-            ax.set_title(f"{name}: BVH update per frame ({wp.get_device()})")
+                color, style = PLOT_STYLES.get(label, (None, "-"))
+                ax.plot(np.arange(1, len(ms) + 1), ms, marker=".", color=color, linestyle=style, label=label)
+            ax.set_title(f"{name}: {self.num_tris} triangles on {wp.get_device()}")
             ax.set_xlabel("frame")
-            ax.set_ylabel("ms")
+            ax.set_ylabel("BVH update time per frame (ms)")
             ax.set_ylim(bottom=0)
-            ax.legend(fontsize=7)
-        fig.tight_layout()
+            ax.grid(True, alpha=0.3)
+        handles, labels = axes[0][0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="center right", fontsize=8, title="mode")
+        # Room on the right for the legend: tight_layout alone lays the panels under it.
+        fig.tight_layout(rect=(0.0, 0.0, 1.0 - 2.0 / fig.get_figwidth(), 1.0))
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         fig.savefig(path, dpi=100)
         plt.close(fig)
@@ -260,7 +280,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No per-frame progress lines.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")

@@ -20,6 +20,7 @@ import warp as wp
 
 import hlbvh_warp as hb
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh, scene_tris
 from hlbvh_warp.scenes import scene
 
@@ -126,7 +127,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="Run without writing the picture.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")

@@ -18,6 +18,7 @@ import warp as wp
 from hlbvh_warp import query
 from hlbvh_warp.bench import collector_paused
 from hlbvh_warp.builder import PIPELINE_METHODS, Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, positive_int, query_count
 
 
@@ -201,14 +202,15 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--headless", action="store_true", help="No picture.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     # Bounded as the command line's query counts: an unbounded count ended in NumPy's MemoryError.
-    parser.add_argument("--num-particles", type=query_count, default=100000)
-    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh")
-    parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild")
+    parser.add_argument("--num-particles", type=query_count, default=100000, help="Particles.")
+    parser.add_argument("--method", choices=PIPELINE_METHODS, default="hlbvh", help="Build method.")
+    parser.add_argument("--policy", choices=("rebuild", "refit", "auto"), default="rebuild",
+                        help="Per frame: rebuild, refit, or let the builder decide.")
     parser.add_argument("--no-peer", action="store_true", help="Do not time wp.Bvh beside it.")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the picture.")
     args = parser.parse_args(argv)

@@ -22,6 +22,7 @@ import hlbvh_warp
 from hlbvh_warp import memory
 from hlbvh_warp.bench import WarpBvhPeer, collector_paused, turn_order
 from hlbvh_warp.builder import Builder
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import argument_errors, device_name, mesh_file, non_negative_int, positive_int, read_mesh
 from hlbvh_warp.scenes import scene
 
@@ -120,14 +121,14 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--mesh", action="append", default=None, type=mesh_file,
-                        help="a mesh file (repeatable); default: generated meshes of 40k, 20k, 6k and 1k triangles")
+                        help="A mesh file (repeatable); generated meshes of 40k, 20k, 6k and 1k triangles if absent.")
     parser.add_argument("--num-frames", type=positive_int, default=24, help="Total number of frames.")
     parser.add_argument("--headless", action="store_true", help="Run without printing every frame.")
     parser.add_argument("--scratch-sets", type=non_negative_int, default=None,
-                        help="one-shot pipeline scratch sets kept (default: the library's, 16)")
+                        help="One-shot pipeline scratch sets kept; the library's 16 if absent.")
     args = parser.parse_args(argv)
     # Every mesh file before the first build: one that is no mesh is an argument error naming it.
     with argument_errors(parser):

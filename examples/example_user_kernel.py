@@ -18,6 +18,7 @@ import warp as wp
 
 import hlbvh_warp
 from hlbvh_warp import query
+from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import device_name, image_side, positive_int
 
 
@@ -104,7 +105,7 @@ class Example:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(formatter_class=HelpFormatter)
     parser.add_argument("--device", type=device_name, default=None, help="Override the default Warp device.")
     parser.add_argument("--num-frames", type=positive_int, default=8, help="Total number of frames.")
     # Bounded as the command line's images: an unbounded size ended in Warp's allocation error.

@@ -561,6 +561,11 @@ class Builder:
             self.bvh._lock = self._lock
         else:
             self._point_tree_at_buffers()
+        if self._policy != "rebuild":
+            # The refit's kernels compiled with the setup, untimed, as the build's are: a first run
+            # compiled them inside the first refit frame (0.2-1.6 s on the CPU, against 2 ms frames),
+            # which then led every frame-time table and plot.
+            wp.load_module(bounds_sweep_kernel.module, device=self.device)
         self.frame = 0
         self.reports.clear()
         self.chaotic_frames, self.chaotic_wait = 0, self.first_chaotic_wait

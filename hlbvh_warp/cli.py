@@ -27,6 +27,17 @@ COMMANDS = {
 }
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """argparse's defaults in ``--help``, but none for a default of None: such an option's text
+    says what its absence means ("Warp's default device", "the generated scene"), and a trailing
+    "(default: None)" contradicted it."""
+
+    def _get_help_string(self, action):
+        if action.default is None:
+            return action.help
+        return super()._get_help_string(action)
+
+
 #: Triangles of a generated scene or a subdivided mesh: a tree holds fewer than `MAX_PRIMS`
 #: primitives (int32 node ids, 2N - 1 nodes), so a larger scene could only fail in the build.
 MAX_TRIS = MAX_PRIMS - 1

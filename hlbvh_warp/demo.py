@@ -12,6 +12,7 @@ import time
 import numpy as np
 import warp as wp
 
+from .cli import HelpFormatter
 from .cli import (check_out_folder, command_prog, device_name, image_side, mesh_file, positive_int,
                   query_count_or_zero, quiet_warp, scene_tris)
 from .reference import brute_force_closest_hit
@@ -76,8 +77,8 @@ def animation_reach(vertices, num_frames: int) -> float:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=command_prog("demo"), description=__doc__,
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--device", type=device_name, default=None, help="Warp device (default: Warp's default).")
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("--device", type=device_name, default=None, help="Warp device; Warp's default if absent.")
     parser.add_argument("--num-tris", type=scene_tris, default=60000, help="Triangles of the generated scene.")
     parser.add_argument("--mesh", type=mesh_file, default=None, help="A mesh file instead of the generated scene.")
     parser.add_argument("--rays", type=query_count_or_zero, default=256,
@@ -85,7 +86,8 @@ def main(argv=None) -> int:
     parser.add_argument("--num-frames", type=positive_int, default=12, help="Frames of the exploding-mesh animation.")
     parser.add_argument("--image-size", type=image_side, default=256,
                         help="Rendered frames are this many pixels square.")
-    parser.add_argument("--methods", type=str, default=None, help="Comma-separated subset of the build methods.")
+    parser.add_argument("--methods", type=str, default=None,
+                        help="Comma-separated subset of the build methods; all of them if absent.")
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
     args = parser.parse_args(argv)
     # The first frame is rendered before the animation steps: num_frames + 1 images.

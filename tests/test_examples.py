@@ -42,6 +42,8 @@ def test_exploding_mesh(device, headless, tmp_path):
     else:
         paths = example.save(tmp_path)
         assert [p.suffix for p in paths] == [".png", ".gif"] and all(p.stat().st_size > 0 for p in paths)
+        # The intact mesh, then the 3 frames.
+        assert len(example.animation.images) == 4
         image = example.animation.images[-1]
         assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0
 
@@ -141,6 +143,67 @@ def test_bending_mesh(device, tmp_path):
     assert len(example.save(tmp_path)) == 2
 
 
+def _border(image: np.ndarray) -> np.ndarray:
+    return np.concatenate([image[0], image[-1], image[1:-1, 0], image[1:-1, -1]])
+
+
+def test_bending_mesh_stays_in_the_picture_on_every_frame():
+    # The camera framed the mesh at rest; bent, the mesh grew past that box, and from the third
+    # of 6 frames on it was cut off at the image's edges. Every frame's border pixels, cast in
+    # float64 against that frame's vertices, must miss the mesh, and the mesh must fill a fair
+    # part of the picture (a camera far away would pass the first check with a speck).
+    from oracles import brute_force_closest_hit
+
+    module = load_example("example_bending_mesh")
+    size, num_frames = 24, 6
+    with wp.ScopedDevice("cpu"):
+        example = module.Example(num_tris=2000, num_frames=num_frames, image_size=size, compare=False)
+        animation = example.animation
+        origins, directions = animation.camera.rays(size, size)
+        for frame in range(num_frames + 1):
+            if frame:
+                example.step()
+                example.render()
+            vertices = animation.scene.vertices.numpy()
+            _, prim = brute_force_closest_hit(vertices, animation.scene.faces, origins, directions)
+            prim = prim.reshape(size, size)
+            assert (_border(prim) < 0).all(), f"frame {frame}: the mesh touches the image's edge"
+            assert (prim >= 0).mean() > 0.05, f"frame {frame}: the mesh covers {(prim >= 0).mean():.1%}"
+    # The rest pose is the GIF's first frame: the bend is seen from its start.
+    assert len(animation.images) == num_frames + 1
+
+
+def test_refitting_builders_compile_the_refit_before_the_first_frame():
+    # The examples time frames from the first: the refit's kernels, compiled at the first refit,
+    # put their compilation (0.2-1.6 s on the CPU) into frame 1 of every table and plot of a
+    # refitting policy, and the contact example's kernel its 6 s into frame 1's contact time. A
+    # fresh process, so no earlier test has loaded the modules.
+    code = """
+import warp as wp
+wp.config.quiet = True
+from hlbvh_warp.builder import Builder
+from hlbvh_warp.kernels.bounds import bounds_sweep_kernel
+from hlbvh_warp.scenes import default_scene
+v, f = default_scene(1000)
+loaded = {}
+for policy in ("rebuild", "refit", "auto"):
+    bounds_sweep_kernel.module.unload()
+    Builder(len(f), policy=policy, device="cpu").build(v, f)
+    loaded[policy] = bool(bounds_sweep_kernel.module.execs)
+import importlib.util
+spec = importlib.util.spec_from_file_location("contact", "examples/example_mesh_contact.py")
+contact = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(contact)
+with wp.ScopedDevice("cpu"):
+    contact.Example(num_tris=1000, num_particles=10, headless=True)
+loaded["contact"] = bool(contact.contact_kernel.module.execs)
+print(loaded)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=pathlib.Path(__file__).resolve().parents[1]).stdout
+    assert out.strip().splitlines()[-1] == "{'rebuild': False, 'refit': True, 'auto': True, 'contact': True}", out
+
+
 def test_frame_timing(device, tmp_path):
     module = load_example("example_frame_timing")
     with wp.ScopedDevice(device):
@@ -162,6 +225,64 @@ def test_frame_timing(device, tmp_path):
         assert all(len(ms) == 3 for ms in seq["ms"].values())
     path = example.plot(str(tmp_path / "timing.png"))
     assert pathlib.Path(path).stat().st_size > 0
+
+
+def test_frame_timing_plot_reads_without_the_code(tmp_path, monkeypatch):
+    """The figure the plot writes, read back as drawn: every panel's axes say what they measure
+    and in which unit, each mode's line holds that mode's times, every builder has a colour of its
+    own (its scratch, resorted and auto modes one line style each), and the legend, with every
+    mode, covers no panel's data (it sat over the curves, in the middle of the panel)."""
+    import matplotlib.figure
+
+    module = load_example("example_frame_timing")
+    modes = ["hlbvh scratch", "hlbvh resorted", "hlbvh auto", "lbvh scratch", "lbvh resorted", "wp.Bvh sah",
+             "wp.Bvh lbvh"]
+    with wp.ScopedDevice("cpu"):
+        example = module.Example(num_tris=1000, num_frames=3, modes=modes, headless=True)
+        for _ in range(3):
+            example.step()
+    figures = []
+    original = matplotlib.figure.Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        figures.append(fig)
+        return original(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    example.plot(str(tmp_path / "timing.png"))
+    (fig,) = figures
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)  # pyplot detached the closed figure from its canvas
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    panels = [ax for ax in fig.axes if ax.lines]
+    assert [ax.get_title().split(":")[0] for ax in panels] == list(example.sequences)
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()] + fig.legends
+    assert legends, "no legend"
+    labels = {text.get_text() for legend in legends for text in legend.get_texts()}
+    assert labels == set(modes)
+    for ax, seq in zip(panels, example.sequences.values()):
+        assert ax.get_xlabel() == "frame"
+        assert "(ms)" in ax.get_ylabel() and "frame" in ax.get_ylabel()
+        lines = {line.get_label(): line for line in ax.lines}
+        for label, ms in seq["ms"].items():
+            np.testing.assert_array_equal(lines[label].get_ydata(), ms)
+            np.testing.assert_array_equal(lines[label].get_xdata(), np.arange(1, len(ms) + 1))
+        colors = {label: matplotlib.colors.to_hex(line.get_color()) for label, line in lines.items()}
+        styles = {label: line.get_linestyle() for label, line in lines.items()}
+        builders = {label: label.split()[0] if not label.startswith("wp.Bvh") else label for label in lines}
+        for a in lines:
+            for b in lines:
+                if a < b:
+                    assert (colors[a] == colors[b]) == (builders[a] == builders[b]), (a, b, colors)
+                    if builders[a] == builders[b]:
+                        assert styles[a] != styles[b], (a, b)
+        # Pixel boxes: the legend lies outside every panel.
+        for legend in legends:
+            box = legend.get_window_extent(renderer)
+            for panel in panels:
+                assert not box.overlaps(panel.get_window_extent(renderer)), "the legend covers a panel"
 
 
 def test_frame_timing_table_without_references(device):
@@ -758,3 +879,35 @@ def test_mesh_contact_at_a_large_scale(tmp_path, capsys, monkeypatch):
     last = argument_error("example_mesh_contact", [*TINY_ARGS["example_mesh_contact"], "--mesh", str(huge)],
                           capsys, monkeypatch)
     assert f"{huge}: " in last and "float32" in last, last
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in EXAMPLES.glob("example_*.py")) + ["demo"])
+def test_every_option_has_help_with_one_default(name, capsys, monkeypatch):
+    # `--help` as a user reads it: an option with no help text showed no default either
+    # (--method, --policy, --image-size, --num-particles), and one whose text named its default
+    # got argparse's "(default: None)" after it ("A mesh file (default: the generated scene).
+    # (default: None)").
+    import re
+
+    monkeypatch.setattr(sys, "argv", [name])
+    if name == "demo":
+        from hlbvh_warp import cli
+
+        run = lambda: cli.main(["demo", "--help"])  # noqa: E731
+    else:
+        module = load_example(name)
+        run = lambda: module.main(["--help"])  # noqa: E731
+    with pytest.raises(SystemExit):
+        run()
+    text = capsys.readouterr().out
+    options = text[text.index("options:"):]
+    # One entry per option: its flag line and the indented lines of its text, joined.
+    entries = re.split(r"\n  (?=-)", options)[1:]
+    assert entries, text
+    for entry in entries:
+        flag, _, help_text = entry.partition("  ")
+        words = " ".join(entry.split())
+        assert help_text.strip() or "\n" in entry, f"{flag.strip()}: no help text"
+        # A default of None is the text's to describe ("Warp's default", "the generated scene").
+        assert "(default: None)" not in words, words
+        assert words.count("(default:") <= 1, words
