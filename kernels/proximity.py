@@ -253,8 +253,9 @@ def point_is_valid(p: wp.vec3, max_dist: float):
 
 @wp.func
 def box_distance_sq64(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
-    """`box_distance_sq` in float64: the differences of float32 coordinates are exact there, so
-    the result is within a few 1e-16 of the true squared distance at any scale."""
+    """`box_distance_sq` in float64: within (1 + 2^-53)^5 of the true squared distance at any scale
+    (float32 inputs are exact in float64; each gap, square and sum rounds once, see FAR_LOW: a
+    gap is exact only where the two coordinates lie within 2^28 of each other's magnitude)."""
     total = wp.float64(0.0)
     for i in range(3):
         x = wp.float64(p[i])
@@ -272,11 +273,79 @@ def box_distance_sq64(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
 # entered them all tested every triangle (3000x wp.Mesh's time at 1e9). A deferred node is popped
 # by its float32 distance alone (the stack keeps no box): such a node is entered, and its children
 # are measured again. Kept off the common path: a float64 stack and bound for every child cost
-# 5-15% of a near query.
+# 5-15% of a near query. EXACT_LOW is that float64 test's margin on the near walk only; the far
+# walk (`packed_far_point_query`) has its own, FAR_LOW and `far_slack`, derived below.
 PRUNE_MARGIN = wp.constant(1.0 - 1.0e-6)
 PRUNE_HIGH = wp.constant(1.0 + 1.0e-6)
 PRUNE_SLACK = wp.constant(1.0e-44)
 EXACT_LOW = wp.constant(wp.float64(1.0 - 1.0e-12))
+
+# The far walk enters a box when box_distance_sq64(p, box) * FAR_LOW <= s.d2 + far_slack. Why that
+# never skips the answer (u = 2^-53, float64's unit roundoff). Let T be any triangle, d its exact
+# distance from p, x its point at d, and d2c the float64 squared distance `closest_point_on_triangle`
+# computes for it. Some leaf holding T has x in its box (its whole box, or on a spatial-split tree
+# the box of the part of T holding x), and so do all its ancestors: each box's exact squared
+# distance is at most d^2. Then, on every box of that path:
+# 1. box_distance_sq64 exceeds it by at most a factor (1 + u)^5: the float32 inputs are exact in
+#    float64, then one rounding per gap (a difference of float32 values is exact only within 2^28
+#    of each other's magnitude: not for a point 1e13 sizes off a mesh at the origin), per square
+#    and per addition, all of non-negative terms; nothing under- or overflows (gaps of float32
+#    values lie between 1.4e-45 and 6.8e38).
+# 2. d2c >= (1 - 29u) d^2 - d tau, tau = TILT L + ROUND_ABS (sqrt(3) M + L), with L the root box's
+#    diagonal (no triangle is longer) and M its largest coordinate magnitude (|point| <= sqrt(3) M):
+#    - a vertex equal to p: d2c = 0 exactly, and so is p's box distance (its gaps round to <= 0);
+#    - an edge: a + t ab (t clamped to [0, 1]) is on the segment up to u |ab| (the product) and u
+#      of each coordinate of ab = b - a (rounded); ap, ap - ab and the difference round by u of
+#      themselves: 3u d relative, 3u L absolute;
+#    - the face's projection: n . ap / |n| comes out within 9u of itself (ap: u, the dot: 3u, n.n:
+#      3u, the division and the product n * h: u each) plus 4u L; the plane of the computed n,
+#      tilted by at most TILT / 2 from the exact normal, lies within TILT L / 2 of the triangle
+#      at p's foot (|foot - a| <= L); the rounded edge functions can misplace the foot across an
+#      edge only by a small multiple of (u + TILT) d, where the plane's and the triangle's
+#      distances differ by a factor 1 - O((u + TILT)^2), far below u; q = p - w rounds by u |q|
+#      and p - q by u of itself;
+#    - the face far off its plane (FAR_FROM_PLANE): a + u ab + v ac with clamped weights is on the
+#      triangle up to u (2 |q| + 2L);
+#    and the final sum of squares rounds down by at most 3u. So |p - q| >= (1 - 13u) d - tau / 2,
+#    and d2c >= (1 - 3u) |p - q|^2 gives the bound.
+# 3. d <= R = sqrt(root box distance) + L (every triangle lies in the root box): `far_slack`,
+#    4 R tau, is at least 3 R tau >= 3 d tau after its own rounding.
+# Hence box_distance_sq64 * FAR_LOW, rounded, is at most (1 + u)^6 (1 - 64u) d^2 <= (1 - 57u) d^2,
+# and s.d2 + far_slack, rounded, at least (d2c - d tau + 3 d tau)(1 - u) >= (1 - 30u) d^2 while
+# s.d2 >= d2c, i.e. until a triangle nearer than T in float64 is found: the boxes of the answer,
+# and those of every triangle tied with it in float64, are all entered (<= keeps ties), so the
+# lowest id among equal d2c wins (`offer`). The relative part, 64u = 7.1e-15, is nearly twice the
+# 36u needed (measured: d2c within 8u of the exact d^2 wherever M < d, over random, needle and
+# offset triangles from 256 to 1e14 sizes; up to 350u where M is 300 d, the absolute term's
+# part); far_slack is about 4 (TILT L + 14u M) / d of d^2: below 1e-11 from 256 sizes on, where
+# boxes differ by about their own size / d, orders of magnitude more.
+# This replaced a relative margin of 1e-12 (9,000u), which also entered every box within 1e-12
+# of the best one's distance: at d from a mesh of size S the boxes differ by about 2 S / d
+# relative, so past 1e11 sizes the walk opened a growing share of the tree (3x the nodes of 1e3
+# sizes at 1e11, 20x at 1e12, all of it from 1e13 on the bunny). Float64 rounding itself, a few
+# u, ties the boxes only from about 1e15 sizes. (The relative 1e-12 alone was not a proof either:
+# the tilt and coordinate terms reach 1e-11 of d^2 at 256 sizes, needing the absolute part.)
+FAR_LOW = wp.constant(wp.float64(1.0 - 64.0 * 2.0**-53))
+# The largest tilt of a face normal: where the float64 cross product is kept (NORMAL_RECHECK), its
+# rounding tilts it by at most 2^-48 / 3.6e-6 = 1e-9 (see NORMAL_RECHECK); twice that.
+TILT = wp.constant(wp.float64(2.0e-9))
+ROUND_ABS = wp.constant(wp.float64(8.0 * 2.0**-53))
+
+
+@wp.func
+def far_slack(lower: wp.vec3, upper: wp.vec3, root_d2: wp.float64):
+    """The far walk's absolute margin, 4 R tau (see FAR_LOW): covers the errors of the triangle
+    distance that scale with the triangle's size and its coordinates rather than its distance,
+    for the root box ``lower``, ``upper`` at squared distance ``root_d2`` from the point."""
+    lo = wp.vec3d(lower)
+    hi = wp.vec3d(upper)
+    diagonal = wp.length(hi - lo)
+    magnitude = wp.float64(0.0)
+    for i in range(3):
+        magnitude = wp.max(magnitude, wp.max(wp.abs(lo[i]), wp.abs(hi[i])))
+    reach = wp.sqrt(root_d2) + diagonal
+    tau = TILT * diagonal + ROUND_ABS * (wp.float64(1.7320508075688772) * magnitude + diagonal)
+    return wp.float64(4.0) * reach * tau
 
 
 @wp.struct
@@ -468,10 +537,12 @@ def packed_far_point_query(
     Seen from afar, the squared distances of all boxes agree to float32's resolution: the float32
     walk then orders children by rounding noise and enters every deferred node it pops (its
     float32 distance cannot be told from the best triangle's), 3-4 times the nodes a point at 1e3
-    mesh sizes visits. In float64 the differences of float32 coordinates are exact, and the
-    order and the pruning are those of a near point (the same branch-and-bound, Ericson 2005,
-    Sec. 5.1.5 for the triangles). Out of line: the float32 walk every near point runs stays as
-    it was; a far query visits hundreds of nodes, next to which a call costs nothing."""
+    mesh sizes visits. In float64 they differ by far more than their rounding (a few 1e-16) up to
+    about 1e15 sizes, and the order and the pruning are those of a near point (the same
+    branch-and-bound, Ericson 2005, Sec. 5.1.5 for the triangles). Out of line: the float32 walk every near point runs stays as
+    it was; a far query visits hundreds of nodes, next to which a call costs nothing. A box is
+    entered when its float64 distance, less FAR_LOW's relative margin, is within `far_slack` of
+    the best triangle's: the bound derived above FAR_LOW, which never skips the answer."""
     s = start_search(max_dist)
     visited = int(0)
     tested = int(0)
@@ -482,8 +553,11 @@ def packed_far_point_query(
     node = int(0)
     begin = int(0)
     active = int(0)
+    slack = wp.float64(0.0)
     if point_is_valid(p, max_dist) == 1:
-        if box_distance_sq64(p, root_lower, root_upper) * EXACT_LOW <= s.d2:
+        root_d2 = box_distance_sq64(p, root_lower, root_upper)
+        slack = far_slack(root_lower, root_upper, root_d2)
+        if root_d2 * FAR_LOW <= s.d2 + slack:
             active = 1
             node = root
             begin = root_begin
@@ -506,8 +580,8 @@ def packed_far_point_query(
             begin_b = begin + n.count_a
             da = box_distance_sq64(p, n.lower_a, n.upper_a)
             db = box_distance_sq64(p, n.lower_b, n.upper_b)
-            open_a = da * EXACT_LOW <= s.d2
-            open_b = db * EXACT_LOW <= s.d2
+            open_a = da * FAR_LOW <= s.d2 + slack
+            open_b = db * FAR_LOW <= s.d2 + slack
             if open_a and open_b:
                 # Visit the nearer child next, defer the farther one.
                 if da <= db:
@@ -532,7 +606,7 @@ def packed_far_point_query(
         # Pop the nearest deferred node not farther than the best triangle so far.
         while top > 0 and active == 0:
             top -= 1
-            if stack_d[top] * EXACT_LOW <= s.d2:
+            if stack_d[top] * FAR_LOW <= s.d2 + slack:
                 node = stack[top]
                 begin = stack_begin[top]
                 active = 1

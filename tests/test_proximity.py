@@ -1292,6 +1292,159 @@ def test_far_points_are_exact(device, rng, method):
             assert np.array_equal(x, y), distance
 
 
+# ------------------------------------------------- the far walk's margin, 1e3 to 1e14 sizes away
+FAR_SIZES = (1e3, 1e6, 1e9, 1e11, 1e12, 1e13, 1e14)
+
+
+@wp.kernel
+def _float64_brute_force_kernel(points: wp.array(dtype=wp.vec3), a: wp.array(dtype=wp.vec3),
+                                b: wp.array(dtype=wp.vec3), c: wp.array(dtype=wp.vec3),
+                                out_prim: wp.array(dtype=wp.int32), out_d2: wp.array(dtype=wp.float64)):
+    tid = wp.tid()
+    best = wp.float64(wp.inf)
+    prim = int(-1)
+    for k in range(a.shape[0]):
+        d2 = proximity.closest_point_on_triangle(points[tid], a[k], b[k], c[k]).d2
+        if d2 < best:  # strictly: the first, lowest id, of equal distances stays
+            best = d2
+            prim = k
+    out_prim[tid] = prim
+    out_d2[tid] = best
+
+
+def _float64_brute_force(verts, faces, points):
+    """Every triangle measured, nothing pruned: the lowest id among the nearest in the float64
+    distance the kernel computes per triangle. The oracle of the walk's pruning alone: its margin
+    must never skip a box holding such a triangle, whatever the rounding of the distances."""
+    tri = np.asarray(verts, np.float32)[np.asarray(faces)]
+    prim, d2 = wp.zeros(len(points), dtype=wp.int32), wp.zeros(len(points), dtype=wp.float64)
+    wp.launch(_float64_brute_force_kernel, dim=len(points),
+              inputs=[wp.array(np.asarray(points, np.float32), dtype=wp.vec3),
+                      *(wp.array(np.ascontiguousarray(tri[:, j]), dtype=wp.vec3) for j in range(3)), prim, d2])
+    return prim.numpy(), d2.numpy()
+
+
+def _mirror_tie_mesh(pair_first):
+    """A tilted icosphere (80 triangles) and, above it in +y, a pair of triangles that are each
+    other's mirror images in the plane x = 0, vertex for vertex. A point with x = 0 above them is
+    at exactly the same distance from both, in rational arithmetic and in float64 (the kernel
+    applies the same operations to coordinates equal up to sign, and rounding commutes with
+    negation): the lower id of the two must win, whichever side of the tree holds it. The pair
+    comes first or last among the faces. ``(vertices, faces, pair ids)``."""
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    ball.apply_transform(trimesh.transformations.rotation_matrix(0.3, [1.0, 2.0, 3.0]))
+    ball.apply_translation((0.1, 0.0, 0.2))
+    half = np.array([[0.25, 2.0, 0.0], [1.0, 1.5, 0.5], [1.0, 1.5, -0.5]])
+    pair_verts = np.concatenate([half, half * [-1.0, 1.0, 1.0]])
+    ball_faces = np.asarray(ball.faces)
+    if pair_first:
+        verts = np.concatenate([pair_verts, ball.vertices])
+        faces = np.concatenate([[[0, 1, 2], [3, 4, 5]], ball_faces + 6])
+        pair = (0, 1)
+    else:
+        verts = np.concatenate([ball.vertices, pair_verts])
+        n = len(ball.vertices)
+        faces = np.concatenate([ball_faces, [[n, n + 1, n + 2], [n + 3, n + 4, n + 5]]])
+        pair = (len(ball_faces), len(ball_faces) + 1)
+    return verts.astype(np.float32), faces.astype(np.int32), pair
+
+
+def _far_points(center, size, dirs):
+    """``dirs`` at each of FAR_SIZES mesh sizes from ``center``, float32, distance-major."""
+    return np.concatenate([(center + d * size * dirs).astype(np.float32) for d in FAR_SIZES])
+
+
+@pytest.mark.parametrize("pair_first", [True, False])
+@pytest.mark.parametrize("method", ["hlbvh", "sweep_sah", "sbvh"])
+def test_far_walk_against_rational_brute_force_with_exact_ties(device, rng, method, pair_first):
+    """From 1e3 to 1e14 sizes (the float64 walk, `proximity.packed_far_point_query`), every
+    triangle's squared distance in rational arithmetic (`_exact_point_triangle_d2`): the answer is
+    at the minimum up to the float64 rounding the walk allows (64 units of it, relative), on its
+    triangle, at the exact distance to a float32 ulp; where the minimum is apart from the next
+    distance by more than that, it is a triangle at the minimum; above the mirror pair it is the
+    lower id of the two; and it is the unpruned float64 brute force's triangle, bit for bit."""
+    from fractions import Fraction
+
+    verts, faces, pair = _mirror_tie_mesh(pair_first)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    lo, hi = verts.astype(np.float64).min(0), verts.astype(np.float64).max(0)
+    size = float((hi - lo).max())
+    tie_dirs = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.3], [0.0, 1.0, -0.2], [0.0, 2.0, 1.0]])
+    tie_dirs /= np.linalg.norm(tie_dirs, axis=1, keepdims=True)
+    dirs = np.concatenate([tie_dirs, _far_directions(rng, 4)])
+    # Points from the origin, so that x = 0 stays exactly 0 on the tie directions.
+    points = _far_points(np.zeros(3), size, dirs)
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, points)
+    tol = Fraction(2 * 64 * 2**-53)
+    tri = verts[faces]
+    for i, p in enumerate(points):
+        exact = [_exact_point_triangle_d2(p, *t) for t in tri]
+        best = min(exact)
+        assert exact[prim[i]] <= best * (1 + tol), (i, float(exact[prim[i]] / best - 1))
+        apart = [k for k, e in enumerate(exact) if e <= best * (1 + tol)]
+        if all(e == best for e in (exact[k] for k in apart)):
+            assert exact[prim[i]] == best, i
+        ulp = float(np.spacing(np.float32(float(best) ** 0.5)))
+        assert abs(float(distance[i]) - float(best) ** 0.5) <= ulp, i
+        if i % len(dirs) < len(tie_dirs):
+            assert prim[i] == pair[0], (i, prim[i], pair)
+    # The point is on the answer's triangle (to float32's rounding of it).
+    on_triangle = oracle_distance_to(verts, faces, closest.astype(np.float64), prim)
+    assert (on_triangle <= 1e-6 * np.abs(verts).max()).all()
+    brute, _ = _float64_brute_force(verts, faces, points)
+    assert np.array_equal(prim, brute)
+
+
+@pytest.mark.parametrize("method", ["hlbvh", "sweep_sah"])
+def test_far_walk_on_the_bunny_against_brute_force(device, rng, method):
+    """The bunny at 1e3 to 1e14 sizes: the unpruned float64 brute force's triangle bit for bit
+    (the walk's margin never skips a box that holds it), a nearest triangle and the distance of
+    the NumPy oracle (`_check_far_answers`), and the distance within a float32 ulp of the answer's
+    exact one (rational arithmetic)."""
+    mesh = shared_mesh("bunny")
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    lo, hi = verts.astype(np.float64).min(0), verts.astype(np.float64).max(0)
+    points = _far_points(0.5 * (lo + hi), float((hi - lo).max()), _far_directions(rng, 4))
+    closest, distance, prim = hlbvh_warp.closest_point(bvh, points)
+    brute, _ = _float64_brute_force(verts, faces, points)
+    assert np.array_equal(prim, brute)
+    _check_far_answers(verts, faces, points, closest, distance, prim)
+    for i in range(len(points)):
+        exact = float(_exact_point_triangle_d2(points[i], *verts[faces[prim[i]]])) ** 0.5
+        assert abs(float(distance[i]) - exact) <= float(np.spacing(np.float32(exact))), i
+
+
+def test_far_walk_stays_selective_to_1e13_sizes(device, rng):
+    """Nodes per point stay near those of 1e3 sizes up to 1e13 (1.01, 1.12 and 2.2 times at
+    1e11, 1e12 and 1e13 on the ball and box, every builder; 1.75 at 1e12 on the bunny). The far
+    walk's margin was a relative 1e-12, which entered every box within that fraction of the best
+    triangle's squared distance, while boxes differ by about 2 S / d at d from a mesh of size S:
+    2.6, 20 and 27 times (the whole tree) on the ball and box (`hlbvh`), about 260 at 1e12 on
+    the bunny."""
+    verts, faces, center, size = _ball_and_box()
+    dirs = _far_directions(rng)
+    for method in ("hlbvh", "sweep_sah", "sbvh"):
+        bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+        nodes = {}
+        for distance in (1e3, 1e11, 1e12, 1e13):
+            points = (center + distance * size * dirs).astype(np.float32)
+            _, _, prim, stats = hlbvh_warp.closest_point(bvh, points, stats=True)
+            assert (prim >= 0).all()
+            nodes[distance] = stats.nodes_visited.mean()
+        assert nodes[1e11] <= 1.1 * nodes[1e3] and nodes[1e12] <= 1.5 * nodes[1e3], (method, nodes)
+        assert nodes[1e13] <= 4.0 * nodes[1e3], (method, nodes)
+    mesh = shared_mesh("bunny")
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    lo, hi = verts.astype(np.float64).min(0), verts.astype(np.float64).max(0)
+    nodes = {}
+    for distance in (1e3, 1e12):
+        points = (0.5 * (lo + hi) + distance * float((hi - lo).max()) * dirs).astype(np.float32)
+        nodes[distance] = hlbvh_warp.closest_point(bvh, points, stats=True)[3].nodes_visited.mean()
+    assert nodes[1e12] <= 2.5 * nodes[1e3], nodes
+
+
 @pytest.mark.parametrize("height", [1e7, 1e30, 3.0e38])
 def test_a_point_far_above_a_face_gets_a_point_on_the_triangle(device, height):
     """The face's closest point is the projection p - n (n . ap) / |n|^2, which subtracts two
