@@ -539,10 +539,11 @@ def packed_far_point_query(
     float32 distance cannot be told from the best triangle's), 3-4 times the nodes a point at 1e3
     mesh sizes visits. In float64 they differ by far more than their rounding (a few 1e-16) up to
     about 1e15 sizes, and the order and the pruning are those of a near point (the same
-    branch-and-bound, Ericson 2005, Sec. 5.1.5 for the triangles). Out of line: the float32 walk every near point runs stays as
-    it was; a far query visits hundreds of nodes, next to which a call costs nothing. A box is
-    entered when its float64 distance, less FAR_LOW's relative margin, is within `far_slack` of
-    the best triangle's: the bound derived above FAR_LOW, which never skips the answer."""
+    branch-and-bound, Ericson 2005, Sec. 5.1.5 for the triangles). Out of line: the float32 walk
+    every near point runs stays as it was; a far query visits hundreds of nodes, next to which a
+    call costs nothing. A box is entered when its float64 distance, less FAR_LOW's relative
+    margin, is within `far_slack` of the best triangle's: the bound derived above FAR_LOW, which
+    never skips the answer."""
     s = start_search(max_dist)
     visited = int(0)
     tested = int(0)
