@@ -3,6 +3,7 @@
 # with resorting (each build is fed the primitives in the previous frame's tree order).
 #
 #   python examples/example_exploding_mesh.py [--mesh PATH] [--num-frames 24] [--headless]
+#       [--view front|right|back|left]
 
 import argparse
 
@@ -13,20 +14,21 @@ from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
-from hlbvh_warp.render import Camera
+from hlbvh_warp.demo import frame_table_legend
+from hlbvh_warp.render import VIEWS, Camera
 from hlbvh_warp.scenes import scene
 
 
 class Example:
     def __init__(self, mesh=None, num_tris=60000, method="hlbvh", policy="rebuild", resort=True, fps=24.0,
-                 image_size=256, headless=False, speed=0.5):
+                 image_size=256, headless=False, speed=0.5, view="front"):
         vertices, faces = scene(mesh, num_tris)
         self.frame_dt = 1.0 / fps
         self.mesh = ExplodingMesh(vertices, faces, seed=0, speed=speed)
         builder = Builder(len(faces), method=method, policy=policy, resort=resort)
         # A wider view than the intact mesh: the pieces fly outwards. None headless: the camera
         # refuses a mesh too large to frame in float32, which a run without images can take.
-        camera = None if headless else Camera.framing(vertices, zoom=0.7)
+        camera = None if headless else Camera.framing(vertices, zoom=0.7, view=view)
         self.animation = Animation(self.mesh, builder, lambda frame: frame * self.frame_dt, camera,
                                    image_size=0 if headless else image_size)
         # The intact mesh first in the GIF, as the demo's: the explosion is seen from its start.
@@ -56,6 +58,9 @@ def main(argv=None):
     parser.add_argument("--no-resort", action="store_true", help="Rebuild from scratch (input in face order).")
     # Bounded as the command line's images: an unbounded size ended in NumPy's MemoryError.
     parser.add_argument("--image-size", type=image_side, default=256, help="Image width and height in pixels.")
+    parser.add_argument("--view", choices=tuple(VIEWS), default="front",
+                        help="The side of the mesh the camera looks from: front +z, right +x, back -z, left -x "
+                             "(a mesh is taken to stand y up facing +z; the armadillo scan faces -z).")
     parser.add_argument("--out", type=str, default="hlbvh_example_out", help="Folder for the PNG and GIF.")
     args = parser.parse_args(argv)
     if not args.headless:
@@ -70,11 +75,12 @@ def main(argv=None):
         # A mesh too large to render (the camera past float32's reach) is one line, as a bad option.
         with argument_errors(parser):
             example = Example(mesh, args.num_tris, args.method, args.policy, not args.no_resort,
-                              image_size=args.image_size, headless=args.headless)
+                              image_size=args.image_size, headless=args.headless, view=args.view)
         for _ in range(args.num_frames):
             example.step()
             example.render()
         print(example.animation.table())
+        print(frame_table_legend(example.animation))
         for path in example.save(args.out):
             print(f"wrote {path}")
 

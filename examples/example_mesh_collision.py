@@ -5,8 +5,9 @@
 # Every frame, `hlbvh_warp.intersecting_pairs` finds the triangle pairs that intersect: a broad
 # phase of each triangle's box through the other tree, then the exact triangle-triangle test.
 # The table lists each frame's tree decision, the candidate and intersecting pairs, and the time
-# of the update and of the query. Writes a side view of the frame with the most contact, the
-# triangles in contact in red.
+# of the update and of the query. Writes a side view of the frame with the most contact
+# (mesh_collision.png in --out): the resting mesh grey, the moving copy blue, the triangles in
+# contact red.
 #
 #   python examples/example_mesh_collision.py [--mesh PATH] [--num-tris 20000] [--num-frames 24]
 #       [--headless]
@@ -21,13 +22,16 @@ import warp as wp
 import hlbvh_warp as hb
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import HelpFormatter
-from hlbvh_warp.cli import argument_errors, check_out_file, device_name, mesh_file, positive_int, read_mesh, scene_tris
+from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, positive_int, read_mesh,
+                            scene_tris)
+# Largest finite float32: the moving copy's vertices go to the Builder in float32.
+from hlbvh_warp.reference import FLOAT32_MAX
 from hlbvh_warp.scenes import scene
 
 # The copy starts and ends this many box diagonals from the mesh's centre along x: clear of it.
 TRAVEL = 1.2
-#: Largest finite float32: the moving copy's vertices go to the Builder in float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: Pixels per inch of the picture.
+FIGURE_DPI = 120
 
 
 def quarter_turn(vertices: np.ndarray) -> np.ndarray:
@@ -64,7 +68,8 @@ class Example:
         self.frame = 0
         self.rows = []
         self.pairs = np.zeros((0, 2), np.int64)
-        self.most = (0, None, None)  # (pairs, moving vertices, pairs) of the frame with the most contact
+        # (pair count, moving vertices, pairs, frame) of the frame with the most contact.
+        self.most = (0, None, None, 0)
 
     def position(self, frame: int) -> np.ndarray:
         """The moving copy's vertices at ``frame``: from -TRAVEL to +TRAVEL diagonals along x."""
@@ -90,30 +95,54 @@ class Example:
             "query_ms": 1e3 * (done - built),
         })
         if len(self.pairs) > self.most[0]:
-            self.most = (len(self.pairs), moving, self.pairs)
+            self.most = (len(self.pairs), moving, self.pairs, self.frame)
 
-    def render(self, path=None):
-        if self.headless or path is None:
-            return
+    def figure(self):
+        """A side view (along y: x across, z up) of the frame with the most contact, as a matplotlib
+        figure whose title says the frame and the counts and whose legend says the colours: the
+        resting mesh's vertices grey, the moving copy's blue, and in red the centroid of every
+        triangle, of either mesh, in an intersecting pair. The red is drawn last, over the rest."""
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        _, moving, pairs = self.most
+        _, moving, pairs, frame = self.most
         if moving is None:
-            moving, pairs = self.position(self.frame), self.pairs
-        # A side view along y: x across, z up.
-        fig, ax = plt.subplots(figsize=(6, 4))
-        ax.scatter(self.vertices[:, 0], self.vertices[:, 2], s=0.2, c="0.6", linewidths=0)
-        ax.scatter(moving[:, 0], moving[:, 2], s=0.2, c="tab:blue", linewidths=0)
-        for verts, faces in ((self.vertices, self.faces[pairs[:, 0]]), (moving, self.faces[pairs[:, 1]])):
-            centroids = verts[faces].mean(axis=1)
-            ax.scatter(centroids[:, 0], centroids[:, 2], s=2, c="tab:red", linewidths=0)
+            moving, pairs, frame = self.position(self.frame), self.pairs, self.frame
+        fig = plt.figure(figsize=(7.0, 5.0), dpi=FIGURE_DPI)
+        # A fixed layout (no tight box at the save): the title above, the legend below, and the
+        # data's pixels where the axes' transform puts them.
+        ax = fig.add_axes((0.02, 0.12, 0.96, 0.74))
+        ax.scatter(self.vertices[:, 0], self.vertices[:, 2], s=0.2, c="0.6", linewidths=0,
+                   label="resting mesh (its vertices)")
+        ax.scatter(moving[:, 0], moving[:, 2], s=0.2, c="tab:blue", linewidths=0,
+                   label="moving copy, turned a quarter turn (its vertices)")
+        resting_hit, moving_hit = np.unique(pairs[:, 0]), np.unique(pairs[:, 1])
+        centroids = np.concatenate([self.vertices[self.faces[resting_hit]].mean(axis=1),
+                                    moving[self.faces[moving_hit]].mean(axis=1)])
+        ax.scatter(centroids[:, 0], centroids[:, 2], s=4, c="tab:red", linewidths=0,
+                   label="triangles intersecting the other mesh (their centroids)")
         ax.set_aspect("equal")
         ax.set_axis_off()
+        fig.suptitle(f"Mesh collision, frame {frame} of {self.num_frames} (the most contact), side view along y\n"
+                     f"{len(pairs)} intersecting triangle pairs: {len(resting_hit)} resting and "
+                     f"{len(moving_hit)} moving triangles", fontsize=10)
+        # Round markers of one size in the legend: the vertices' 0.2-point dots would not show.
+        handles = [plt.Line2D([], [], marker="o", linestyle="", markersize=6, color=c.get_facecolor()[0],
+                              label=c.get_label()) for c in ax.collections]
+        fig.legend(handles=handles, loc="lower center", ncol=1, fontsize=8, frameon=False)
+        return fig
+
+    def render(self, path=None):
+        """Write `figure` as a PNG to ``path`` (its folder made); None headless or without a path."""
+        if self.headless or path is None:
+            return
+        import matplotlib.pyplot as plt
+
+        fig = self.figure()
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        fig.savefig(path, dpi=120, bbox_inches="tight")
+        fig.savefig(path, dpi=FIGURE_DPI)
         plt.close(fig)
         return path
 
@@ -134,8 +163,8 @@ def main(argv=None):
     parser.add_argument("--mesh", type=mesh_file, default=None,
                         help="Mesh file; the generated default scene if absent.")
     parser.add_argument("--num-tris", type=scene_tris, default=20000, help="Size of the generated scene.")
-    parser.add_argument("--out", type=str, default="example_mesh_collision.png",
-                        help="The picture of the frame with the most contact.")
+    parser.add_argument("--out", type=str, default="hlbvh_example_out",
+                        help="Folder for the picture of the frame with the most contact (mesh_collision.png).")
     args = parser.parse_args(argv)
     # The mesh file and the picture's path before the first frame, not after the last.
     with argument_errors(parser):
@@ -147,7 +176,7 @@ def main(argv=None):
                              f"reaches {copy_reach(mesh[0]):.3g}, past float32's largest {FLOAT32_MAX:.3g}; scale "
                              "the mesh down")
         if not args.headless:
-            check_out_file(args.out, "--out")
+            check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
         example = Example(mesh, args.num_tris, args.num_frames, headless=args.headless)
@@ -155,7 +184,10 @@ def main(argv=None):
         for _ in range(args.num_frames):
             example.step()
         print(example.table())
-        written = example.render(args.out)
+        print("tree: what the moving copy's Builder (auto policy) did this frame; candidates: triangle pairs "
+              "whose boxes overlap; intersecting: those whose triangles intersect; update ms: the Builder's update; "
+              "query ms: both pair queries")
+        written = example.render(os.path.join(args.out, "mesh_collision.png"))
         if written:
             print(f"wrote {written}")
 

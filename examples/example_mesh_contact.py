@@ -5,7 +5,8 @@
 # the mesh, and a particle closer than its radius is pushed back out along the separation and
 # loses the velocity that took it in. The table lists each frame's tree decision, the particles
 # touching the mesh after its last substep, and the time of the build and of the contact queries.
-# Writes a side view of the last frame.
+# Writes a side view of the last frame (mesh_contact.png in --out): the mesh grey, the particles
+# blue, those touching the mesh red.
 #
 #   python examples/example_mesh_contact.py [--mesh PATH] [--num-particles 20000] [--num-frames 24]
 #       [--headless]
@@ -20,7 +21,7 @@ import warp as wp
 from hlbvh_warp import query
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.cli import HelpFormatter
-from hlbvh_warp.cli import (argument_errors, check_out_file, device_name, mesh_file, positive_int, query_count,
+from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh_file, positive_int, query_count,
                             read_mesh, scene_tris)
 from hlbvh_warp.dynamic import BendingMesh
 # Largest finite float32: the particles, their velocities and gravity go to the kernel in float32.
@@ -37,6 +38,8 @@ SUBSTEPS = 4
 #: Gravity, in box diagonals per second squared, and the frames per second of the simulation.
 GRAVITY = 2.0
 FPS = 30.0
+#: Pixels per inch of the picture.
+FIGURE_DPI = 120
 
 
 def diagonal(vertices) -> float:
@@ -140,27 +143,47 @@ class Example:
             "contact_ms": 1e3 * (done - built),
         })
 
-    def render(self, path=None):
-        if self.headless or path is None:
-            return
+    def figure(self):
+        """A side view of the current frame (the mesh's length axis across, its bend axis up) as a
+        matplotlib figure whose title says the frame and the counts and whose legend says the
+        colours: the mesh's vertices grey, the particles clear of it blue, and those that touched
+        it in the frame's last substep red (drawn last, over the rest)."""
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        # A side view: the mesh's length axis across, the bend axis up.
         across, up = self.mesh.length_axis, self.mesh.bend_axis
         verts = self.mesh.vertices.numpy()
         pts = self.positions.numpy()
         touching = self.touching.numpy().astype(bool)
-        fig, ax = plt.subplots(figsize=(6, 4))
-        ax.scatter(verts @ across, verts @ up, s=0.2, c="0.6", linewidths=0)
-        ax.scatter(pts[~touching] @ across, pts[~touching] @ up, s=1, c="tab:blue", linewidths=0)
-        ax.scatter(pts[touching] @ across, pts[touching] @ up, s=1, c="tab:red", linewidths=0)
+        fig = plt.figure(figsize=(7.0, 5.0), dpi=FIGURE_DPI)
+        # A fixed layout (no tight box at the save): the title above, the legend below.
+        ax = fig.add_axes((0.02, 0.12, 0.96, 0.74))
+        ax.scatter(verts @ across, verts @ up, s=0.2, c="0.6", linewidths=0, label="bending mesh (its vertices)")
+        ax.scatter(pts[~touching] @ across, pts[~touching] @ up, s=1, c="tab:blue", linewidths=0,
+                   label="particles clear of the mesh")
+        ax.scatter(pts[touching] @ across, pts[touching] @ up, s=1, c="tab:red", linewidths=0,
+                   label="particles touching the mesh (pushed out in the frame's last substep)")
         ax.set_aspect("equal")
         ax.set_axis_off()
+        fig.suptitle(f"Mesh contact, frame {self.frame} of {self.num_frames}, side view (bend axis up)\n"
+                     f"{int(touching.sum())} of {len(pts)} particles touching the mesh", fontsize=10)
+        # Round markers of one size in the legend: the vertices' 0.2-point dots would not show.
+        handles = [plt.Line2D([], [], marker="o", linestyle="", markersize=6, color=c.get_facecolor()[0],
+                              label=c.get_label()) for c in ax.collections]
+        fig.legend(handles=handles, loc="lower center", ncol=1, fontsize=8, frameon=False)
+        return fig
+
+    def render(self, path=None):
+        """Write `figure` as a PNG to ``path`` (its folder made); None headless or without a path."""
+        if self.headless or path is None:
+            return
+        import matplotlib.pyplot as plt
+
+        fig = self.figure()
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        fig.savefig(path, dpi=120, bbox_inches="tight")
+        fig.savefig(path, dpi=FIGURE_DPI)
         plt.close(fig)
         return path
 
@@ -182,7 +205,8 @@ def main(argv=None):
     parser.add_argument("--num-tris", type=scene_tris, default=20000, help="Size of the generated scene.")
     # Bounded as the command line's query counts: an unbounded count ended in NumPy's MemoryError.
     parser.add_argument("--num-particles", type=query_count, default=20000, help="Falling particles.")
-    parser.add_argument("--out", type=str, default="example_mesh_contact.png", help="The picture of the last frame.")
+    parser.add_argument("--out", type=str, default="hlbvh_example_out",
+                        help="Folder for the picture of the last frame (mesh_contact.png).")
     args = parser.parse_args(argv)
     # The mesh file and the picture's path before the first frame, not after the last.
     with argument_errors(parser):
@@ -194,14 +218,17 @@ def main(argv=None):
                              f"{particle_reach(mesh[0], args.num_frames):.3g}, past float32's largest "
                              f"{FLOAT32_MAX:.3g}; scale the mesh down or choose fewer frames")
         if not args.headless:
-            check_out_file(args.out, "--out")
+            check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
         example = Example(mesh, args.num_tris, args.num_particles, args.num_frames, headless=args.headless)
         for _ in range(args.num_frames):
             example.step()
         print(example.table())
-        written = example.render(args.out)
+        print("tree: what the mesh's Builder (auto policy) did this frame; touching: particles pushed out of the "
+              "mesh in the frame's last substep; build ms: the bend and the Builder's update; contact ms: the "
+              f"{SUBSTEPS} substeps of the contact kernel")
+        written = example.render(os.path.join(args.out, "mesh_contact.png"))
         if written:
             print(f"wrote {written}")
 

@@ -4,7 +4,8 @@ A `hlbvh_warp.query.BvhView` is passed to the kernel like any struct; inside, th
 queries `bvh_closest_hit` (t, primitive, barycentrics), `bvh_occluded` (a shadow ray over the range
 from 0 to the light that ignores the triangle it starts on) and `bvh_aabb_count` (triangles whose
 box overlaps a box around the hit) do the work. Each frame moves the light and renders a small
-image; ``render`` saves it with matplotlib unless headless.
+image; ``render`` saves it with matplotlib unless headless (``user_kernel_000.png``, ... in
+``--out``).
 
     python examples/example_user_kernel.py --headless --num-frames 4
 """
@@ -12,6 +13,7 @@ image; ``render`` saves it with matplotlib unless headless.
 from __future__ import annotations
 
 import argparse
+import os
 
 import numpy as np
 import warp as wp
@@ -19,7 +21,7 @@ import warp as wp
 import hlbvh_warp
 from hlbvh_warp import query
 from hlbvh_warp.cli import HelpFormatter
-from hlbvh_warp.cli import device_name, image_side, positive_int
+from hlbvh_warp.cli import argument_errors, check_out_folder, device_name, image_side, positive_int
 
 
 @wp.kernel
@@ -101,6 +103,7 @@ class Example:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         plt.imsave(path, self.image.numpy(), cmap="gray", vmin=0.0, vmax=1.0)
 
 
@@ -111,13 +114,19 @@ def main(argv=None):
     # Bounded as the command line's images: an unbounded size ended in Warp's allocation error.
     parser.add_argument("--resolution", type=image_side, default=128, help="Image width and height in pixels.")
     parser.add_argument("--headless", action="store_true", help="Run without writing images.")
+    parser.add_argument("--out", type=str, default="hlbvh_example_out",
+                        help="Folder for the frames (user_kernel_000.png, ...).")
     args = parser.parse_args(argv)
+    # The output folder before the first frame, not after it.
+    if not args.headless:
+        with argument_errors(parser):
+            check_out_folder(args.out)
 
     with wp.ScopedDevice(args.device):
         example = Example(resolution=args.resolution)
         for k in range(args.num_frames):
             example.step()
-            example.render(None if args.headless else f"example_user_kernel_{k:03d}.png")
+            example.render(None if args.headless else os.path.join(args.out, f"user_kernel_{k:03d}.png"))
         print(f"{args.num_frames} frames, lit fraction {float((example.image.numpy() > 0.15).mean()):.3f}")
 
 

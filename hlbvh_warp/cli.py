@@ -220,12 +220,12 @@ def _check_can_make_folder(folder: str, label: str):
         raise ValueError(f"{label}: cannot make the folder, {existing} is not writable")
 
 
-def check_out_folder(path: str, option: str = "--out"):
-    """Raise a ValueError naming ``option`` and ``path`` unless ``path`` is a writable folder or
-    one that can be made. Nothing is made: the writer makes the folder when it writes, and a run
-    that fails later leaves no empty folder behind. Called before the long work, which used to
-    end in NotADirectoryError only after every frame had run."""
-    label = f"{option} {path}"
+def check_out_folder(path: str):
+    """Raise a ValueError naming ``--out`` (every command's output folder) and ``path`` unless
+    ``path`` is a writable folder or one that can be made. Nothing is made: the writer makes the
+    folder when it writes, and a run that fails later leaves no empty folder behind. Called
+    before the long work, which used to end in NotADirectoryError only after every frame had run."""
+    label = f"--out {path}"
     if os.path.exists(path):
         if not os.path.isdir(path):
             raise ValueError(f"{label} is a file, not a folder")

@@ -15,7 +15,8 @@ import warp as wp
 from .cli import HelpFormatter
 from .cli import (check_out_folder, command_prog, device_name, image_side, mesh_file, positive_int,
                   query_count_or_zero, quiet_warp, scene_tris)
-from .reference import brute_force_closest_hit
+from .reference import FLOAT32_MAX, brute_force_closest_hit
+from .render import VIEWS
 
 #: Pixels of all the animation's frames together: every frame is kept for the GIF, and the save
 #: holds about 7 bytes a pixel (the RGB frames, Pillow's copies, the palette images), under 1 GB
@@ -25,30 +26,30 @@ MAX_ANIMATION_PIXELS = 1 << 27
 #: the animation's frames per unit of time.
 EXPLOSION_SPEED = 0.5
 FRAMES_PER_TIME_UNIT = 24.0
-#: Largest finite float32: the animation moves the mesh in float32.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: Relative tolerance of "the same t" in `check_rays`: float32 hits against float64 ones.
+RAY_RTOL = 1e-4
 
 
-def check_rays(bvh, vertices, faces, origins, directions, reference, rtol=1e-4) -> int:
-    """Rays whose hit disagrees with the reference: another primitive at another t, another
-    primitive at the same t that the ray does not meet there (`unmet_ties`), or hit/miss (but for
-    a hit at float32's largest distance, `past_range_ties`)."""
+def check_rays(bvh, vertices, faces, origins, directions, reference) -> int:
+    """Rays whose hit disagrees with the reference: another primitive at another t (`RAY_RTOL`),
+    another primitive at the same t that the ray does not meet there (`unmet_ties`), or hit/miss
+    (but for a hit at float32's largest distance, `past_range_ties`)."""
     from .query import intersect
     from .reference import past_range_ties, unmet_ties
 
     t, prim = intersect(bvh, origins, directions)
     t_ref, prim_ref = reference
     hit, hit_ref = prim >= 0, prim_ref >= 0
-    same = (prim == prim_ref) | (hit & hit_ref & np.isclose(t, t_ref, rtol=rtol, atol=0.0))
-    same &= ~unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, rtol)
+    same = (prim == prim_ref) | (hit & hit_ref & np.isclose(t, t_ref, rtol=RAY_RTOL, atol=0.0))
+    same &= ~unmet_ties(vertices, faces, origins, directions, t, prim, t_ref, prim_ref, RAY_RTOL)
     # A hit against a miss at float32's largest distance: rounding decides whether it overflows.
-    same |= past_range_ties(t, prim, t_ref, prim_ref, rtol)
+    same |= past_range_ties(t, prim, t_ref, prim_ref, RAY_RTOL)
     return int((~same).sum())
 
 
-def rays_at(vertices, count: int, seed: int = 0):
-    """Rays from outside the bounding box aimed at random points of it."""
-    rng = np.random.default_rng(seed)
+def rays_at(vertices, count: int):
+    """Rays from outside the bounding box aimed at random points of it, the same ones every run."""
+    rng = np.random.default_rng(0)
     v = np.asarray(vertices, dtype=np.float64)
     lo, hi = v.min(0), v.max(0)
     center, radius = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo) + 1e-6
@@ -57,6 +58,32 @@ def rays_at(vertices, count: int, seed: int = 0):
     origins = center - 2.0 * radius * dirs
     d = lo + rng.random((count, 3)) * (hi - lo) - origins
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
+def frame_table_legend(animation) -> str:
+    """The line printed under `Animation.table()`, saying what its terms mean (those it shows).
+
+    "sampled M/N" is the fraction of a resorting `Builder`'s sample (``resort_samples`` evenly
+    spaced adjacent pairs in the last frame's tree order, their Morton codes computed from this
+    frame's boxes) whose codes differ in their high 3m bits: an estimate of M / N, the runs per
+    primitive of the run-length encoding that HLBVH's compress step would get from that order
+    (Pantaleoni & Luebke 2010, sections 2.2 and 3.1). Past ``BuildConfig.global_sort_runs``, unless
+    no sampled pair descends, the frame is fed in the faces' order (`Builder._resorting_pays`)."""
+    rows = animation.rows
+    parts = ["ms: the Builder's update of the frame"]
+    if any("sah_ratio" in r for r in rows):
+        parts.append("rebuild ms, SAH / rebuild SAH: a tree rebuilt from scratch on the same frame, its time and "
+                     "this tree's SAH cost over its")
+    inputs = " ".join(r.get("input", "") for r in rows)
+    if "resorted" in inputs or "face order" in inputs:
+        parts.append("resorted: fed in the last frame's tree order; face order: in the order the faces are listed")
+    if "sampled M/N" in inputs:
+        builder = animation.builder
+        parts.append(f"sampled M/N: of {builder.resort_samples} evenly spaced adjacent pairs in the last tree's "
+                     "order, the fraction whose Morton codes differ in their high 3m bits, an estimate of the runs "
+                     "per primitive that order gives HLBVH's compress step; past "
+                     f"{builder.config.global_sort_runs:g} (global_sort_runs) the faces' order is fed instead")
+    return "; ".join(parts)
 
 
 def animation_reach(vertices, num_frames: int) -> float:
@@ -86,6 +113,9 @@ def main(argv=None) -> int:
     parser.add_argument("--num-frames", type=positive_int, default=12, help="Frames of the exploding-mesh animation.")
     parser.add_argument("--image-size", type=image_side, default=256,
                         help="Rendered frames are this many pixels square.")
+    parser.add_argument("--view", choices=tuple(VIEWS), default="front",
+                        help="The side of the mesh the camera looks from: front +z, right +x, back -z, left -x "
+                             "(a mesh is taken to stand y up facing +z; the armadillo scan faces -z).")
     parser.add_argument("--methods", type=str, default=None,
                         help="Comma-separated subset of the build methods; all of them if absent.")
     parser.add_argument("--out", type=str, default="hlbvh_demo_out", help="Output folder.")
@@ -168,12 +198,13 @@ def main(argv=None) -> int:
         mesh = ExplodingMesh(vertices, faces, seed=0, speed=EXPLOSION_SPEED)
         builder = Builder(len(faces), method="hlbvh", policy="rebuild", resort=True)
         animation = Animation(mesh, builder, lambda frame: frame / FRAMES_PER_TIME_UNIT,
-                              Camera.framing(vertices, zoom=0.7), image_size=args.image_size)
+                              Camera.framing(vertices, zoom=0.7, view=args.view), image_size=args.image_size)
         animation.render()
         for _ in range(args.num_frames):
             animation.step()
             animation.render()
         print(animation.table())
+        print(frame_table_legend(animation))
         paths = animation.save(args.out, "exploding_mesh")
         paths.append(plot_frames(animation.rows, os.path.join(args.out, "exploding_frame_ms.png")))
         for path in paths:

@@ -10,16 +10,45 @@ import numpy as np
 from .query import intersect
 from .reference import FLOAT32_MAX
 
+#: From the box's centre towards the camera, before a `VIEWS` turn: above the mesh and mostly on
+#: its +z side, a little to +x.
+FRONT = (1.0, 0.55, 1.6)
+#: Towards the directional light, before a `VIEWS` turn: above and behind the camera's left
+#: shoulder, so the side seen is lit.
+LIGHT = (0.4, 1.0, 0.6)
+#: The side of the mesh the camera looks from, as a turn in degrees about the y axis (up) of both
+#: `FRONT` and `LIGHT`: "front" the +z side, "right" +x, "back" -z, "left" -x. The rule is the
+#: common convention that a model stands y up facing +z (the Stanford bunny, Blender's Suzanne
+#: exported y up); a mesh that faces another way (the Stanford armadillo scan faces -z) needs its
+#: side named. No automatic choice: a closed mesh's area-weighted normals sum to zero (they say
+#: nothing), and the side showing more of the surface was the armadillo's back.
+VIEWS = {"front": 0.0, "right": 90.0, "back": 180.0, "left": -90.0}
+
+
+def turn_about_y(vector, degrees: float) -> np.ndarray:
+    """``vector`` turned by ``degrees`` about the y axis (right-handed: +z turns towards +x)."""
+    x, y, z = np.asarray(vector, dtype=np.float64)
+    # Exact at the four quarter turns: "front" keeps FRONT and LIGHT bit for bit.
+    c, s = {0.0: (1.0, 0.0), 90.0: (0.0, 1.0), 180.0: (-1.0, 0.0), -90.0: (0.0, -1.0)}.get(
+        float(degrees), (np.cos(np.radians(degrees)), np.sin(np.radians(degrees))))
+    return np.array([c * x + s * z, y, -s * x + c * z])
+
 
 class Camera:
-    """A pinhole camera looking at the centre of a box from a fixed direction."""
+    """A pinhole camera looking at the centre of a box from a fixed direction, and the light that
+    goes with it: ``view`` (a `VIEWS` name) turns both about the y axis, so that every side is lit
+    as the front is."""
 
-    def __init__(self, lower, upper, direction=(1.0, 0.55, 1.6), fov_degrees: float = 40.0, zoom: float = 1.0):
+    def __init__(self, lower, upper, direction=FRONT, fov_degrees: float = 40.0, zoom: float = 1.0,
+                 view: str = "front"):
+        if view not in VIEWS:
+            raise ValueError(f"unknown view {view!r}; choose from {', '.join(VIEWS)}")
         lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
         self.target = 0.5 * (lower + upper)
         radius = 0.5 * float(np.linalg.norm(upper - lower)) or 1.0
-        back = np.asarray(direction, dtype=np.float64)
+        back = turn_about_y(direction, VIEWS[view])
         back /= np.linalg.norm(back)
+        self.light = turn_about_y(LIGHT, VIEWS[view])
         self.tan_half = np.tan(np.radians(fov_degrees) / 2.0)
         self.eye = self.target + back * (radius / np.sin(np.radians(fov_degrees) / 2.0)) / zoom
         # The rays start at the eye in float32, and a hit past float32's largest distance is a
@@ -53,9 +82,13 @@ class Camera:
         return o.reshape(-1, 3).astype(np.float32), d.reshape(-1, 3).astype(np.float32)
 
 
-def shade(vertices, faces, prim, directions, width: int, height: int, light=(0.4, 1.0, 0.6),
-          color=(0.85, 0.72, 0.5)) -> np.ndarray:
-    """An ``(height, width, 3)`` uint8 image: two-sided Lambert plus ambient; misses get a sky."""
+#: The mesh's colour, lit fully.
+COLOR = (0.85, 0.72, 0.5)
+
+
+def shade(vertices, faces, prim, directions, width: int, height: int, light=LIGHT) -> np.ndarray:
+    """An ``(height, width, 3)`` uint8 image: two-sided Lambert plus ambient, the light coming
+    from ``light``; misses get a sky."""
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     light = np.asarray(light, dtype=np.float64)
@@ -74,15 +107,16 @@ def shade(vertices, faces, prim, directions, width: int, height: int, light=(0.4
     # Face the normal towards the viewer, then light it.
     n *= -np.sign(np.einsum("ij,ij->i", n, directions[hit]))[:, None]
     lambert = np.clip(n @ light, 0.0, 1.0)
-    image[hit] = (0.18 + 0.82 * lambert)[:, None] * np.asarray(color)
+    image[hit] = (0.18 + 0.82 * lambert)[:, None] * np.asarray(COLOR)
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8).reshape(height, width, 3)
 
 
 def render(bvh, camera: Camera, width: int = 256, height: int = 256) -> np.ndarray:
-    """Ray-cast one frame of a BVH built over a mesh; returns an ``(height, width, 3)`` uint8 image."""
+    """Ray-cast one frame of a BVH built over a mesh, lit by the camera's light; returns an
+    ``(height, width, 3)`` uint8 image."""
     origins, directions = camera.rays(width, height)
     _, prim = intersect(bvh, origins, directions)
-    return shade(bvh.vertices.numpy(), bvh.faces.numpy(), prim, directions, width, height)
+    return shade(bvh.vertices.numpy(), bvh.faces.numpy(), prim, directions, width, height, camera.light)
 
 
 def save_png(image: np.ndarray, path) -> pathlib.Path:
@@ -96,13 +130,17 @@ def save_png(image: np.ndarray, path) -> pathlib.Path:
     return path
 
 
-def save_gif(images, path, ms_per_frame: int = 80) -> pathlib.Path:
-    """Write uint8 frames as a looping animated GIF of `ms_per_frame` per frame, creating its folder;
-    returns the path. Needs Pillow."""
+#: Milliseconds each frame of a GIF shows: 12.5 frames a second.
+MS_PER_FRAME = 80
+
+
+def save_gif(images, path) -> pathlib.Path:
+    """Write uint8 frames as a looping animated GIF of `MS_PER_FRAME` per frame, creating its
+    folder; returns the path. Needs Pillow."""
     from PIL import Image
 
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     frames = [Image.fromarray(im) for im in images]
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=ms_per_frame, loop=0)
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=MS_PER_FRAME, loop=0)
     return path

@@ -21,6 +21,16 @@ def test_demo_runs_and_writes_outputs(tmp_path, capsys):
     assert "average" in text and "worst" in text
     for name in ("exploding_mesh.png", "exploding_mesh.gif", "exploding_frame_ms.png"):
         assert (out / name).stat().st_size > 0, name
+    # The per-frame table is followed by a line saying what its terms mean, "sampled M/N" (which
+    # the CPU's resorting builder reports on every rebuilt frame after the first) among them,
+    # with the sample's size and the limit the builder compares it with.
+    lines = text.splitlines()
+    summary = next(i for i, line in enumerate(lines) if line.startswith("2 frames: average"))
+    assert "sampled M/N" in "\n".join(lines[summary - 2:summary])
+    legend = lines[summary + 1]
+    assert legend.startswith("ms: the Builder's update of the frame") and "resorted: fed in the last frame's" in legend
+    assert "sampled M/N: of 256 evenly spaced adjacent pairs in the last tree's order" in legend, legend
+    assert "past 0.1 (global_sort_runs) the faces' order is fed instead" in legend, legend
 
 
 def test_the_demo_prints_its_table_without_warps_messages(tmp_path):
@@ -228,13 +238,13 @@ def test_a_mesh_the_demo_accepts_animates_without_overflow(num_frames):
     # past the bound.
     import numpy as np
 
-    from hlbvh_warp import demo
+    from hlbvh_warp import demo, reference
     from hlbvh_warp.dynamic import ExplodingMesh
 
     unit_vertices, faces = _icosphere_scaled_to(1.0)
-    scale = 0.999 * demo.FLOAT32_MAX / demo.animation_reach(unit_vertices, num_frames)
+    scale = 0.999 * reference.FLOAT32_MAX / demo.animation_reach(unit_vertices, num_frames)
     vertices, _ = _icosphere_scaled_to(scale)
-    assert demo.animation_reach(vertices, num_frames) <= demo.FLOAT32_MAX
+    assert demo.animation_reach(vertices, num_frames) <= reference.FLOAT32_MAX
     mesh = ExplodingMesh(vertices, faces, device="cpu", seed=0, speed=demo.EXPLOSION_SPEED)
     for frame in range(num_frames + 1):
         moved = mesh.update(frame / demo.FRAMES_PER_TIME_UNIT).numpy()
@@ -248,4 +258,4 @@ def test_a_mesh_the_demo_accepts_animates_without_overflow(num_frames):
         moved = ExplodingMesh(big_vertices, faces, device="cpu", seed=0, speed=demo.EXPLOSION_SPEED).update(
             num_frames / demo.FRAMES_PER_TIME_UNIT).numpy()
     assert not np.isfinite(moved).all()
-    assert demo.animation_reach(big_vertices, num_frames) > demo.FLOAT32_MAX
+    assert demo.animation_reach(big_vertices, num_frames) > reference.FLOAT32_MAX

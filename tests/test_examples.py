@@ -21,6 +21,47 @@ def load_example(name: str):
     return module
 
 
+def red_pixels(fig, ax):
+    """(column, row) pixel centres of the red of `fig`, drawn as a PNG at its own dpi and read
+    back, inside ``ax`` and outside every legend; and the image's height."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=fig.dpi)
+    image = np.asarray(Image.open(buffer).convert("RGB")).astype(np.int64)
+    height = image.shape[0]
+    red = (image[..., 0] > 150) & (image[..., 0] - image[..., 1] > 80) & (image[..., 0] - image[..., 2] > 80)
+    rows, cols = np.nonzero(red)
+    x, y = cols + 0.5, height - rows - 0.5  # display coordinates: y up from the bottom
+
+    def inside(box):
+        return (x >= box.x0) & (x <= box.x1) & (y >= box.y0) & (y <= box.y1)
+
+    keep = inside(ax.get_window_extent())
+    for legend in fig.legends + [ax.get_legend()]:
+        if legend is not None:
+            keep &= ~inside(legend.get_window_extent())
+    return np.stack([x[keep], y[keep]], axis=1)
+
+
+def assert_red_on(fig, ax, points, tolerance=3.0, both_ways=True):
+    """Every red pixel of the plot lies within ``tolerance`` pixels of one of ``points`` (data
+    coordinates, drawn through ``ax``), and with ``both_ways`` every point has a red pixel that
+    near: red marks those points and nothing else."""
+    from scipy.spatial import cKDTree
+
+    red = red_pixels(fig, ax)
+    drawn = ax.transData.transform(np.asarray(points, dtype=np.float64))
+    assert len(red) > 0 and len(drawn) > 0
+    distance, _ = cKDTree(drawn).query(red)
+    assert distance.max() <= tolerance, f"{(distance > tolerance).sum()} red pixels away from every point"
+    if both_ways:
+        distance, _ = cKDTree(red).query(drawn)
+        assert distance.max() <= tolerance, f"{(distance > tolerance).sum()} points without red"
+
+
 @pytest.mark.parametrize("headless", [True, False])
 def test_exploding_mesh(device, headless, tmp_path):
     module = load_example("example_exploding_mesh")
@@ -46,6 +87,40 @@ def test_exploding_mesh(device, headless, tmp_path):
         assert len(example.animation.images) == 4
         image = example.animation.images[-1]
         assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0
+
+
+@pytest.mark.parametrize("view,turn", [("back", 2), ("right", 1), ("left", 3)])
+def test_a_view_shows_the_mesh_as_the_front_shows_it_turned(view, turn):
+    """A mesh seen from a side (`render.VIEWS`) is the mesh turned about y to bring that side to
+    the front, seen from the front, pixel for pixel: the camera and its light turn together, so
+    every side is lit as the front is (the armadillo scan, facing -z, showed its back, and a
+    camera moved alone would have seen its front in its own shadow). Turned about the box's
+    centre at the origin, by quarter turns, exactly."""
+    import trimesh
+
+    from hlbvh_warp import api, render
+
+    # A mesh with no symmetry that a quarter turn maps onto itself, centred on the origin.
+    mesh = trimesh.creation.annulus(r_min=0.2, r_max=0.5, height=0.3)
+    mesh.vertices[:, 0] *= 1.7
+    mesh.vertices[mesh.vertices[:, 2] > 0, 1] += 0.2
+    vertices = np.asarray(mesh.vertices, dtype=np.float32)
+    vertices -= np.float32(0.5) * (vertices.min(axis=0) + vertices.max(axis=0))
+    faces = np.asarray(mesh.faces, dtype=np.int32)
+    turned = vertices.copy()
+    for _ in range(turn):
+        # A quarter turn about y the other way, +x towards +z (the camera's side to the front):
+        # (x, z) -> (-z, x), exact in float32.
+        turned = np.stack([-turned[:, 2], turned[:, 1], turned[:, 0]], axis=1)
+    side = render.render(api.build(vertices, faces), render.Camera.framing(vertices, view=view), 48, 48)
+    front = render.render(api.build(turned, faces), render.Camera.framing(turned), 48, 48)
+    assert (side != side[0, 0]).any(axis=-1).mean() > 0.1  # the mesh fills part of the picture
+    assert np.abs(side.astype(int) - front).max() <= 1
+    # The front is the camera and light every example had: no picture of the default changes.
+    camera = render.Camera.framing(vertices)
+    assert np.array_equal(camera.light, render.LIGHT)
+    with pytest.raises(ValueError, match="unknown view 'top'; choose from front, right, back, left"):
+        render.Camera.framing(vertices, view="top")
 
 
 @pytest.mark.parametrize("scale", [2.0 ** -66, 2.0 ** -100, 2.0 ** 100])
@@ -363,6 +438,11 @@ def test_frame_timing_static_sequence(device):
     # The sorted previous order is always taken, and the table counts those frames.
     resorted_row = next(line for line in table.splitlines() if "hlbvh resorted" in line)
     assert resorted_row.endswith("rebuild 2 (resorted 2)")
+    # The table says what "(resorted N)" counts: the rebuilt frames fed the last tree's order, as
+    # the Builder's reports say.
+    assert "(resorted N): of the rebuilt frames, those fed the last frame's tree order" in table.splitlines()[-1]
+    reports = list(resorted.reports)[-2:]
+    assert [r["input_order"] for r in reports] == ["previous tree"] * 2
 
 
 def test_scene_builds(device):
@@ -428,6 +508,45 @@ def test_particle_collisions(device, headless, tmp_path):
     assert len(paths) == (0 if headless else 1)
 
 
+def test_particle_collisions_picture_says_what_it_shows():
+    """The picture of the last frame: each particle of the slab at its centre's pixel, red where
+    a float64 all-pairs test finds it touching another sphere and blue elsewhere; the title names
+    the frame and the counts, the legend the two colours."""
+    import matplotlib.pyplot as plt
+
+    module = load_example("example_particle_collisions")
+    example = module.Example(num_particles=800, radius=0.03, speed=0.05, peer=False)
+    for _ in range(2):
+        example.step()
+    example.render()
+    c = example.centers.numpy().astype(np.float64)
+    r = example.radii.numpy().astype(np.float64)
+    d2 = ((c[:, None] - c[None]) ** 2).sum(-1)
+    touch = d2 < (r[:, None] + r[None]) ** 2
+    np.fill_diagonal(touch, False)
+    touching = touch.any(axis=1)
+    slab = np.abs(c[:, 2] - 0.5) < module.SLAB_HALF_DEPTH
+    size = example.image.shape[0]
+    px = np.clip((c[:, :2].astype(np.float32) * size).astype(int), 0, size - 1)
+    red = np.all(example.image == np.float32(module.CONTACT_COLOR), axis=-1)
+    at = red[size - 1 - px[:, 1], px[:, 0]]
+    # Every touching particle of the slab is red; a free one is red only where it shares its pixel
+    # with a touching one.
+    assert at[slab & touching].all() and (slab & touching).sum() > 0
+    shared = {(x, y) for x, y in px[slab & touching]}
+    assert all((x, y) in shared for (x, y) in px[slab & ~touching & at])
+    assert red.sum() == len(shared)
+    fig = example.figure()
+    try:
+        title = fig._suptitle.get_text()
+        assert "frame 1" in title and f"{int(slab.sum())} of 800 particles in the slab" in title, title
+        assert f"{int((slab & touching).sum())} of them touching another" in title, title
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert len(labels) == 2 and "no other" in labels[0] and "touching another" in labels[1], labels
+    finally:
+        plt.close(fig)
+
+
 @pytest.mark.parametrize("headless", [True, False])
 def test_camera_orbit(device, headless, tmp_path):
     module = load_example("example_camera_orbit")
@@ -443,7 +562,16 @@ def test_camera_orbit(device, headless, tmp_path):
     assert all(v == 0 for v in example.disagree.values())
     assert all(len(v) == 3 for v in example.ms.values())
     lines = example.table().splitlines()
-    assert len(lines) == 2 + len(example.trees)
+    assert len(lines) == 3 + len(example.trees)
+    # The legend's "x binary" is the binary traversal's mean ms per frame (the first frame left
+    # out) over the tree's.
+    assert lines[-1].startswith("ms/frame: ")
+    assert "x binary: the binary traversal's ms/frame over this tree's" in lines[-1]
+    binary = np.mean(example.ms[("binary", "hlbvh")][1:])
+    for (method, k), ms in example.ms.items():
+        if method != "binary":
+            row = next(line for line in lines if line.strip().startswith(f"{method} k={k} "))
+            assert float(row.split()[3]) == pytest.approx(binary / np.mean(ms[1:]), abs=0.006), row
     # The orbit turns: the first and the last frame differ.
     assert not np.array_equal(example.camera(0).eye, example.camera(2).eye)
     if headless:
@@ -478,6 +606,37 @@ def test_mesh_contact(device, tmp_path):
     assert path.stat().st_size > 0
 
 
+def test_mesh_contact_picture_says_what_it_shows():
+    """The last frame's picture: its title names the frame and the particles touching, its
+    legend the three colours, and every red pixel (read back from the PNG) lies on a particle
+    that sits at its radius from the mesh (or within, in a crease) by a separate closest-point
+    query: red marks contact, not a particle in flight."""
+    import matplotlib.pyplot as plt
+
+    import hlbvh_warp
+
+    module = load_example("example_mesh_contact")
+    example = module.Example(num_tris=2000, num_particles=500, num_frames=6)
+    for _ in range(6):
+        example.step()
+    positions = example.positions.numpy()
+    _, distance, _ = hlbvh_warp.closest_point(example.builder.bvh, positions)
+    at_contact = distance <= 1.001 * example.radius
+    touching = int(example.touching.numpy().sum())
+    assert 0 < touching < len(positions) and at_contact.sum() >= touching
+    fig = example.figure()
+    try:
+        title = fig._suptitle.get_text()
+        assert "frame 6 of 6" in title and f"{touching} of 500 particles touching" in title, title
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert len(labels) == 3 and "mesh" in labels[0] and "clear" in labels[1] and "touching" in labels[2]
+        across, up = example.mesh.length_axis, example.mesh.bend_axis
+        contact = positions[at_contact]
+        assert_red_on(fig, fig.axes[0], np.stack([contact @ across, contact @ up], axis=1), both_ways=False)
+    finally:
+        plt.close(fig)
+
+
 def test_mesh_collision(device, tmp_path):
     """The copy passing through the mesh: every frame's intersecting pairs equal those of a fresh
     `sweep_sah` tree over the copy's vertices of that frame (so the Builder's per-frame tree is
@@ -505,6 +664,37 @@ def test_mesh_collision(device, tmp_path):
     assert path.stat().st_size > 0
 
 
+def test_mesh_collision_picture_says_what_it_shows(tmp_path):
+    """The picture of the frame with the most contact: its title names that frame and its pair
+    count, its legend the three colours, and its red pixels (read back from the PNG) fall on the
+    centroids of the triangles of a fresh `sweep_sah` tree's intersecting pairs of that frame, and
+    on nothing else. It had no title or legend: grey, blue and red were the reader's guess."""
+    import matplotlib.pyplot as plt
+
+    import hlbvh_warp
+
+    module = load_example("example_mesh_collision")
+    example = module.Example(num_tris=1500, num_frames=10)
+    for _ in range(10):
+        example.step()
+    frame = 1 + int(np.argmax([r["intersecting"] for r in example.rows]))
+    moving = example.position(frame)
+    fresh = hlbvh_warp.build(moving.astype(np.float32), example.faces, method="sweep_sah")
+    pairs = hlbvh_warp.intersecting_pairs(example.resting, fresh)
+    centroids = np.concatenate([example.vertices[example.faces[np.unique(pairs[:, 0])]].mean(axis=1),
+                                moving[example.faces[np.unique(pairs[:, 1])]].mean(axis=1)])
+    fig = example.figure()
+    try:
+        title = fig._suptitle.get_text()
+        assert f"frame {frame} of 10" in title and f"{len(pairs)} intersecting triangle pairs" in title, title
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+        assert len(labels) == 3 and "resting" in labels[0] and "moving" in labels[1] and "intersect" in labels[2]
+        ax = fig.axes[0]
+        assert_red_on(fig, ax, centroids[:, [0, 2]])
+    finally:
+        plt.close(fig)
+
+
 # Small runs of each script, so that one which ignores a bad option still ends quickly.
 TINY_ARGS = {
     "example_exploding_mesh": ["--headless", "--num-frames", "1", "--num-tris", "500"],
@@ -525,8 +715,8 @@ TINY_ARGS = {
 MESH_EXAMPLES = ["example_exploding_mesh", "example_bending_mesh", "example_frame_timing", "example_scene_builds",
                  "example_mesh_contact", "example_mesh_collision", "example_camera_orbit"]
 OUT_FOLDER_EXAMPLES = ["example_exploding_mesh", "example_bending_mesh", "example_frame_timing",
-                       "example_particle_collisions", "example_camera_orbit"]
-OUT_FILE_EXAMPLES = ["example_mesh_contact", "example_mesh_collision"]
+                       "example_particle_collisions", "example_camera_orbit", "example_mesh_contact",
+                       "example_mesh_collision", "example_user_kernel"]
 
 
 def without_headless(args):
@@ -600,20 +790,45 @@ def test_example_scripts_name_a_mesh_file_they_cannot_read(name, tmp_path, capsy
         assert f"error: {path}: " in err and problem in err, (name, path, err)
 
 
-@pytest.mark.parametrize("name", OUT_FOLDER_EXAMPLES + OUT_FILE_EXAMPLES)
+@pytest.mark.parametrize("name", OUT_FOLDER_EXAMPLES)
 def test_example_scripts_check_out_before_the_first_frame(name, tmp_path, capsys, monkeypatch):
     # --out /dev/null/x (or a file where a folder goes) ended in NotADirectoryError after every frame.
     a_file = tmp_path / "a_file"
     a_file.write_text("")
     args = without_headless(TINY_ARGS[name])
-    cases = [(a_file / "x", f"--out {a_file / 'x'}: cannot make the folder, {a_file} is a file")]
-    if name in OUT_FOLDER_EXAMPLES:
-        cases.append((a_file, f"--out {a_file} is a file, not a folder"))
-    else:
-        cases.append((tmp_path, f"--out {tmp_path} is a folder, not a file"))
+    cases = [(a_file / "x", f"--out {a_file / 'x'}: cannot make the folder, {a_file} is a file"),
+             (a_file, f"--out {a_file} is a file, not a folder")]
     for out, message in cases:
         assert message in argument_error(name, [*args, "--out", str(out)], capsys, monkeypatch)
     assert a_file.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_every_picture_writing_example_writes_into_one_default_folder(capsys, monkeypatch):
+    # Each example's --out is a folder, hlbvh_example_out unless given: the collision and contact
+    # pictures went to bare .png files in the current folder, the orbit to camera_orbit_out, and
+    # the user kernel's frames to the current folder with no option at all.
+    monkeypatch.setattr(sys, "argv", ["example"])
+    for name in OUT_FOLDER_EXAMPLES:
+        with pytest.raises(SystemExit):
+            load_example(name).main(["--help"])
+        words = " ".join(capsys.readouterr().out.split())
+        options = words[words.index("options:"):]
+        out = options[options.index("--out OUT"):].split(" --")[0]
+        assert out.startswith("--out OUT Folder") and out.endswith("(default: hlbvh_example_out)"), (name, out)
+
+
+def test_mesh_pictures_go_into_their_out_folder(tmp_path):
+    # The collision and contact examples end as the others do: their picture in --out.
+    for name, picture in (("example_mesh_collision", "mesh_collision.png"),
+                          ("example_mesh_contact", "mesh_contact.png")):
+        args = [*without_headless(TINY_ARGS[name]), "--out", str(tmp_path / "pictures")]
+        run = subprocess.run([sys.executable, str(EXAMPLES / f"{name}.py"), *args],
+                             capture_output=True, text=True, cwd=tmp_path, timeout=600)
+        assert run.returncode == 0, run.stderr
+        assert (tmp_path / "pictures" / picture).stat().st_size > 0
+        assert f"wrote {tmp_path / 'pictures' / picture}" in run.stdout
+        # Each table is followed by the line that says what its columns mean.
+        assert "tree: what the" in run.stdout and "ms: " in run.stdout
 
 
 @pytest.mark.parametrize("methods,message", [
