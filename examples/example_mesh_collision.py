@@ -26,12 +26,12 @@ from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh
                             scene_tris)
 # Largest finite float32: the moving copy's vertices go to the Builder in float32.
 from hlbvh_warp.reference import FLOAT32_MAX
+from hlbvh_warp.render import FIGURE_DPI, legend_below, save_figure
 from hlbvh_warp.scenes import scene
 
 # The copy starts and ends this many box diagonals from the mesh's centre along x: clear of it.
 TRAVEL = 1.2
 #: Pixels per inch of the picture.
-FIGURE_DPI = 120
 
 
 def quarter_turn(vertices: np.ndarray) -> np.ndarray:
@@ -128,22 +128,14 @@ class Example:
         fig.suptitle(f"Mesh collision, frame {frame} of {self.num_frames} (the most contact), side view along y\n"
                      f"{len(pairs)} intersecting triangle pairs: {len(resting_hit)} resting and "
                      f"{len(moving_hit)} moving triangles", fontsize=10)
-        # Round markers of one size in the legend: the vertices' 0.2-point dots would not show.
-        handles = [plt.Line2D([], [], marker="o", linestyle="", markersize=6, color=c.get_facecolor()[0],
-                              label=c.get_label()) for c in ax.collections]
-        fig.legend(handles=handles, loc="lower center", ncol=1, fontsize=8, frameon=False)
+        legend_below(fig, ax)
         return fig
 
     def render(self, path=None):
         """Write `figure` as a PNG to ``path`` (its folder made); None headless or without a path."""
         if self.headless or path is None:
             return
-        import matplotlib.pyplot as plt
-
-        fig = self.figure()
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        fig.savefig(path, dpi=FIGURE_DPI)
-        plt.close(fig)
+        save_figure(self.figure(), path)
         return path
 
     def table(self) -> str:

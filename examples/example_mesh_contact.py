@@ -26,6 +26,7 @@ from hlbvh_warp.cli import (argument_errors, check_out_folder, device_name, mesh
 from hlbvh_warp.dynamic import BendingMesh
 # Largest finite float32: the particles, their velocities and gravity go to the kernel in float32.
 from hlbvh_warp.reference import FLOAT32_MAX
+from hlbvh_warp.render import FIGURE_DPI, legend_below, save_figure
 from hlbvh_warp.scenes import scene
 
 # Projections per substep: a particle pushed out of one triangle may sit within its radius of a
@@ -39,7 +40,6 @@ SUBSTEPS = 4
 GRAVITY = 2.0
 FPS = 30.0
 #: Pixels per inch of the picture.
-FIGURE_DPI = 120
 
 
 def diagonal(vertices) -> float:
@@ -169,22 +169,14 @@ class Example:
         ax.set_axis_off()
         fig.suptitle(f"Mesh contact, frame {self.frame} of {self.num_frames}, side view (bend axis up)\n"
                      f"{int(touching.sum())} of {len(pts)} particles touching the mesh", fontsize=10)
-        # Round markers of one size in the legend: the vertices' 0.2-point dots would not show.
-        handles = [plt.Line2D([], [], marker="o", linestyle="", markersize=6, color=c.get_facecolor()[0],
-                              label=c.get_label()) for c in ax.collections]
-        fig.legend(handles=handles, loc="lower center", ncol=1, fontsize=8, frameon=False)
+        legend_below(fig, ax)
         return fig
 
     def render(self, path=None):
         """Write `figure` as a PNG to ``path`` (its folder made); None headless or without a path."""
         if self.headless or path is None:
             return
-        import matplotlib.pyplot as plt
-
-        fig = self.figure()
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        fig.savefig(path, dpi=FIGURE_DPI)
-        plt.close(fig)
+        save_figure(self.figure(), path)
         return path
 
     def table(self) -> str:

@@ -144,3 +144,29 @@ def save_gif(images, path) -> pathlib.Path:
     frames = [Image.fromarray(im) for im in images]
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=MS_PER_FRAME, loop=0)
     return path
+
+
+#: Dots per inch of the examples' matplotlib pictures (the collision and contact views).
+FIGURE_DPI = 120
+
+
+def legend_below(fig, ax) -> None:
+    """A legend under the picture naming the colour of each of ``ax``'s scatters, with round markers
+    of one size: the vertices' 0.2-point dots would not show in it."""
+    import matplotlib.pyplot as plt
+
+    handles = [plt.Line2D([], [], marker="o", linestyle="", markersize=6, color=c.get_facecolor()[0],
+                          label=c.get_label()) for c in ax.collections]
+    fig.legend(handles=handles, loc="lower center", ncol=1, fontsize=8, frameon=False)
+
+
+def save_figure(fig, path) -> pathlib.Path:
+    """Write a matplotlib figure as a PNG at `FIGURE_DPI`, creating its folder, and close it;
+    returns the path."""
+    import matplotlib.pyplot as plt
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=FIGURE_DPI)
+    plt.close(fig)
+    return path
