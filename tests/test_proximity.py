@@ -1468,3 +1468,116 @@ def test_a_point_far_above_a_face_gets_a_point_on_the_triangle(device, height):
     with np.errstate(over="ignore"):  # inf past float32's range, as the query reports it
         expected = np.float32(np.sqrt(3.0) * (float(point[0, 0]) - 1.0 / 3.0))
     assert distance[0] == expected or np.isclose(distance[0], expected, rtol=1e-6)
+
+
+# ------------------------------------------------- the far walk's margin under adversarial soups
+def _adversarial_triangle(rng, kind):
+    """One triangle of unit size, of a shape that stresses `closest_point_on_triangle`'s rounding:
+    a sliver (the third vertex within 1e-9..1e-3 of the line through the others), a triangle whose
+    angle sits near NORMAL_RECHECK's threshold (sin 1e-6..1e-5, the float64 normal kept with its
+    largest tilt), a needle, a degenerate one (collinear, a segment, a point), or a random one."""
+    a = rng.normal(size=3)
+    b = a + rng.normal(size=3)
+    if kind == "sliver":
+        c = a + rng.uniform(-0.5, 1.5) * (b - a) + rng.normal(size=3) * 10.0 ** rng.uniform(-9, -3)
+    elif kind == "threshold":
+        side = np.cross(b - a, rng.normal(size=3))
+        side *= np.linalg.norm(b - a) / np.linalg.norm(side)
+        c = a + rng.uniform(0.3, 0.9) * (b - a) + side * 10.0 ** rng.uniform(-6, -5)
+    elif kind == "needle":
+        c = b + rng.normal(size=3) * 10.0 ** rng.uniform(-8, -3)
+    elif kind == "collinear":
+        c = a + rng.uniform(-1.0, 2.0) * (b - a)
+    elif kind == "segment":
+        a, b, c = a, a, b
+    elif kind == "point":
+        b, c = a, a
+    else:
+        c = rng.normal(size=3)
+    return np.stack([a, b, c])
+
+
+_FAR_KINDS = ("sliver", "threshold", "needle", "collinear", "segment", "point", "random")
+
+
+@settings(max_examples=120, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    kinds=st.lists(st.sampled_from(_FAR_KINDS), min_size=1, max_size=16),
+    scale_exp=st.integers(-15, 15),
+    offset_exp=st.sampled_from([None, 0, 3, 6, 8]),
+    far_exp=st.one_of(st.floats(2.7, 20.0), st.floats(14.0, 20.0)),
+    copies=st.sampled_from(["none", "same", "rotated", "mirrored"]),
+    method=st.sampled_from(["hlbvh", "lbvh", "hlbvh_sah", "sweep_sah", "binned_sah", "median", "recursive_sah",
+                            "sbvh"]),
+)
+def test_far_walk_margin_on_adversarial_soups(device, seed, kinds, scale_exp, offset_exp, far_exp, copies, method):
+    """Slivers, needles, triangles at NORMAL_RECHECK's threshold and degenerate ones, of size 1e-15
+    to 1e15, up to 1e8 of their size from the origin (M >> L, where the coordinates' rounding
+    dominates the distance's), with duplicates (the same vertices, rotated, or a mirror image:
+    exact ties in float64), seen from 10^2.7 sizes (past the far walk's 256 extents on every axis)
+    to 1e20, along axes, diagonals and at random, every builder. The far walk's margin (FAR_LOW and
+    `far_slack`) must never skip a box that holds the unpruned float64 brute force's triangle
+    (`_float64_brute_force`: its minimum computed distance, the lowest id among equal ones); a
+    max_dist a float32 ulp above that distance finds the same triangle and two below finds none;
+    and in rational arithmetic the answer is a nearest triangle up to the rounding the margin
+    allows (64 units relative plus `far_slack`, twice over). Fails with FAR_LOW at 1 (no relative
+    margin: near-ties past 1e14 sizes) or at 1 + 1e-12; `far_slack` never binds on these soups."""
+    rng = np.random.default_rng(seed)
+    scale = 10.0**scale_exp
+    tris = np.stack([_adversarial_triangle(rng, kind) for kind in kinds])
+    if copies != "none":
+        k = int(rng.integers(len(tris)))
+        twin = tris[k][[1, 2, 0]] if copies == "rotated" else tris[k].copy()
+        if copies == "mirrored":
+            twin[:, 0] = -twin[:, 0]
+        tris = np.concatenate([tris, twin[None]])
+    tris = tris[rng.permutation(len(tris))] * scale
+    if offset_exp is not None:
+        direction = rng.normal(size=3)
+        tris = tris + direction / np.linalg.norm(direction) * scale * 10.0**offset_exp
+    verts = tris.reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    lo, hi = verts.astype(np.float64).min(0), verts.astype(np.float64).max(0)
+    # Far from the origin float32 may collapse the soup to a point: sizes are then its ulps.
+    size = max(float((hi - lo).max()), 4.0 * float(np.spacing(np.abs(verts).max())), 1e-30)
+    dirs = _far_directions(rng, 4)
+    if copies == "mirrored":
+        # On the mirror plane x = 0 both twins are exactly as far in float64: a tie for the lowest id.
+        dirs = np.concatenate([dirs, [[0.0, 0.6, 0.8], [0.0, -1.0, 0.0]]])
+    center = 0.5 * (lo + hi)
+    if copies == "mirrored" and offset_exp is None:
+        center[0] = 0.0
+    points = np.clip(center + 10.0**far_exp * size * dirs, -3.3e38, 3.3e38).astype(np.float32)
+    assert traversal_is_far(points, lo, hi).all()
+    _, distance, prim = hlbvh_warp.closest_point(bvh, points)
+    brute, d2 = _float64_brute_force(verts, faces, points)
+    assert np.array_equal(prim, brute), (np.nonzero(prim != brute)[0], prim, brute)
+    bound = np.sqrt(d2).astype(np.float32)
+    finite = np.isfinite(bound) & (bound > 0)
+    if finite.any():
+        up, down = np.nextafter(bound, np.float32(np.inf)), np.nextafter(np.nextafter(bound, 0), 0)
+        assert np.array_equal(hlbvh_warp.closest_point(bvh, points[finite], max_dist=up[finite])[2], brute[finite])
+        assert (hlbvh_warp.closest_point(bvh, points[finite], max_dist=down[finite])[2] == -1).all()
+    from fractions import Fraction
+
+    u = 2.0**-53
+    tri = verts[faces]
+    diagonal = float(np.linalg.norm(hi - lo))
+    tau = 2e-9 * diagonal + 8 * u * (np.sqrt(3.0) * np.abs(verts.astype(np.float64)).max() + diagonal)
+    for i, p in enumerate(points):
+        exact = [_exact_point_triangle_d2(p, *t) for t in tri]
+        best = min(exact)
+        reach = float(best) ** 0.5 + diagonal
+        allowed = best * Fraction(2 * 64 * u) + Fraction(2 * 4 * reach * tau)
+        assert exact[prim[i]] - best <= allowed, (i, float(exact[prim[i]] - best), float(allowed))
+
+
+def traversal_is_far(points, lo, hi):
+    """The points the far walk takes (`proximity.point_is_far`, in NumPy): farther outside the box
+    than FAR_POINT times its largest extent."""
+    p = points.astype(np.float64)
+    gap = np.maximum(lo - p, p - hi).max(axis=1)
+    return gap > 256.0 * (hi - lo).max()
