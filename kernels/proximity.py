@@ -264,17 +264,44 @@ def box_distance_sq64(p: wp.vec3, lower: wp.vec3, upper: wp.vec3):
     return total
 
 
-# A box is entered unless it is certainly farther than the best triangle. Its float32 squared
-# distance d is within a few ulps of the true one, so d (1 - 1e-6) is a lower bound; below 1.2e-38
-# the squares are subnormal and their ulp is absolute (2^-149 = 1.4e-45), which PRUNE_SLACK, seven
-# of those, covers. Where that bound and d (1 + 1e-6) straddle the best distance, float32 cannot
-# decide and the box distance is computed again in float64. A point far from the mesh needs that:
-# at 1e6 mesh sizes every box lies within float32's margin of the best triangle, and a search that
-# entered them all tested every triangle (3000x wp.Mesh's time at 1e9). A deferred node is popped
-# by its float32 distance alone (the stack keeps no box): such a node is entered, and its children
-# are measured again. Kept off the common path: a float64 stack and bound for every child cost
-# 5-15% of a near query. EXACT_LOW is that float64 test's margin on the near walk only; the far
-# walk (`packed_far_point_query`) has its own, FAR_LOW and `far_slack`, derived below.
+# A box is entered unless it is certainly farther than the best triangle plus `near_bound`'s
+# absolute slack. Its float32 squared distance d is within a few ulps of the true one, so d (1 - 1e-6)
+# is a lower bound; below 1.2e-38 the squares are subnormal and their ulp is absolute (2^-149 =
+# 1.4e-45), which PRUNE_SLACK, seven of those, covers. Where that bound and d (1 + 1e-6) straddle the
+# best distance, float32 cannot decide and the box distance is computed again in float64. A point
+# far from the mesh needs that: at 1e6 mesh sizes every box lies within float32's margin of the
+# best triangle, and a search that entered them all tested every triangle (3000x wp.Mesh's time at
+# 1e9). A deferred node is popped by its float32 distance alone (the stack keeps no box): such a
+# node is entered, and its children are measured again. Kept off the common path: a float64 stack
+# and bound for every child cost 5-15% of a near query. EXACT_LOW is that float64 test's relative
+# margin on the near walk only; the far walk (`packed_far_point_query`) has its own, FAR_LOW and
+# `far_slack`, derived below.
+# Why the near walk never skips the answer: the best triangle's float64 distance s.d2 is compared
+# with box distances through `near_bound`, s.d2 + 2 tau (tau + sqrt(s.d2)) (tau as in FAR_LOW's
+# step 2), in float64 (s.bound) and rounded to float32 (s.box_d2). A relative margin alone is not
+# enough: the computed d2c of a triangle T lies below its exact d^2 by up to about d tau, which is
+# most of d^2 for a point within a few tau of T. Seen on a triangle of size 1 whose top edge lies
+# near the origin (its far vertex makes p - a and the normal's terms round by 1e-16 of 1): a point
+# 1e-16 above the face, just inside that edge, got d2c = 8.2e-33 for an exact 2.5e-32 and a box
+# distance of 1.0e-32, and the walk, having found a triangle at 9.1e-33, pruned the box, while a leaf
+# holding both returned T (`test_near_walk_keeps_boxes_beyond_a_triangle_measured_short`). With
+# the slack: let T lie in a box B (as in FAR_LOW, some leaf's box holds T's point x at d, and so do
+# its ancestors'), with d2c(T) <= s.d2 =: b, the case that matters (a triangle nearer, or as near,
+# in float64 than the best so far). Step 2 gives (1 - 29u) d^2 - d tau <= b, so d <= (tau +
+# sqrt(b)) / (1 - 29u), and (1 - 29u) d^2 <= b + (1 + 30u) Y with Y = tau (tau + sqrt(b)). The
+# bound rounds down by at most 4 roundings, and tau by a few u: s.bound >= (1 - u) b + 1.9 Y. Then
+# - float64: box_distance_sq64 * EXACT_LOW, rounded, is at most (1 + u)^6 (1 - 1e-12) d^2, which is
+#   at most (1 - 0.99e-12) b + (1 + 31u) Y < s.bound: B is entered (<= keeps ties);
+# - float32: box_d2 = float32(s.bound) >= s.bound (1 - 2^-24) (or inf), and B's float32 distance
+#   exceeds its exact one, at most d^2 <= s.bound (1 + 62u), by at most a factor 1 + 3e-7 (five
+#   roundings; PRUNE_SLACK where subnormal): times PRUNE_MARGIN it is at most s.bound (1 - 6e-7) <
+#   box_d2, and B is not pruned (nor skipped when popped, by the same test).
+# So every box holding a triangle whose d2c is at most the best one's is entered, and the answer is
+# the float64 brute force's: the minimum d2c, the lowest id among equal ones (`offer`), whatever
+# the tree. The slack is 2 tau^2 at b = 0 (a point on the surface) and about 2 tau / sqrt(b) of b
+# beyond, tau about 2e-9 L where M is of the order of L: it exceeds the float32 test's 1e-6 only
+# within 0.4% of L from the surface (measured on the bunny, 1e5 points: the same answers, and
+# 1e-4 more nodes per point at 1e-7 to 1e-5 of L off the surface; on it and at 1e-3, none).
 PRUNE_MARGIN = wp.constant(1.0 - 1.0e-6)
 PRUNE_HIGH = wp.constant(1.0 + 1.0e-6)
 PRUNE_SLACK = wp.constant(1.0e-44)
@@ -333,47 +360,84 @@ ROUND_ABS = wp.constant(wp.float64(8.0 * 2.0**-53))
 
 
 @wp.func
-def far_slack(lower: wp.vec3, upper: wp.vec3, root_d2: wp.float64):
-    """The far walk's absolute margin, 4 R tau (see FAR_LOW): covers the errors of the triangle
-    distance that scale with the triangle's size and its coordinates rather than its distance,
-    for the root box ``lower``, ``upper`` at squared distance ``root_d2`` from the point."""
+def distance_tau(lower: wp.vec3, upper: wp.vec3):
+    """tau = TILT L + ROUND_ABS (sqrt(3) M + L) for the root box ``lower``, ``upper`` (diagonal L,
+    largest coordinate magnitude M): the absolute error, per unit of distance, of the triangle
+    distances computed under it (FAR_LOW's step 2)."""
     lo = wp.vec3d(lower)
     hi = wp.vec3d(upper)
     diagonal = wp.length(hi - lo)
     magnitude = wp.float64(0.0)
     for i in range(3):
         magnitude = wp.max(magnitude, wp.max(wp.abs(lo[i]), wp.abs(hi[i])))
+    return TILT * diagonal + ROUND_ABS * (wp.float64(1.7320508075688772) * magnitude + diagonal)
+
+
+@wp.func
+def far_slack(lower: wp.vec3, upper: wp.vec3, root_d2: wp.float64):
+    """The far walk's absolute margin, 4 R tau (see FAR_LOW): covers the errors of the triangle
+    distance that scale with the triangle's size and its coordinates rather than its distance,
+    for the root box ``lower``, ``upper`` at squared distance ``root_d2`` from the point."""
+    diagonal = wp.length(wp.vec3d(upper) - wp.vec3d(lower))
     reach = wp.sqrt(root_d2) + diagonal
-    tau = TILT * diagonal + ROUND_ABS * (wp.float64(1.7320508075688772) * magnitude + diagonal)
-    return wp.float64(4.0) * reach * tau
+    return wp.float64(4.0) * reach * distance_tau(lower, upper)
 
 
 @wp.struct
 class PointSearch:
-    """The best triangle so far: its squared distance in float64 (the comparisons) and in float32
-    (the box tests float32 can decide), and its primitive id."""
+    """The best triangle so far: its squared distance in float64 (the triangle comparisons), the
+    near walk's box bound (`near_bound`) in float64 and in float32 (the box tests float32 can
+    decide), the ``tau`` it is made with (0 on the far walk, which has its own) and the primitive
+    id."""
 
     best: TrianglePoint
     d2: wp.float64
+    bound: wp.float64
     box_d2: float
+    tau: wp.float64
     prim: int
 
 
 @wp.func
+def near_bound(d2: wp.float64, tau: wp.float64):
+    """d2 + 2 tau (tau + sqrt(d2)): the squared box distance up to which a box may hold a
+    triangle whose computed distance is at most d2 (see EXACT_LOW); d2 itself where tau is 0 or d2
+    infinite (no NaN from 0 * inf)."""
+    bound = d2
+    if tau > wp.float64(0.0) and d2 < wp.float64(INF):
+        bound = d2 + wp.float64(2.0) * tau * (tau + wp.sqrt(d2))
+    return bound
+
+
+@wp.func
 def start_search(max_dist: float):
-    """An empty `PointSearch` bounded by max_dist (squared, in float64 and in float32)."""
+    """An empty `PointSearch` bounded by max_dist (squared, in float64 and in float32), with no
+    slack (tau 0): the far walk's."""
     s = PointSearch()
     s.d2 = wp.float64(max_dist) * wp.float64(max_dist)
+    s.bound = s.d2
     s.box_d2 = max_dist * max_dist
     s.prim = -1
     return s
 
 
 @wp.func
+def start_near_search(max_dist: float, root_lower: wp.vec3, root_upper: wp.vec3):
+    """`start_search` for the near walk: its box bounds carry `near_bound`'s slack, with tau from
+    the root box."""
+    s = start_search(max_dist)
+    s.tau = distance_tau(root_lower, root_upper)
+    s.bound = near_bound(s.d2, s.tau)
+    s.box_d2 = float(s.bound)
+    return s
+
+
+@wp.func
 def box_may_hold(p: wp.vec3, lower: wp.vec3, upper: wp.vec3, d: float, best32: float, best: wp.float64):
-    """1 unless the box, whose float32 squared distance from p is d, is certainly farther than the
-    best triangle, at squared distance ``best`` (``best32`` in float32: a `PointSearch`'s ``d2``
-    and ``box_d2``): d decides where it can (the common case), else `box_distance_sq64`."""
+    """1 unless the box, whose float32 squared distance from p is d, is certainly farther than
+    ``best`` (``best32`` in float32: a `PointSearch`'s ``bound`` and ``box_d2``, the best triangle's
+    squared distance and `near_bound`'s slack): d decides where it can (the common case), else
+    `box_distance_sq64`."""
     if d * PRUNE_MARGIN > best32 + PRUNE_SLACK:
         return 0
     if d * PRUNE_HIGH + PRUNE_SLACK < best32:
@@ -388,7 +452,8 @@ def offer(s: PointSearch, tp: TrianglePoint, prim: int):
     if tp.d2 < s.d2 or (tp.d2 == s.d2 and (s.prim < 0 or prim < s.prim)):
         s.best = tp
         s.d2 = tp.d2
-        s.box_d2 = float(tp.d2)
+        s.bound = near_bound(tp.d2, s.tau)
+        s.box_d2 = float(s.bound)
         s.prim = prim
     return s
 
@@ -427,7 +492,7 @@ def packed_point_query(
     `PackedNode` position, or minus the primitive count for a leaf, and the traversal carries where
     the current node's primitive range begins. Each triangle reached is measured by
     `closest_point_on_triangle` (Ericson 2005, Sec. 5.1.5)."""
-    s = start_search(max_dist)
+    s = start_near_search(max_dist, root_lower, root_upper)
     visited = int(0)
     tested = int(0)
     stack = vec64i()
@@ -438,7 +503,7 @@ def packed_point_query(
     begin = int(0)
     active = int(0)
     if point_is_valid(p, max_dist) == 1:
-        if box_may_hold(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2, s.d2) == 1:
+        if box_may_hold(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2, s.bound) == 1:
             active = 1
             node = root
             begin = root_begin
@@ -470,8 +535,8 @@ def packed_point_query(
             prefetch_child(nodes, triangles, n.child_b, begin_b)
             da = box_distance_sq(p, n.lower_a, n.upper_a)
             db = box_distance_sq(p, n.lower_b, n.upper_b)
-            open_a = box_may_hold(p, n.lower_a, n.upper_a, da, s.box_d2, s.d2) == 1
-            open_b = box_may_hold(p, n.lower_b, n.upper_b, db, s.box_d2, s.d2) == 1
+            open_a = box_may_hold(p, n.lower_a, n.upper_a, da, s.box_d2, s.bound) == 1
+            open_b = box_may_hold(p, n.lower_b, n.upper_b, db, s.box_d2, s.bound) == 1
             if open_a and open_b:
                 # Visit the nearer child next, defer the farther one.
                 if da <= db:
@@ -629,7 +694,8 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
     if bvh.faces.shape[0] > 0 and point_is_valid(p, max_dist) == 1:
         root_lower = bvh.node_lowers[0]
         root_upper = bvh.node_uppers[0]
-        if box_may_hold(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2, s.d2) == 1:
+        s = start_near_search(max_dist, root_lower, root_upper)
+        if box_may_hold(p, root_lower, root_upper, box_distance_sq(p, root_lower, root_upper), s.box_d2, s.bound) == 1:
             node = 0
     while node >= 0:
         visited += 1
@@ -651,8 +717,8 @@ def canonical_point_query(bvh: BvhView, p: wp.vec3, max_dist: float):
             right_upper = bvh.node_uppers[right]
             dl = box_distance_sq(p, left_lower, left_upper)
             dr = box_distance_sq(p, right_lower, right_upper)
-            open_l = box_may_hold(p, left_lower, left_upper, dl, s.box_d2, s.d2) == 1
-            open_r = box_may_hold(p, right_lower, right_upper, dr, s.box_d2, s.d2) == 1
+            open_l = box_may_hold(p, left_lower, left_upper, dl, s.box_d2, s.bound) == 1
+            open_r = box_may_hold(p, right_lower, right_upper, dr, s.box_d2, s.bound) == 1
             node = int(-1)
             if open_l and open_r:
                 if dl <= dr:

@@ -506,7 +506,6 @@ def test_max_dist_between_float32_values_still_includes_its_triangle(device, rng
         assert hlbvh_warp.closest_point(bvh, p, max_dist=d * (1.0 - 1e-6))[2][0] == -1, (p, d)
 
 
-
 @pytest.mark.parametrize("sort_from", [16, 10**9])
 def test_one_max_dist_per_point(device, rng, monkeypatch, sort_from):
     """A bound per point, as a contact query with a thickness per particle asks: each bound rounds
@@ -532,7 +531,6 @@ def test_one_max_dist_per_point(device, rng, monkeypatch, sort_from):
     found_ref = exact <= one * (1 - 1e-6)
     assert np.array_equal(prim[found_ref], nearest[found_ref])
     assert (prim[exact > one * (1 + 1e-6)] == -1).all()
-
 
 
 @wp.kernel
@@ -1581,3 +1579,109 @@ def traversal_is_far(points, lo, hi):
     p = points.astype(np.float64)
     gap = np.maximum(lo - p, p - hi).max(axis=1)
     return gap > 256.0 * (hi - lo).max()
+
+
+# ------------------------------------------- the near walk's slack: distances measured short
+#: A triangle of size 1 sloping down (1e-3) away from its top edge, which lies near the origin
+#: (id 1), and a small level triangle just above that edge (id 0); the point is 1e-16 above the
+#: sloping face, a few 1e-15 inside the edge. The far vertex makes p - a and the normal's terms
+#: round by about 1e-16 of 1, a third of the point's distance: the computed squared distance of
+#: triangle 1 is 8.2e-33 for an exact 2.5e-32, below its own box distance, 1.0e-32, and below
+#: triangle 0's, 9.1e-33 (exact in float64: its plane is level).
+SHORT_TRIANGLES = np.array([[-0.000127545, -6.955804e-05, 4.7928995e-18],
+                            [-0.00012554502, -6.955804e-05, 4.7928995e-18],
+                            [-0.00012654501, -6.755804e-05, 4.7928995e-18],
+                            [-0.076035984, -0.99710506, -0.0031956849],
+                            [3.9988125e-05, 2.6030966e-05, 0.0],
+                            [-0.00029307368, -0.0001631445, 0.0]], np.float32)
+SHORT_POINT = np.array([[-0.00012654501, -6.855804e-05, 1e-16]], np.float32)
+
+
+@pytest.mark.parametrize("max_leaf_size", [1, 2])
+def test_near_walk_keeps_boxes_beyond_a_triangle_measured_short(device, max_leaf_size):
+    """The float64 brute force's answer, whatever the tree. Triangle 1's computed distance lies
+    below its box's by 18% (the error of `closest_point_on_triangle` is absolute, about d tau: see
+    EXACT_LOW): the walk, with a relative margin alone, found triangle 0 first and pruned the
+    box of triangle 1, so trees with one triangle per leaf answered 0 and those with both in one
+    leaf 1. `near_bound`'s slack enters that box."""
+    faces = np.array([[0, 1, 2], [3, 4, 5]], np.int32)
+    tri = SHORT_TRIANGLES[faces]
+    # The premise, in rational arithmetic: triangle 1 is measured below its box distance, and
+    # its computed distance is the least.
+    brute, d2 = _float64_brute_force(SHORT_TRIANGLES, faces, SHORT_POINT)
+    assert brute.tolist() == [1]
+    from fractions import Fraction
+
+    p = [Fraction(float(x)) for x in SHORT_POINT[0]]
+    lo, hi = tri[1].min(0), tri[1].max(0)
+    box = sum(max(Fraction(float(lo[i])) - p[i], p[i] - Fraction(float(hi[i])), Fraction(0)) ** 2 for i in range(3))
+    assert Fraction(float(d2[0])) < box / Fraction(1.1)
+    exact = [_exact_point_triangle_d2(SHORT_POINT[0], *t) for t in tri]
+    assert exact[1] > box > exact[0]  # triangle 0 is the nearer one in exact terms
+    config = BuildConfig(max_leaf_size=max_leaf_size)
+    for method in METHODS:
+        bvh = hlbvh_warp.build(SHORT_TRIANGLES, faces=faces, method=method, device=device, config=config)
+        assert hlbvh_warp.closest_point(bvh, SHORT_POINT)[2].tolist() == [1], method
+        assert run_user_kernel(canonical_view(bvh), SHORT_POINT, np.inf, device)[2].tolist() == [1], method
+    mesh = trimesh.Trimesh(SHORT_TRIANGLES.astype(np.float64), faces, process=False)
+    assert hlbvh_warp.ProximityQuery(mesh, device=device).on_surface(SHORT_POINT)[2].tolist() == [1]
+
+
+def _just_inside(tri, reach=200):
+    """The float32 (x, y) nearest to the top edge tri[1] tri[2] of a triangle's xy shadow on its
+    inner side, among the float32 grid around the edge's midpoint (reach steps each way): the
+    distance from the edge is linear in the grid steps, so each x step gets its best y step."""
+    b, c = tri[1], tri[2]
+    bc = c - b
+    length = float(np.hypot(bc[0], bc[1]))
+    side = np.sign((tri[0, 0] - b[0]) * bc[1] - (tri[0, 1] - b[1]) * bc[0])
+    mid = (0.5 * (b + c)).astype(np.float32)
+    step = np.spacing(np.abs(mid[:2]))
+    i = np.arange(-reach, reach + 1)
+    x = mid[0] + i * step[0]
+
+    def offset(x, y):
+        return side * ((x - b[0]) * bc[1] - (y - b[1]) * bc[0]) / length
+
+    per_y = offset(0.0, step[1]) - offset(0.0, 0.0)
+    j = np.ceil(-offset(x, mid[1]) / per_y) if per_y > 0 else np.floor(-offset(x, mid[1]) / per_y)
+    y = mid[1] + j * step[1]
+    s = offset(x, y)
+    k = int(np.argmin(np.where(s > 0, s, np.inf)))
+    return np.float32(x[k]), np.float32(y[k])
+
+
+@settings(max_examples=30, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), slope=st.floats(-4.0, -1.0), edge=st.floats(-5.0, -2.0),
+       height=st.floats(-18.0, -13.0), method=st.sampled_from(["hlbvh", "sweep_sah", "median"]))
+def test_near_walk_matches_the_brute_force_on_slivers_measured_short(device, seed, slope, edge, height, method):
+    """Triangles like `SHORT_TRIANGLES`' (size 1, slope 10^slope, the top edge 10^edge long at the
+    origin), each with a level sliver just above its top edge, and points 10^height above the
+    face just inside that edge, at the float32 points nearest to it: the walk (one triangle per
+    leaf, so that every box is a chance to prune) answers the float64 brute force's triangle.
+    (About one point in thirty has the distance of its sloping triangle measured below the level
+    sliver's and its own box's, the case `near_bound` covers.)"""
+    rng = np.random.default_rng(seed)
+    rows, points = [], []
+    for _ in range(6):
+        size = 10.0**edge
+        b, c = size * rng.normal(size=3), size * rng.normal(size=3)
+        b[2] = c[2] = 0.0
+        far = rng.normal(size=3)
+        far *= 1.0 / np.linalg.norm(far[:2])
+        side = np.cross(c - b, [0.0, 0.0, 1.0])
+        far[2] = -(10.0**slope) * abs(np.dot(far - b, side / np.linalg.norm(side)))
+        top = np.float32([far, b, c]).astype(np.float64)
+        p = np.float32([*_just_inside(top), 10.0**height])
+        gap = np.float32(10.0**height * rng.uniform(0.05, 0.95))
+        h = np.float32(1e-3 * size)
+        level = np.float32([[p[0] - h, p[1] - h, gap], [p[0] + h, p[1] - h, gap], [p[0], p[1] + h, gap]])
+        rows += [level, top]
+        points.append(p)
+    verts = np.concatenate(rows).astype(np.float32)
+    faces = np.arange(len(verts), dtype=np.int32).reshape(-1, 3)
+    points = np.array(points, np.float32)
+    bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
+    brute, _ = _float64_brute_force(verts, faces, points)
+    assert np.array_equal(hlbvh_warp.closest_point(bvh, points)[2], brute)
