@@ -1212,6 +1212,18 @@ def _far_directions(rng, n=16):
     return dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
+def _far_node_counts(bvh, center, size, dirs, distances):
+    """Mean nodes visited per point by the points ``distance * size`` from ``center`` along
+    ``dirs``, for each distance; every point must find a triangle."""
+    nodes = {}
+    for distance in distances:
+        points = (center + distance * size * dirs).astype(np.float32)
+        _, _, prim, stats = hlbvh_warp.closest_point(bvh, points, stats=True)
+        assert (prim >= 0).all()
+        nodes[distance] = stats.nodes_visited.mean()
+    return nodes
+
+
 @pytest.mark.parametrize("method", ["hlbvh", "sweep_sah", "sbvh"])
 def test_far_points_visit_as_many_nodes_as_points_a_thousand_sizes_away(device, rng, method):
     """From afar the search stays as selective as from 1e3 mesh sizes: the same directions at 1e5,
@@ -1222,13 +1234,7 @@ def test_far_points_visit_as_many_nodes_as_points_a_thousand_sizes_away(device, 
     (`proximity.packed_far_point_query`)."""
     verts, faces, center, size = _ball_and_box()
     bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
-    dirs = _far_directions(rng)
-    nodes = {}
-    for distance in (1e3, 1e5, 1e7, 1e9):
-        points = (center + distance * size * dirs).astype(np.float32)
-        closest, dist, prim, stats = hlbvh_warp.closest_point(bvh, points, stats=True)
-        assert (prim >= 0).all()
-        nodes[distance] = stats.nodes_visited.mean()
+    nodes = _far_node_counts(bvh, center, size, _far_directions(rng), (1e3, 1e5, 1e7, 1e9))
     for distance in (1e5, 1e7, 1e9):
         assert nodes[distance] <= 1.1 * nodes[1e3], nodes
 
@@ -1424,22 +1430,14 @@ def test_far_walk_stays_selective_to_1e13_sizes(device, rng):
     dirs = _far_directions(rng)
     for method in ("hlbvh", "sweep_sah", "sbvh"):
         bvh = hlbvh_warp.build(verts, faces=faces, method=method, device=device)
-        nodes = {}
-        for distance in (1e3, 1e11, 1e12, 1e13):
-            points = (center + distance * size * dirs).astype(np.float32)
-            _, _, prim, stats = hlbvh_warp.closest_point(bvh, points, stats=True)
-            assert (prim >= 0).all()
-            nodes[distance] = stats.nodes_visited.mean()
+        nodes = _far_node_counts(bvh, center, size, dirs, (1e3, 1e11, 1e12, 1e13))
         assert nodes[1e11] <= 1.1 * nodes[1e3] and nodes[1e12] <= 1.5 * nodes[1e3], (method, nodes)
         assert nodes[1e13] <= 4.0 * nodes[1e3], (method, nodes)
     mesh = shared_mesh("bunny")
     verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
     bvh = hlbvh_warp.build(verts, faces=faces, device=device)
     lo, hi = verts.astype(np.float64).min(0), verts.astype(np.float64).max(0)
-    nodes = {}
-    for distance in (1e3, 1e12):
-        points = (0.5 * (lo + hi) + distance * float((hi - lo).max()) * dirs).astype(np.float32)
-        nodes[distance] = hlbvh_warp.closest_point(bvh, points, stats=True)[3].nodes_visited.mean()
+    nodes = _far_node_counts(bvh, 0.5 * (lo + hi), float((hi - lo).max()), dirs, (1e3, 1e12))
     assert nodes[1e12] <= 2.5 * nodes[1e3], nodes
 
 
