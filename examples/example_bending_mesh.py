@@ -16,7 +16,6 @@ from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, non_negative_float, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, BendingMesh
-from hlbvh_warp.demo import frame_table_legend
 from hlbvh_warp.render import VIEWS, Camera
 from hlbvh_warp.scenes import scene
 
@@ -104,7 +103,7 @@ def main(argv=None):
             example.step()
             example.render()
         print(example.animation.table())
-        print(frame_table_legend(example.animation))
+        print(example.animation.legend())
         for path in example.save(args.out):
             print(f"wrote {path}")
 

@@ -14,7 +14,6 @@ from hlbvh_warp.cli import HelpFormatter
 from hlbvh_warp.cli import (argument_errors, check_animation_pixels, check_out_folder, device_name, image_side,
                             mesh_file, positive_int, read_mesh, scene_tris)
 from hlbvh_warp.dynamic import Animation, ExplodingMesh
-from hlbvh_warp.demo import frame_table_legend
 from hlbvh_warp.render import VIEWS, Camera
 from hlbvh_warp.scenes import scene
 
@@ -80,7 +79,7 @@ def main(argv=None):
             example.step()
             example.render()
         print(example.animation.table())
-        print(frame_table_legend(example.animation))
+        print(example.animation.legend())
         for path in example.save(args.out):
             print(f"wrote {path}")
 

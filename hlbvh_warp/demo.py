@@ -60,32 +60,6 @@ def rays_at(vertices, count: int):
     return origins.astype(np.float32), (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
 
-def frame_table_legend(animation) -> str:
-    """The line printed under `Animation.table()`, saying what its terms mean (those it shows).
-
-    "sampled M/N" is the fraction of a resorting `Builder`'s sample (``resort_samples`` evenly
-    spaced adjacent pairs in the last frame's tree order, their Morton codes computed from this
-    frame's boxes) whose codes differ in their high 3m bits: an estimate of M / N, the runs per
-    primitive of the run-length encoding that HLBVH's compress step would get from that order
-    (Pantaleoni & Luebke 2010, sections 2.2 and 3.1). Past ``BuildConfig.global_sort_runs``, unless
-    no sampled pair descends, the frame is fed in the faces' order (`Builder._resorting_pays`)."""
-    rows = animation.rows
-    parts = ["ms: the Builder's update of the frame"]
-    if any("sah_ratio" in r for r in rows):
-        parts.append("rebuild ms, SAH / rebuild SAH: a tree rebuilt from scratch on the same frame, its time and "
-                     "this tree's SAH cost over its")
-    inputs = " ".join(r.get("input", "") for r in rows)
-    if "resorted" in inputs or "face order" in inputs:
-        parts.append("resorted: fed in the last frame's tree order; face order: in the order the faces are listed")
-    if "sampled M/N" in inputs:
-        builder = animation.builder
-        parts.append(f"sampled M/N: of {builder.resort_samples} evenly spaced adjacent pairs in the last tree's "
-                     "order, the fraction whose Morton codes differ in their high 3m bits, an estimate of the runs "
-                     "per primitive that order gives HLBVH's compress step; past "
-                     f"{builder.config.global_sort_runs:g} (global_sort_runs) the faces' order is fed instead")
-    return "; ".join(parts)
-
-
 def animation_reach(vertices, num_frames: int) -> float:
     """An upper bound on every value the exploding-mesh animation computes over ``num_frames``
     frames, in float64: what must fit in float32 for its vertices to stay finite.
@@ -204,7 +178,7 @@ def main(argv=None) -> int:
             animation.step()
             animation.render()
         print(animation.table())
-        print(frame_table_legend(animation))
+        print(animation.legend())
         paths = animation.save(args.out, "exploding_mesh")
         paths.append(plot_frames(animation.rows, os.path.join(args.out, "exploding_frame_ms.png")))
         for path in paths:
