@@ -333,29 +333,35 @@ def _check_parts_covered(lo, hi, leaf, begin, end, order, triangles, prim_lo, pr
     """A spatial-split tree's leaves bound parts of triangles (Stich et al. 2009), so no single leaf
     need hold a split triangle's box; what a ray needs is every point of the triangle inside some
     leaf that lists it. A triangle listed once was never cut: its leaf holds its whole box. A
-    split one is checked at ten points. Both with a few float32 ulps of slack for the clipped
-    parts' rounding; the points are a sample, not a proof, that still names a leaf box shrunk or
-    moved off its triangles."""
+    split one is checked at ten points; the points are a sample, not a proof, that still names a
+    leaf box shrunk or moved off its triangles.
+
+    Both checks are exact, with no slack: the builder rounds every clipped part's box outward (by
+    a float32 unit and the clip's own error, ``kernels/spatial_split.py``), and a once-listed
+    triangle's leaf box is the minimum and maximum of float32 vertices. A slack of a few float32
+    units of the triangle's largest coordinate, as this check once allowed, let a crafted file
+    whose leaf and ancestor boxes stopped short of a thin triangle (half its height, for one
+    2000 wide and 0.001 high) load, and rays through the part left out missed it."""
     leaves = np.nonzero(leaf)[0]
     leaves = leaves[np.argsort(begin[leaves], kind="stable")]
     leaf_of = np.repeat(leaves, (end - begin)[leaves])
     split = np.bincount(order, minlength=triangles.shape[0])[order] > 1
-    eps = np.float32(4.0 * np.finfo(np.float32).eps)
     # The triangles listed once, by their boxes (float32, as the boxes are).
     whole, at = order[~split], leaf_of[~split]
-    p_lo, p_hi = prim_lo[whole], prim_hi[whole]
-    slack = eps * np.maximum(np.abs(p_lo), np.abs(p_hi)).max(axis=1, keepdims=True)
-    outside = ((p_lo < lo[at] - slack) | (p_hi > hi[at] + slack)).any(axis=1)
+    outside = ((prim_lo[whole] < lo[at]) | (prim_hi[whole] > hi[at])).any(axis=1)
     if outside.any():
         raise ValueError(f"triangle {int(whole[np.argmax(outside)])}, in one leaf only, is not inside that leaf's box")
-    # The split ones, point by point in float64.
+    # The split ones, point by point in float64. A point is clamped to its triangle's box, where
+    # the exact point lies: weights that sum to 1 only in rounding (a third of each of three equal
+    # z) may put it a float64 unit outside that box, whose bound a part's box may share (the
+    # builder clamps each part to the box it was cut from).
     parts, at = order[split], leaf_of[split]
     tri = triangles[parts].astype(np.float64)
-    slack = float(eps) * np.abs(tri).max(axis=(1, 2))[:, None]
-    box_lo, box_hi = lo[at] - slack, hi[at] + slack
+    tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
+    box_lo, box_hi = lo[at].astype(np.float64), hi[at].astype(np.float64)
     listed = np.bincount(parts, minlength=triangles.shape[0]) > 0
     for w in _SAMPLE_WEIGHTS:
-        point = w[0] * tri[:, 0] + w[1] * tri[:, 1] + w[2] * tri[:, 2]
+        point = np.clip(w[0] * tri[:, 0] + w[1] * tri[:, 1] + w[2] * tri[:, 2], tri_lo, tri_hi)
         inside = ((point >= box_lo) & (point <= box_hi)).all(axis=1)
         missed = listed & ~(np.bincount(parts, weights=inside, minlength=triangles.shape[0]) > 0)
         if missed.any():

@@ -1,0 +1,83 @@
+"""Adversarial cases of wide trees and of saved trees: crafted files that must be refused, and
+every builder's tree answering as the brute force does, collapsed or saved and loaded."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+
+import numpy as np
+import pytest
+from oracles import brute_force_closest_hit
+
+import hlbvh_warp as hb
+from hlbvh_warp.config import BuildConfig
+
+
+def _sbvh_file(vertices, faces, order, left, right, begin, end, lowers, uppers) -> io.BytesIO:
+    """A hand-made spatial-split tree (``prim_order`` lists a triangle twice) in `save_bvh`'s format."""
+    left, right = np.asarray(left, np.int32), np.asarray(right, np.int32)
+    parent = np.full(len(left), -1, np.int32)
+    for node in np.nonzero(left >= 0)[0]:
+        parent[left[node]] = parent[right[node]] = node
+    meta = {"format": "hlbvh_warp.bvh", "version": 1, "method": "sbvh", "num_prims": len(faces),
+            "config": dataclasses.asdict(BuildConfig())}
+    file = io.BytesIO()
+    np.savez(file, node_left=left, node_right=right, node_parent=parent, node_begin=np.int32(begin),
+             node_end=np.int32(end), node_lowers=np.float32(lowers), node_uppers=np.float32(uppers),
+             prim_order=np.int32(order), vertices=np.float32(vertices), faces=np.int32(faces),
+             meta=np.array(json.dumps(meta)))
+    file.seek(0)
+    return file
+
+
+# A thin triangle, 2000 wide and 0.001 high in z (standing in the plane y = 0), and a small one
+# far off; one of them is listed twice, which makes the file a spatial-split tree.
+_THIN = np.array([[-1000, 0, 0], [1000, 0, 0], [0, 0, 1e-3], [5000, 0, 0], [5001, 0, 0], [5000, 1, 0]], np.float32)
+_THIN_FACES = np.array([[0, 1, 2], [3, 4, 5]], np.int32)
+_SHORT = 6e-4  # where the crafted boxes stop, 40% below the thin triangle's apex
+
+
+def _thin_triangle_files():
+    """(what, file) pairs whose leaf boxes, and every ancestor's, stop at z = 0.0006 below the
+    thin triangle's apex: the once-listed triangle's leaf, or both leaves of a triangle split at
+    x = 0. Each loaded when the check allowed a slack of 4 float32 units of a triangle's largest
+    coordinate (here 4.8e-4, from x = 1000), and rays through the top of the triangle missed."""
+    far_lo, far_hi = [5000, 0, 0], [5001, 1, 0]
+    once = _sbvh_file(_THIN, _THIN_FACES, [0, 1, 1], [1, -1, -1], [2, -1, -1], [0, 0, 1], [3, 1, 3],
+                      [[-1000, 0, 0], [-1000, 0, 0], far_lo], [[5001, 1, _SHORT], [1000, 0, _SHORT], far_hi])
+    split = _sbvh_file(_THIN, _THIN_FACES, [0, 0, 1], [1, 3, -1, -1, -1], [2, 4, -1, -1, -1], [0, 0, 2, 0, 1],
+                       [3, 2, 3, 1, 2],
+                       [[-1000, 0, 0], [-1000, 0, 0], far_lo, [-1000, 0, 0], [0, 0, 0]],
+                       [[5001, 1, _SHORT], [1000, 0, _SHORT], far_hi, [0, 0, _SHORT], [1000, 0, _SHORT]])
+    return [("in one leaf only", once), ("in none of the leaves that list it", split)]
+
+
+@pytest.mark.parametrize("case", [0, 1])
+def test_a_spatial_split_file_a_few_units_short_of_its_triangles_is_refused(device, case):
+    words, file = _thin_triangle_files()[case]
+    # Rays across the top of the thin triangle, above the crafted boxes: the brute force hits it.
+    o = np.array([[x, -1.0, z] for x in (-50.0, 10.0, 50.0) for z in (6.5e-4, 9e-4)], np.float32)
+    d = np.tile(np.float32([0, 1, 0]), (len(o), 1))
+    t_ref, prim_ref = brute_force_closest_hit(_THIN, _THIN_FACES, o, d)
+    assert (prim_ref == 0).all() and np.allclose(t_ref, 1.0)
+    with pytest.raises(ValueError, match=words):
+        hb.load_bvh(file, device=device)
+
+
+def test_a_built_tree_over_the_thin_triangles_loads_and_answers_right(device):
+    # The exact check still takes what the builder writes: its parts' boxes are rounded outward.
+    verts = np.concatenate([_THIN, _THIN + np.float32([0, 0, 1e-3])])
+    faces = np.concatenate([_THIN_FACES, _THIN_FACES + 6])
+    bvh = hb.build(verts, faces, method="sbvh", device=device, config=BuildConfig(sbvh_alpha=0.0))
+    file = io.BytesIO()
+    hb.save_bvh(bvh, file)
+    file.seek(0)
+    loaded = hb.load_bvh(file, device=device)
+    o = np.array([[x, -1.0, z] for x in (-50.0, 10.0, 50.0) for z in (6.5e-4, 9e-4)], np.float32)
+    d = np.tile(np.float32([0, 1, 0]), (len(o), 1))
+    t_ref, prim_ref = brute_force_closest_hit(verts, faces, o, d)
+    t, prim = hb.intersect(loaded, o, d)
+    np.testing.assert_array_equal(prim, prim_ref)
+    np.testing.assert_allclose(t, t_ref, rtol=1e-6)
