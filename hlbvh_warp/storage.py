@@ -264,7 +264,8 @@ def check_tree(tree: dict, num_prims: int, duplicates: bool, triangles: np.ndarr
     BVH over ``num_prims`` primitives: the conditions every traversal kernel relies on.
 
     ``duplicates``: ``prim_order`` may list a primitive more than once (a spatial-split tree),
-    whose leaf boxes bound parts of primitives, not their whole boxes.
+    whose leaf boxes bound parts of ``triangles`` (their vertices, ``(num_prims, 3, 3)``), not
+    their whole boxes; without ``triangles`` every leaf must hold its primitives' whole boxes.
     """
     left, right, parent = tree["node_left"], tree["node_right"], tree["node_parent"]
     begin, end, order = tree["node_begin"], tree["node_end"], tree["prim_order"]
@@ -311,7 +312,9 @@ def check_tree(tree: dict, num_prims: int, duplicates: bool, triangles: np.ndarr
     for kids in (kids_l, kids_r):
         if (lo[kids] < lo[interior]).any() or (hi[kids] > hi[interior]).any():
             raise ValueError("a child's box is not inside its parent's")
-    if not duplicates:
+    if not duplicates or triangles is None:
+        # A tree over bare boxes has no triangle for a spatial split to cut, so a primitive listed
+        # twice there stands for its whole box each time, as in any object split.
         # The leaf holding each position of prim_order: the leaves' ranges in order of their begin.
         leaves = np.nonzero(leaf)[0]
         leaves = leaves[np.argsort(begin[leaves], kind="stable")]

@@ -81,3 +81,30 @@ def test_a_built_tree_over_the_thin_triangles_loads_and_answers_right(device):
     t, prim = hb.intersect(loaded, o, d)
     np.testing.assert_array_equal(prim, prim_ref)
     np.testing.assert_allclose(t, t_ref, rtol=1e-6)
+
+
+def _box_tree_file(leaf_lowers, leaf_uppers) -> io.BytesIO:
+    """A tree over two bare boxes, the first listed twice (one leaf lists it twice, the other once
+    beside the second box), its leaves' boxes as given and the root's the union of theirs."""
+    lo = np.float32([[0, 0, 0], [5, 5, 5]])
+    leaf_lowers, leaf_uppers = np.float32(leaf_lowers), np.float32(leaf_uppers)
+    meta = {"format": "hlbvh_warp.bvh", "version": 1, "method": "binned_sah", "num_prims": 2,
+            "config": dataclasses.asdict(BuildConfig())}
+    file = io.BytesIO()
+    np.savez(file, node_left=np.int32([1, -1, -1]), node_right=np.int32([2, -1, -1]),
+             node_parent=np.int32([-1, 0, 0]), node_begin=np.int32([0, 0, 2]), node_end=np.int32([4, 2, 4]),
+             node_lowers=np.concatenate([leaf_lowers.min(axis=0, keepdims=True), leaf_lowers]),
+             node_uppers=np.concatenate([leaf_uppers.max(axis=0, keepdims=True), leaf_uppers]),
+             prim_order=np.int32([0, 0, 0, 1]), prim_lowers=lo, prim_uppers=lo + 1, meta=np.array(json.dumps(meta)))
+    file.seek(0)
+    return file
+
+
+def test_a_box_tree_listing_a_box_twice_has_its_leaves_checked(device):
+    # No triangle to cut, so nothing but whole boxes for the leaves to bound: a file whose leaf
+    # box was a point far from the box it lists loaded unchecked (only spatial-split trees over
+    # triangles were exempt from the whole-box check, and they are checked point by point).
+    good = hb.load_bvh(_box_tree_file([[0, 0, 0], [0, 0, 0]], [[1, 1, 1], [6, 6, 6]]), device=device)
+    assert good.num_refs == 4
+    with pytest.raises(ValueError, match="a primitive's box is not inside its leaf's"):
+        hb.load_bvh(_box_tree_file([[5, 5, 5], [0, 0, 0]], [[5, 5, 5], [6, 6, 6]]), device=device)
