@@ -24,6 +24,7 @@ import reprlib
 import stat
 import sys
 import threading
+import zipfile
 
 import numpy as np
 import warp as wp
@@ -184,6 +185,7 @@ def load(path, device=None) -> Bvh:
                     source = io.BytesIO(head + file.read())
         if head != b"PK\x03\x04":
             raise ValueError("not a saved BVH (not an .npz archive)")
+        _check_member_sizes(source)
         with np.load(source, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
     except FileNotFoundError:
@@ -203,6 +205,32 @@ def load(path, device=None) -> Bvh:
         return _from_arrays(arrays, device)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
+
+
+def _check_member_sizes(source) -> None:
+    """Raise a ValueError naming the first ``.npy`` member of the archive whose header declares more
+    data than the member holds. NumPy allocates the array its header declares before reading any
+    data, so a few hundred bytes declaring 2**44 entries raised MemoryError ("unable to allocate
+    64 TiB"), the error of a machine short of memory, not of a damaged file."""
+    with zipfile.ZipFile(os.fsdecode(source) if isinstance(source, bytes) else source) as archive:
+        for info in archive.infolist():
+            if not info.filename.endswith(".npy"):
+                continue
+            with archive.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                read = {(1, 0): np.lib.format.read_array_header_1_0,
+                        (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                if read is None:
+                    continue  # a layout np.load reads, or names as one it does not
+                shape, _, dtype = read(member)
+                declared = dtype.itemsize
+                for extent in shape:
+                    declared *= int(extent)
+                held = info.file_size - member.tell()
+            if declared > held:
+                raise ValueError(f"its member {info.filename} declares {declared} bytes of data and holds {held}")
+    if isinstance(source, io.BytesIO):
+        source.seek(0)
 
 
 def _meta(arrays: dict) -> dict:

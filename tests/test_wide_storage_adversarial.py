@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import zipfile
 
 import numpy as np
 import pytest
@@ -108,3 +109,31 @@ def test_a_box_tree_listing_a_box_twice_has_its_leaves_checked(device):
     assert good.num_refs == 4
     with pytest.raises(ValueError, match="a primitive's box is not inside its leaf's"):
         hb.load_bvh(_box_tree_file([[5, 5, 5], [0, 0, 0]], [[5, 5, 5], [6, 6, 6]]), device=device)
+
+
+def _archive(members: dict) -> io.BytesIO:
+    """A zip archive of these raw members (name -> bytes), as a hand-made or damaged .npz."""
+    file = io.BytesIO()
+    with zipfile.ZipFile(file, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    file.seek(0)
+    return file
+
+
+def _npy_header(shape) -> bytes:
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<i4", "fortran_order": False, "shape": shape})
+    return header.getvalue()
+
+
+def test_a_member_declaring_more_data_than_it_holds_is_refused_by_name():
+    # NumPy allocates what a header declares before reading: 2**44 int32 entries (64 TiB) in a
+    # file of a few hundred bytes raised MemoryError, as if the machine were short of memory.
+    bomb = _archive({"node_left.npy": _npy_header((2**44,)) + bytes(64)})
+    with pytest.raises(ValueError, match="not a saved BVH .*node_left.npy declares 70368744177664 bytes"):
+        hb.load_bvh(bomb)
+    # One declaring no more than it holds reaches the checks of the arrays as before.
+    whole = _archive({"node_left.npy": _npy_header((16,)) + bytes(64)})
+    with pytest.raises(ValueError, match="no meta record"):
+        hb.load_bvh(whole)
