@@ -188,6 +188,11 @@ def load(path, device=None) -> Bvh:
         _check_member_sizes(source)
         with np.load(source, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
+        # NumPy hands a member whose name lacks ".npy" back as its raw bytes, which the checks of
+        # the arrays below met with an AttributeError.
+        raw = next((name for name, value in arrays.items() if not isinstance(value, np.ndarray)), None)
+        if raw is not None:
+            raise ValueError(f"its member {raw!r} is not a NumPy array")
     except FileNotFoundError:
         raise
     except ValueError as error:

@@ -137,3 +137,10 @@ def test_a_member_declaring_more_data_than_it_holds_is_refused_by_name():
     whole = _archive({"node_left.npy": _npy_header((16,)) + bytes(64)})
     with pytest.raises(ValueError, match="no meta record"):
         hb.load_bvh(whole)
+
+
+def test_a_member_that_is_no_npy_array_is_refused_by_name():
+    # np.load gives a member named without ".npy" as its raw bytes: an AttributeError came out.
+    raw = _archive({"meta": b"{}", "node_left": bytes(16)})
+    with pytest.raises(ValueError, match="not a saved BVH \\(its member 'meta' is not a NumPy array\\)"):
+        hb.load_bvh(raw)
