@@ -1,0 +1,86 @@
+"""The public calls as users misuse them and as ray tracers stress them, against float64 oracles."""
+
+import numpy as np
+import trimesh
+import warp as wp
+
+import hlbvh_warp
+from hlbvh_warp import query
+
+from oracles import numpy_all_hits
+
+
+def _big_sphere(subdivisions=2):
+    """An icosphere of radius 1.7 * 2^127 (2.9e38): every coordinate a finite float32, but a box
+    coordinate minus an origin on the far side of the sphere is past float32's range."""
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
+    vertices = (np.asarray(mesh.vertices, np.float64) * 1.7 * 2.0**127).astype(np.float32)
+    return vertices, np.asarray(mesh.faces, np.int32)
+
+
+@wp.kernel
+def _canonical_closest_hit_kernel(view: hlbvh_warp.BvhView, origins: wp.array(dtype=wp.vec3),
+                                  directions: wp.array(dtype=wp.vec3), prims: wp.array(dtype=wp.int32)):
+    tid = wp.tid()
+    prims[tid] = hlbvh_warp.bvh_closest_hit(view, origins[tid], directions[tid], 1.0e30).prim
+
+
+def test_rays_across_a_mesh_spanning_float32_do_not_leak(device, rng):
+    """A box coordinate minus the origin past float32's range (a sphere of radius 2.9e38, rays from
+    inside it near one side to the other) overflowed the slab distances of the box test to
+    infinity: the walk dropped every box on the far side, and 499 of 500 rays from inside the
+    closed sphere escaped, though the triangle test (which shears in float64 there) hits them.
+    Every ray from inside must hit, each query must agree with the float64 brute force."""
+    vertices, faces = _big_sphere()
+    scale = 1.7 * 2.0**127
+    bvh = hlbvh_warp.build(vertices, faces, device=device)
+    n = 64
+    origins = (np.c_[rng.uniform(-0.9, -0.7, n), rng.uniform(-0.2, 0.2, (n, 2))] * scale).astype(np.float32)
+    # Long directions: the hits lie at t of about 1, not past float32 as for unit ones.
+    directions = (np.c_[np.ones(n), rng.uniform(-0.4, 0.4, (n, 2))] * 2.0**120).astype(np.float32)
+    hit, t_ref, margin = numpy_all_hits(vertices, faces, origins, directions, np.inf)
+    clear = hit & (margin > 1e-4)
+    assert clear.any(axis=1).all()  # the oracle: every ray crosses the sphere away from its edges
+    best = np.where(hit, t_ref, np.inf).min(axis=1)
+
+    t, prim = query.intersect(bvh, origins, directions)
+    assert (prim >= 0).all(), f"{int((prim < 0).sum())} of {n} rays escaped the closed sphere"
+    np.testing.assert_allclose(t, best, rtol=1e-5)
+    assert query.occluded(bvh, origins, directions).all()
+    ray_id, all_prim, _ = query.intersect_all(bvh, origins, directions)
+    listed = set(zip(ray_id.tolist(), all_prim.tolist()))
+    assert set(map(tuple, np.argwhere(clear).tolist())) <= listed
+
+    # A user's view without the traversal layout walks the canonical arrays: the same hits.
+    bare = query.view(bvh)
+    view = hlbvh_warp.BvhView()
+    for name in ("node_lowers", "node_uppers", "node_left", "node_right", "node_begin", "node_end", "prim_order",
+                 "prim_lowers", "prim_uppers", "vertices", "faces"):
+        setattr(view, name, getattr(bare, name))
+    view.packed_nodes = wp.zeros(0, dtype=bare.packed_nodes.dtype, device=device)
+    view.packed_triangles = wp.zeros(0, dtype=bare.packed_triangles.dtype, device=device)
+    out = wp.zeros(n, dtype=wp.int32, device=device)
+    wp.launch(_canonical_closest_hit_kernel, dim=n, device=device,
+              inputs=[view, wp.array(origins, dtype=wp.vec3, device=device),
+                      wp.array(directions, dtype=wp.vec3, device=device), out])
+    np.testing.assert_array_equal(out.numpy(), prim)
+
+
+def test_a_far_origin_past_half_of_float32_keeps_the_exit_hit(device):
+    """An origin at 3.4e38 and a sphere of radius 1e37: the exit crossing's box lies more than
+    float32's largest value away on one axis, and intersect_all listed only the entry."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    vertices = (np.asarray(mesh.vertices) * 1e37).astype(np.float32)
+    faces = np.asarray(mesh.faces, np.int32)
+    bvh = hlbvh_warp.build(vertices, faces, device=device)
+    origin = np.array([[-1.517852376857916e38, 1.476300818423395e38, 3.398543675134822e38]], np.float32)
+    direction = np.array([[1.585236626284128e38, -1.4348287670345204e38, -3.3681975395340305e38]], np.float32)
+    hit, t_ref, margin = numpy_all_hits(vertices, faces, origin, direction, np.inf)
+    expected = np.flatnonzero(hit[0])
+    assert len(expected) == 2 and (margin[0, expected] > 0.1).all()  # entry and exit, both clear
+    _, prims, t = query.intersect_all(bvh, origin, direction)
+    assert sorted(prims.tolist()) == sorted(expected.tolist())
+    np.testing.assert_allclose(np.sort(t), np.sort(t_ref[0, expected]), rtol=1e-5)
+    exit_prim = expected[np.argmax(t_ref[0, expected])]
+    entry_prim = expected[np.argmin(t_ref[0, expected])]
+    assert query.intersect(bvh, origin, direction, ignore_prim=int(entry_prim))[1][0] == exit_prim
