@@ -84,3 +84,27 @@ def test_a_far_origin_past_half_of_float32_keeps_the_exit_hit(device):
     exit_prim = expected[np.argmax(t_ref[0, expected])]
     entry_prim = expected[np.argmin(t_ref[0, expected])]
     assert query.intersect(bvh, origin, direction, ignore_prim=int(entry_prim))[1][0] == exit_prim
+
+
+def test_per_query_limits_take_any_warp_array(device):
+    """t_max, t_min, max_dist and ignore_prim take one value per query "NumPy or Warp", as the
+    rays and points do; a wp.indexedarray (a gather of another array) was refused as "must be a
+    number" or as "dtype object", though the origins beside it were taken."""
+    bvh = hlbvh_warp.build(trimesh.creation.box(), device=device)
+    origins = np.array([[0.1, 0.2, -5.0], [0.1, 0.2, -5.0]])
+    directions = np.array([0.0, 0.0, 1.0])
+    base = wp.array([1.0, 10.0, 4.49], dtype=float, device=device)
+    which = wp.array([2, 1], dtype=int, device=device)  # t = 4.49 and 10, through the box's bottom face
+    gathered = wp.indexedarray(base, [which])
+    t, prim = query.intersect(bvh, origins, directions, t_max=gathered)
+    # The bottom face (z = -0.5) is at t = 4.5: beyond 4.49, within 10.
+    assert prim.tolist()[0] == -1 and prim[1] >= 0 and t[1] == 4.5
+    np.testing.assert_array_equal(query.occluded(bvh, origins, directions, t_max=gathered), [False, True])
+    t, prim = query.intersect(bvh, origins, directions, t_min=gathered)
+    assert t.tolist() == [4.5, np.inf]  # the bottom face lies past 4.49; nothing lies past 10
+    _, distance, found = query.closest_point(bvh, origins, max_dist=gathered)
+    assert found[0] == -1 and found[1] >= 0 and distance.tolist() == [np.inf, 4.5]  # the box is 4.5 away
+    first = query.intersect(bvh, origins, directions)[1]
+    ignored = wp.indexedarray(wp.array([-1, -1, first[0]], dtype=wp.int32, device=device), [which])
+    t, _ = query.intersect(bvh, origins, directions, ignore_prim=ignored)
+    assert t.tolist() == [5.5, 4.5]  # ray 0 ignores the bottom face's triangle: the top face next
