@@ -1,6 +1,7 @@
 """The public calls as users misuse them and as ray tracers stress them, against float64 oracles."""
 
 import numpy as np
+import pytest
 import trimesh
 import warp as wp
 
@@ -108,3 +109,23 @@ def test_per_query_limits_take_any_warp_array(device):
     ignored = wp.indexedarray(wp.array([-1, -1, first[0]], dtype=wp.int32, device=device), [which])
     t, _ = query.intersect(bvh, origins, directions, ignore_prim=ignored)
     assert t.tolist() == [5.5, 4.5]  # ray 0 ignores the bottom face's triangle: the top face next
+
+
+def test_a_flag_passed_where_a_distance_goes_is_refused(device):
+    """``intersect(bvh, o, d, True)`` (return_barycentrics meant, t_max given) and
+    ``closest_point(bvh, p, True)`` read True as the number 1 and silently dropped every hit past
+    t = 1 or every triangle past distance 1; a boolean array was refused as "dtype bool" already.
+    A scalar boolean is refused the same way, and the next good call answers as before."""
+    bvh = hlbvh_warp.build(trimesh.creation.box(), device=device)
+    o, d = np.array([[0.1, 0.2, -5.0]]), np.array([[0.0, 0.0, 1.0]])
+    for flag in (True, np.True_, False):
+        for call, kwargs in ((query.intersect, {}), (query.occluded, {}), (query.intersect_all, {})):
+            with pytest.raises(ValueError, match="t_max must be a number, got bool"):
+                call(bvh, o, d, flag, **kwargs)
+            with pytest.raises(ValueError, match="t_min must be a number, got bool"):
+                call(bvh, o, d, t_min=flag)
+        with pytest.raises(ValueError, match="max_dist must be a number, got bool"):
+            query.closest_point(bvh, o, flag)
+    t, prim = query.intersect(bvh, o, d)
+    assert t.tolist() == [4.5] and prim[0] >= 0  # the box's bottom face, z = -0.5
+    assert query.closest_point(bvh, o)[1].tolist() == [4.5]
