@@ -129,3 +129,44 @@ def test_a_flag_passed_where_a_distance_goes_is_refused(device):
     t, prim = query.intersect(bvh, o, d)
     assert t.tolist() == [4.5] and prim[0] >= 0  # the box's bottom face, z = -0.5
     assert query.closest_point(bvh, o)[1].tolist() == [4.5]
+
+
+def _torus_inside(points, major, minor):
+    """Analytic inside test of a torus around z (float64)."""
+    radial = np.hypot(points[:, 0], points[:, 1]) - major
+    return radial**2 + points[:, 2] ** 2 < minor**2
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e12, 1e-12])
+def test_drop_in_locations_and_inside_tests_at_every_scale(device, rng, scale):
+    """trimesh merges a ray's hit locations by rounding them to multiples of 1e-8 as int64: past
+    about 9e10 the products overflow, every location of a ray becomes one row, and the drop-in
+    listed one crossing where there are two. Points in a torus's hole then read inside
+    (contains_points) with a positive signed distance, since each of their two parity rays met the
+    ring once. The locations are merged within 1e-8 of their magnitude (absolute below 1)."""
+    major, minor = 1.0, 0.8
+    mesh = trimesh.creation.torus(major_radius=major, minor_radius=minor, major_sections=48, minor_sections=24)
+    mesh.vertices *= scale
+    points = rng.uniform(-2.0, 2.0, (300, 3)) * [1, 1, 0.9]
+    angle = rng.uniform(0, 2 * np.pi, 20)
+    hole = np.c_[0.1 * np.cos(angle), 0.1 * np.sin(angle), rng.uniform(-0.3, 0.3, 20)]  # outside, rays meet the ring
+    points = np.concatenate([hole, points])
+    # Away from the polygonal surface (its chords cut 0.3% of the radii), where inside is clear.
+    radial = np.hypot(np.hypot(points[:, 0], points[:, 1]) - major, points[:, 2])
+    points = points[np.abs(radial - minor) > 0.05]
+    points = points[np.abs(points[:, 2]) < 0.85]  # inside the mesh's bounding box: rays are cast
+    inside = _torus_inside(points, major, minor)
+    assert inside.any() and (~inside).any()
+    ours = hlbvh_warp.RayMeshIntersector(mesh, device=device)
+    np.testing.assert_array_equal(ours.contains_points(points * scale), inside)
+    signed = hlbvh_warp.ProximityQuery(mesh, device=device).signed_distance(points * scale)
+    # Within trimesh's tol.merge (1e-8, absolute) of the surface a point reads inside, as in trimesh.
+    np.testing.assert_array_equal(signed > 0, inside | (np.abs(signed) <= 1e-8))
+
+    # Every ray lists each crossing the float64 brute force finds once: no two merged.
+    o = points[:40] * scale
+    d = np.tile([0.3, -0.2, 0.9], (len(o), 1))
+    hit, _, margin = numpy_all_hits(mesh.vertices, mesh.faces, o, d, np.inf)
+    assert (margin[hit] > 1e-6).all()  # no ray passes near an edge: each hit is one crossing
+    _, ray, _ = ours.intersects_location(o, d)
+    np.testing.assert_array_equal(np.bincount(ray, minlength=len(o)), hit.sum(axis=1))
