@@ -155,9 +155,15 @@ def _per_query_values(value, count: int, name: str) -> np.ndarray:
     """A limit given as one number (or a one-element array) or one per query, checked: a float64
     array of shape ``(1,)`` or ``(count,)``. Shapes and dtypes are errors that name the shape,
     never the values."""
-    values = np.asarray(value.numpy() if isinstance(value, wp.array) else value)
+    # Any Warp array, a wp.indexedarray too (no wp.array subclass), as `inputs.query_array` reads
+    # the rays: taken by np.asarray as one object, it was refused as "must be a number".
+    values = np.asarray(value.numpy() if wp.types.is_array(value) else value)
+    if values.ndim == 0 and values.dtype.kind == "b":
+        # Booleans are no distances, one or one per query: True read as 1 silently dropped every
+        # hit past it, where a flag was passed by position (``intersect(bvh, o, d, True)``).
+        raise ValueError(f"{name} must be a number, got bool {value!r}")
     if values.ndim == 0 and values.dtype.kind not in "fiu":
-        # What float() takes: a Python int past int64 (an object array), "inf", a Fraction, a bool.
+        # What float() takes: a Python int past int64 (an object array), "inf", a Fraction.
         try:
             values = np.asarray(float(value))
         except OverflowError:
@@ -204,7 +210,7 @@ def _ignore_prim_values(ignore_prim, num_rays: int, num_prims: int) -> np.ndarra
     triangle every ray ignores or ``(num_rays,)``, each -1 (none) or a triangle index."""
     if ignore_prim is None:
         return np.zeros(0, np.int32)
-    values = np.asarray(ignore_prim.numpy() if isinstance(ignore_prim, wp.array) else ignore_prim)
+    values = np.asarray(ignore_prim.numpy() if wp.types.is_array(ignore_prim) else ignore_prim)
     # An empty list is an empty batch's ignore_prim (NumPy reads it as float64), as it is its t_max.
     if values.dtype.kind not in "iu" and values.size > 0:
         raise ValueError(f"ignore_prim must hold integer triangle indices (-1 for none), got dtype {values.dtype}")
@@ -310,7 +316,8 @@ def intersect(bvh: Bvh, origins, directions, t_max: float = float("inf"), return
 
     Raises:
         ValueError: a BVH over bare boxes, origins/directions of a wrong shape or dtype, a negative
-            or NaN ``t_min``, or an ``ignore_prim`` that is no triangle of the mesh.
+            or NaN ``t_min``, a boolean ``t_min`` or ``t_max`` (a flag passed by position), or an
+            ``ignore_prim`` that is no triangle of the mesh.
     """
     _require_mesh(bvh, "intersect")
     o, d = inputs.ray_arrays(origins, directions)
@@ -522,7 +529,7 @@ def closest_point(bvh: Bvh, points, max_dist: float = float("inf"), return_baryc
 
     Raises:
         ValueError: a BVH over bare boxes, points of a wrong shape or dtype, or a ``max_dist`` of
-            a wrong shape, negative or NaN (the first such point named).
+            a wrong shape, negative, NaN (the first such point named) or boolean.
     """
     _require_mesh(bvh, "closest_point")
     p = inputs.query_array(points, "points")

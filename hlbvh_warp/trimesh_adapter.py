@@ -6,7 +6,9 @@ Same methods, arguments and return conventions as trimesh 5.2 (``intersects_id``
 documented differences that follow from the watertight test (Woop et al. 2013) instead of
 trimesh's tolerance-based one: a hit needs t > 0 (trimesh also accepts hits up to 1e-6 behind the
 origin), and zero-area triangles are never hit. A ray lying in a triangle's plane misses it where
-the plane is axis-aligned; in a tilted plane the float32 shear decides, and it may hit.
+the plane is axis-aligned; in a tilted plane the float32 shear decides, and it may hit. A ray's
+hit locations merge within trimesh's 1e-8 times the mesh's size, where trimesh's own merge (1e-8
+absolute) lost crossings on meshes past about 1e11 or below about 1e-8 across.
 
 `ProximityQuery` answers ``on_surface`` and ``signed_distance`` as trimesh 5.2 does, without
 trimesh's r-tree dependency (``rtree``, which trimesh needs for them and this package does not),
@@ -90,11 +92,10 @@ class RayMeshIntersector:
         Returns:
             ``index_tri (h,) int64, index_ray (h,) int64`` and, when ``return_locations``,
             ``locations (h, 3) float64`` (then hits at the same location on one ray, such as a ray
-            through a shared edge, are listed once, as trimesh does). With ``multiple_hits``
-            False, only the first hit of each ray.
+            through a shared edge, are listed once, as trimesh does, sorted by ray and along it;
+            "the same" is within 1e-8 of the mesh's size, `_distinct_locations`). With
+            ``multiple_hits`` False, only the first hit of each ray.
         """
-        from trimesh import grouping
-
         # A single (3,) ray is one row, as `intersects_first` answers it: indexed as it came, it
         # broke the hit locations with a NumPy broadcast error.
         ray_origins = _real_float64(ray_origins, "origins")
@@ -118,11 +119,27 @@ class RayMeshIntersector:
             t = t_all[index_ray]
         locations = self._locations(index_ray, index_tri, t, ray_origins, ray_directions)
         if return_locations:
-            if len(index_tri) == 0:
-                return index_tri, index_ray, locations
-            unique = grouping.unique_rows(np.column_stack((locations, index_ray)))[0]
+            unique = self._distinct_locations(index_ray, t, locations)
             return index_tri[unique], index_ray[unique], locations[unique]
         return index_tri, index_ray
+
+    def _distinct_locations(self, index_ray, t, locations):
+        """Indices of the hits to keep, by ray, then along it: one per location of each ray, hits
+        within trimesh's ``tol.merge`` (1e-8) of the mesh's size (``mesh.scale``) of the previous
+        one on the same ray merged into it.
+
+        trimesh merges by rounding the locations to multiples of 1e-8 as int64
+        (``grouping.unique_rows``): past about 9e10 the products overflow, every location of a
+        ray became one row and the ray listed one crossing of two (a torus's hole read inside);
+        on a mesh 1e-9 across the entry and exit fell in one cell. Relative to the mesh's size,
+        the merge means at every scale what 1e-8 means for a unit mesh, where it is trimesh's."""
+        from trimesh.constants import tol
+
+        order = np.lexsort((t, index_ray))
+        ray, where = index_ray[order], locations[order]
+        new = np.ones(len(order), dtype=bool)
+        new[1:] = (ray[1:] != ray[:-1]) | (np.abs(where[1:] - where[:-1]).max(axis=1) > tol.merge * self.mesh.scale)
+        return order[new]
 
     def intersects_location(self, ray_origins, ray_directions, **kwargs):
         """Unique hit locations: ``locations (h, 3), index_ray (h,), index_tri (h,)``, as trimesh's."""

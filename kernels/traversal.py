@@ -5,7 +5,9 @@
 - Boxes: Ize, "Robust BVH Ray Traversal", JCGT 2013: the far slab distance is padded by
   1 + 2 * gamma(3). A zero (or underflowing) direction component gives an inverse of +-inf; the
   slab distance of an origin lying on that slab face is then 0 * inf = NaN, which every
-  comparison below ignores, so such an axis never constrains the interval.
+  comparison below ignores, so such an axis never constrains the interval. A ray whose box
+  differences may pass float32's range (coordinates near 1.7e38 on both sides of it,
+  `ray_may_overflow`) decides the boxes it would miss again in float64 (`ray_box_entry_wide`).
 - Traversal is ordered front to back: the nearer child is visited next, the farther one deferred
   on a fixed stack of ``TRAVERSAL_STACK_SIZE`` entries. Only deferred siblings are stacked, so a
   tree of depth D needs at most D entries. The HLBVH builders keep D <= 3n + ceil(log2 N) <= 60
@@ -721,6 +723,62 @@ def ray_box_entry(  # noqa: F811  (a Warp overload, chosen by argument count)
 
 
 @wp.func
+def ray_may_overflow(origin: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """1 when a coordinate of a box inside ``[lower, upper]`` (the root's) minus the origin may
+    be past float32's range, as it is from one side of a mesh whose coordinates reach 1.7e38 to
+    the other: |b - o| <= |b| + |o|, and rounding keeps the order, so where each axis's sum is
+    finite no difference overflows. A NaN origin answers 1 too; such a ray misses anyway."""
+    wide = int(0)
+    for k in range(3):
+        if not wp.isfinite(wp.abs(origin[k]) + wp.max(wp.abs(lower[k]), wp.abs(upper[k]))):
+            wide = 1
+    return wide
+
+
+@outline_func
+def ray_box_entry_wide(origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_min: float,
+                       t_max: float):
+    """`ray_box_entry` with the slab distances in float64, for a ray `ray_may_overflow` flags. In
+    float32 a difference past float32's range is infinite: a near slab distance then reads
+    infinite and the box was missed, though its triangles, whose test shears in float64 there,
+    are hit. The float64 differences and products round less than the float32 ones, which the
+    far distance's padding (Ize 2013) covers; the entry is rounded to float32 as it is returned
+    (past float32's range, to INF: no hit there has a float32 t)."""
+    t0 = wp.float64(t_min)
+    t1 = wp.float64(t_max)
+    for k in range(3):
+        inv = wp.float64(inv_dir[k])
+        near = (wp.float64(lower[k]) - wp.float64(origin[k])) * inv
+        far = (wp.float64(upper[k]) - wp.float64(origin[k])) * inv
+        if inv < wp.float64(0.0):
+            tmp = near
+            near = far
+            far = tmp
+        if near > t0:
+            t0 = near
+        far = far * wp.float64(FAR_PAD)
+        if far < t1:
+            t1 = far
+    if t0 <= t1:
+        return float(t0)
+    return INF
+
+
+@wp.func
+def ray_box_entry(  # noqa: F811  (a Warp overload, chosen by argument count)
+    origin: wp.vec3, inv_dir: wp.vec3, lower: wp.vec3, upper: wp.vec3, t_min: float, t_max: float, wide: int
+):
+    """`ray_box_entry`, and for a ray that `ray_may_overflow` flags (``wide`` 1) a miss decided
+    again in float64 (`ray_box_entry_wide`). An overflowed difference only ever turns a hit into a
+    miss: a near distance of +inf empties the interval, one of -inf lies behind t_min anyway, and
+    an infinite far distance only widens it, leaving the entry (the largest near one) as it is."""
+    t = ray_box_entry(origin, inv_dir, lower, upper, t_min, t_max)
+    if wide == 1 and t == INF:
+        t = ray_box_entry_wide(origin, inv_dir, lower, upper, t_min, t_max)
+    return t
+
+
+@wp.func
 def box_overlap(lower_a: wp.vec3, upper_a: wp.vec3, lower_b: wp.vec3, upper_b: wp.vec3):
     """Closed boxes overlap (touching counts); a NaN bound overlaps nothing, and neither does an
     empty box a (lower > upper on an axis: a query box; the tree's own boxes are never empty)."""
@@ -793,10 +851,12 @@ def canonical_ray_query(
     stack_t = vec64f()
     top = int(0)
     inv = wp.vec3(0.0)
+    wide = int(0)
     # A view of a box BVH has no triangles to test (its faces are empty): nothing to find.
     if bvh.faces.shape[0] > 0 and ray_is_valid(origin, direction, t_min, t_max) == 1:
         inv = ray_inverse_direction(direction)
-        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], t_min, best_t) < INF:
+        wide = ray_may_overflow(origin, bvh.node_lowers[0], bvh.node_uppers[0])
+        if ray_box_entry(origin, inv, bvh.node_lowers[0], bvh.node_uppers[0], t_min, best_t, wide) < INF:
             node = 0
     while node >= 0:
         visited += 1
@@ -823,8 +883,8 @@ def canonical_ray_query(
                         node = stack[top]
         else:
             right = bvh.node_right[node]
-            tl = ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], t_min, best_t)
-            tr = ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], t_min, best_t)
+            tl = ray_box_entry(origin, inv, bvh.node_lowers[left], bvh.node_uppers[left], t_min, best_t, wide)
+            tr = ray_box_entry(origin, inv, bvh.node_lowers[right], bvh.node_uppers[right], t_min, best_t, wide)
             if tl < INF and tr < INF:
                 # Visit the nearer child next, defer the farther one.
                 if tl <= tr:
@@ -1045,24 +1105,30 @@ def bvh_ray_query(
         # A far origin is moved here, out of the walk: its float64 code, out of line, stays out of
         # the loop every ray runs (inside the walk it cost near rays 5-7%).
         start = walk_start(origin, d, low, limit, root_lower, root_upper)
-        h = packed_ray_query(
-            bvh.packed_nodes,
-            bvh.packed_triangles,
-            bvh.prim_order,
-            root_lower,
-            root_upper,
-            root_begin,
-            root,
-            start.origin,
-            d,
-            start.t_min,
-            start.t_max,
-            ignore_prim,
-            any_hit,
-            start.shift,
-            low,
-            limit,
-        )
+        # A ray whose box differences may leave float32's range (coordinates near 1.7e38 on both
+        # sides) takes the canonical walk, which decides its misses again in float64: the packed
+        # walk, which every other ray runs, keeps its box test as it is.
+        if ray_may_overflow(start.origin, root_lower, root_upper) == 0:
+            h = packed_ray_query(
+                bvh.packed_nodes,
+                bvh.packed_triangles,
+                bvh.prim_order,
+                root_lower,
+                root_upper,
+                root_begin,
+                root,
+                start.origin,
+                d,
+                start.t_min,
+                start.t_max,
+                ignore_prim,
+                any_hit,
+                start.shift,
+                low,
+                limit,
+            )
+        else:
+            h = canonical_ray_query(bvh, origin, d, low, limit, ignore_prim, any_hit)
     else:
         h = canonical_ray_query(bvh, origin, d, low, limit, ignore_prim, any_hit)
     h.t = h.t * scale
@@ -1160,9 +1226,11 @@ def bvh_ray_all_hits(
         low = ray.t_min
         limit = ray.t_max
         shift = ray.shift
+    wide = int(0)
     if bvh.faces.shape[0] > 0 and ray_is_valid(start, d, low, limit) == 1:
         inv = ray_inverse_direction(d)
-        if ray_box_entry(start, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit) < INF:
+        wide = ray_may_overflow(start, bvh.node_lowers[0], bvh.node_uppers[0])
+        if ray_box_entry(start, inv, bvh.node_lowers[0], bvh.node_uppers[0], low, limit, wide) < INF:
             node = 0
     while node >= 0:
         left = bvh.node_left[node]
@@ -1179,10 +1247,10 @@ def bvh_ray_all_hits(
         else:
             right = bvh.node_right[node]
             node = -1
-            if ray_box_entry(start, inv, bvh.node_lowers[left], bvh.node_uppers[left], low, limit) < INF:
+            if ray_box_entry(start, inv, bvh.node_lowers[left], bvh.node_uppers[left], low, limit, wide) < INF:
                 stack[top] = left
                 top += 1
-            if ray_box_entry(start, inv, bvh.node_lowers[right], bvh.node_uppers[right], low, limit) < INF:
+            if ray_box_entry(start, inv, bvh.node_lowers[right], bvh.node_uppers[right], low, limit, wide) < INF:
                 stack[top] = right
                 top += 1
         if top > 0:
