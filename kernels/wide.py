@@ -20,7 +20,7 @@ import warp as wp
 from .metrics import box_area64
 from .traversal import (INF, PackedTriangle, far_hit_in_range, intersect_triangle_watertight, query_limit,
                         query_prim, ray_box_entry, ray_direction_scale, ray_inverse_direction, ray_is_valid,
-                        ray_scaled_t_max, ray_scaled_t_min, walk_start)
+                        ray_may_overflow, ray_scaled_t_max, ray_scaled_t_min, walk_start)
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -296,9 +296,13 @@ def wide_closest_hit(
     low = ray.t_min
     best_t = ray.t_max
     shift = ray.shift
+    # Box differences that may pass float32's range (coordinates near 1.7e38 on both sides of the
+    # origin) have the boxes they would miss decided again in float64, as in the binary walk.
+    wide = int(0)
     if ray_is_valid(start, d, low, best_t) == 1:
         inv = ray_inverse_direction(d)
-        t_root = ray_box_entry(start, inv, root_lower, root_upper, low, best_t)
+        wide = ray_may_overflow(start, root_lower, root_upper)
+        t_root = ray_box_entry(start, inv, root_lower, root_upper, low, best_t, wide)
         if t_root < INF:
             stack[0] = 0
             stack_t[0] = t_root
@@ -328,7 +332,7 @@ def wide_closest_hit(
                     record = slots[s]
                     if record.child != EMPTY:
                         boxes += 1
-                        t = ray_box_entry(start, inv, record.lower, record.upper, low, best_t)
+                        t = ray_box_entry(start, inv, record.lower, record.upper, low, best_t, wide)
                         if t < INF:
                             e = record.child
                             if e == LEAF:

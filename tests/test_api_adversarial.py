@@ -170,3 +170,26 @@ def test_drop_in_locations_and_inside_tests_at_every_scale(device, rng, scale):
     assert (margin[hit] > 1e-6).all()  # no ray passes near an edge: each hit is one crossing
     _, ray, _ = ours.intersects_location(o, d)
     np.testing.assert_array_equal(np.bincount(ray, minlength=len(o)), hit.sum(axis=1))
+
+
+@pytest.mark.parametrize("width", [4, 16])
+def test_wide_rays_across_a_mesh_spanning_float32_do_not_leak(device, rng, width):
+    """The wide walk had the binary walk's overflow: on the sphere of radius 2.9e38 a box
+    coordinate minus an origin on the far side is past float32's range, its slab distance came
+    out infinite, and `wide.intersect` missed every one of 64 rays from inside the closed sphere.
+    It now decides those boxes again in float64, as the binary walk does: the float64 brute
+    force's hits."""
+    from hlbvh_warp import wide
+
+    vertices, faces = _big_sphere()
+    scale = 1.7 * 2.0**127
+    bvh = hlbvh_warp.build(vertices, faces, device=device)
+    n = 64
+    origins = (np.c_[rng.uniform(-0.9, -0.7, n), rng.uniform(-0.2, 0.2, (n, 2))] * scale).astype(np.float32)
+    directions = (np.c_[np.ones(n), rng.uniform(-0.4, 0.4, (n, 2))] * 2.0**120).astype(np.float32)
+    hit, t_ref, margin = numpy_all_hits(vertices, faces, origins, directions, np.inf)
+    assert (hit & (margin > 1e-4)).any(axis=1).all()
+    best = np.where(hit, t_ref, np.inf).min(axis=1)
+    t, prim = wide.intersect(wide.collapse(bvh, width), origins, directions)
+    assert (prim >= 0).all(), f"{int((prim < 0).sum())} of {n} rays escaped the closed sphere"
+    np.testing.assert_allclose(t, best, rtol=1e-5)
