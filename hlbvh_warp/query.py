@@ -148,7 +148,8 @@ def _require_whole_boxes(bvh: Bvh, name: str):
     # part of a triangle, so the walk could miss a triangle whose box meets the query elsewhere.
     if bvh.has_duplicates:
         raise ValueError(f"{name}() needs a tree whose leaves bound whole primitives; this {bvh.method!r} tree "
-                         "splits triangles across leaves (spatial splits): build one with an object-split method")
+                         "lists a primitive in more than one leaf (as spatial splits do): build one with an "
+                         "object-split method")
 
 
 def _per_query_values(value, count: int, name: str) -> np.ndarray:
