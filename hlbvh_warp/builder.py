@@ -1071,7 +1071,10 @@ class Builder:
         if decision == "rebuild" and self.resort:
             report.update(self.last_input)
         report.update(extra)
-        self.bvh.timings = stages
+        # The tree's timings in a one-shot tree's form (`StageTimer.finish`), in a dict of their
+        # own: handed the report's stages, a Builder's tree had no "skipped" or "total" (a
+        # KeyError where a one-shot tree's had them), and an edit to them rewrote the report.
+        self.bvh.timings = dict(stages, skipped=list(skipped), total=sum(stages.values())) if self.timings else {}
         self.last_report = report
         self.reports.append(report)
         self.frame += 1
