@@ -290,8 +290,11 @@ class Builder:
                 return values.shape[0]
             if values.dtype in (wp.float32, wp.float64) and values.ndim == 2 and values.shape[1] == 3:
                 return values.shape[0]
-            raise ValueError(f"{name} must be a wp.array of vec3 / vec3d or float32 / float64 (N, 3), got "
-                             f"{values.dtype} with shape {values.shape}")
+            # Flat floats, x y z after x y z, as `build` takes them (`inputs.mesh_arrays`).
+            if values.dtype in (wp.float32, wp.float64) and values.ndim == 1 and values.shape[0] % 3 == 0:
+                return values.shape[0] // 3
+            raise ValueError(f"{name} must be a wp.array of vec3 / vec3d, or of float32 / float64 shaped (N, 3) or "
+                             f"flat (3N,), got {wp.types.type_repr(values.dtype)} with shape {values.shape}")
         arr = np.asarray(values)
         # Integers as `build` takes them (a voxel grid's corners); booleans and objects are not points.
         if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 3:
@@ -306,9 +309,10 @@ class Builder:
             raise ValueError(f"{name} has {count} rows, the builder was set up with {rows}")
         if isinstance(values, wp.array):
             double = values.dtype in (wp.vec3d, wp.float64)
-            if values.ndim == 2:
+            if values.dtype in (wp.float32, wp.float64):
                 if not values.is_contiguous:
-                    raise ValueError(f"{'float64' if double else 'float32'} (N, 3) {name} must be contiguous")
+                    shape = "(N, 3)" if values.ndim == 2 else "flat"
+                    raise ValueError(f"{'float64' if double else 'float32'} {shape} {name} must be contiguous")
                 values = wp.array(ptr=values.ptr, dtype=wp.vec3d if double else wp.vec3, shape=count,
                                   device=values.device)
             if not double or values.device == self.device:
@@ -1071,7 +1075,10 @@ class Builder:
         if decision == "rebuild" and self.resort:
             report.update(self.last_input)
         report.update(extra)
-        self.bvh.timings = stages
+        # The tree's timings in a one-shot tree's form (`StageTimer.finish`), in a dict of their
+        # own: handed the report's stages, a Builder's tree had no "skipped" or "total" (a
+        # KeyError where a one-shot tree's had them), and an edit to them rewrote the report.
+        self.bvh.timings = dict(stages, skipped=list(skipped), total=sum(stages.values())) if self.timings else {}
         self.last_report = report
         self.reports.append(report)
         self.frame += 1
