@@ -975,8 +975,14 @@ class Builder:
             # A box builder measures its boxes' corners: "a vertex" would send a simulation's
             # author looking for vertices it never gave.
             what = "a vertex" if self.kind == "triangles" else "a box corner"
-            reason = (f"large motion: {what} moved {relative:.1%} of the scene diagonal "
-                      f"(limit {self.large_motion:.1%})")
+            if math.isinf(relative):
+                # The measure counts a NaN or Inf coordinate (a device frame that blew up), or any
+                # motion of a zero-size scene, as infinite: "moved inf%" would only puzzle.
+                reason = (f"large motion: {what} moved past any share of the scene diagonal (a NaN or "
+                          f"Inf coordinate, in this frame or the last tree, or a zero-size scene)")
+            else:
+                reason = (f"large motion: {what} moved {relative:.1%} of the scene diagonal "
+                          f"(limit {self.large_motion:.1%})")
             large = True
             self._rebuild(timer)
         elif self.chaotic_frames > 0:

@@ -254,3 +254,23 @@ def test_reports_tell_what_each_frame_was(device):
     run_state_machine_as_test(machine, settings=settings(max_examples=40, stateful_step_count=12, deadline=None,
                                                          derandomize=True,
                                                          suppress_health_check=[HealthCheck.too_slow]))
+
+
+def test_a_blown_up_device_frame_is_named_in_the_reason(device, rng):
+    """A device frame with a NaN coordinate is measured as an infinite move and rebuilt (frames
+    given as Warp arrays are not checked); the reason said "moved inf% of the scene diagonal". It
+    names the NaN or Inf instead, and a finite large move keeps its percentage."""
+    vertices, faces = _soup(rng, 8)
+    builder = Builder(len(faces), device=device, policy="auto")
+    builder.build(vertices, faces)
+    blown = vertices.copy()
+    blown[5, 1] = np.nan
+    builder.update(wp.array(blown, dtype=wp.vec3, device=device))
+    report = builder.last_report
+    assert report["decision"] == "rebuild"
+    assert "inf%" not in report["reason"] and "NaN" in report["reason"], report["reason"]
+    builder.update(vertices)  # the tree boxed over the NaN: any motion counts as large again
+    builder.update(vertices * np.float32(3.0))
+    report = builder.last_report
+    assert report["decision"] == "rebuild" and "%" in report["reason"], report["reason"]
+    assert f"{report['relative_motion']:.1%}" in report["reason"]
