@@ -164,10 +164,14 @@ def build_recursive_sah(prim_lowers: wp.array, prim_uppers: wp.array, config: Bu
             sides = _side_costs(scratch, firsts, lasts, prim_lowers, prim_uppers, config, device).reshape(-1, 2)
             cost[sel] = 2.0 * t1 + (sides[:, 0] + sides[:, 1]) / np.maximum(box_area[cand_node[sel]], 1e-300)
             done = stop
-        # Each node's cheapest candidate, the first in (axis, boundary) order among equals.
+        # Each node's cheapest candidate; among exact equals the one nearest the middle, then the
+        # first in (axis, boundary) order. Zero-area boxes price every candidate alike (P_hit is
+        # 0 / 0): the first would peel one bin off at a time, a chain about 60 ln N deep, where the
+        # sweep builders send such ties to the middle.
         best = np.full(len(nodes), -1, np.int64)
         if len(cand_node):
-            pick = np.lexsort((np.arange(len(cost)), cost, cand_node))
+            imbalance = np.abs(2 * cand_left - cand_size)
+            pick = np.lexsort((np.arange(len(cost)), imbalance, cost, cand_node))
             first_of_node = np.concatenate([[True], cand_node[pick][1:] != cand_node[pick][:-1]])
             best[cand_node[pick][first_of_node]] = pick[first_of_node]
         # Partition: the chosen axis's (bin) order, cut after the left side's count. A node with
