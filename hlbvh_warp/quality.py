@@ -128,7 +128,7 @@ def measure_mesh(name, vertices, faces, args, device, progress) -> list[dict]:
                "disagree": 0}
         for kind, rays, ref_hits in (("primary", primary, (t_ref, prim_ref)), ("diffuse", diffuse, diffuse_ref)):
             t, prim, stats = intersect(bvh, *rays, stats=True)
-            row["disagree"] += reference.count_mismatches(t, prim, *ref_hits)
+            row["disagree"] += reference.count_mismatches(t, prim, *ref_hits, rays=(vertices, faces, *rays))
             summary = stats.summary(args.ct, args.ci)
             row[kind] = {"num_rays": int(len(t)), "n_s": summary["mean_nodes_visited"],
                          "n_t": summary["mean_prims_tested"], "m": summary["measured_cost"]}

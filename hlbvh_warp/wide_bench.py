@@ -87,7 +87,8 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
             entries.append({"k": k, "nodes": w.num_nodes, "depth": w.depth, "collapse_ms": w.collapse_ms,
                             "sah": wide.sah_cost(w), "n_s": summary["mean_nodes_visited"],
                             "boxes": summary["mean_boxes_tested"], "n_t": summary["mean_prims_tested"],
-                            "disagree": reference.count_mismatches(t, prim, ref_t, ref_p)})
+                            "disagree": reference.count_mismatches(t, prim, ref_t, ref_p,
+                                                                   rays=(vertices, faces, o_np, d_np))})
         # The library's own binary traversal over the same tree.
         t, prim, stats = intersect(bvh, o_np, d_np, stats=True)
         bvh_view = view(bvh)
@@ -105,7 +106,8 @@ def measure_mesh(name, vertices, faces, method, args, device, progress) -> list:
         # Interior nodes, as the wide rows count them: a full binary tree has (nodes - 1) / 2.
         entries.append({"k": "bin", "nodes": (bvh.num_nodes - 1) // 2, "depth": None, "collapse_ms": None, "sah": None,
                         "n_s": n_s, "boxes": boxes, "n_t": summary["mean_prims_tested"],
-                        "disagree": reference.count_mismatches(t, prim, ref_t, ref_p)})
+                        "disagree": reference.count_mismatches(t, prim, ref_t, ref_p,
+                                                                   rays=(vertices, faces, o_np, d_np))})
         progress(f"[{name} {method}] timing {kind} rays")
         times = best_times(fns, args.repeats, device)
         base = times[widths.index(2)]

@@ -164,3 +164,31 @@ def test_quality_on_a_flat_mesh_and_ties_in_the_last_bits(tmp_path):
     rows = [{"sah": a, "epo": b, "diffuse": {"m": 3.0 + 0.4 * a + 0.6 * b * 7.0}} for a, b in zip(sah, epo)]
     twin = {"sah": np.nextafter(sah[0], np.inf), "epo": np.nextafter(epo[0], -np.inf), "diffuse": rows[0]["diffuse"]}
     assert quality.epo_weight(rows + [twin], "diffuse")["trees"] == 7
+
+
+def test_quality_counts_a_wrong_triangle_at_the_right_distance(tmp_path, rng, monkeypatch):
+    """The disagree column took a different triangle at the same distance as a tie, so a walk
+    that reported the right t under another triangle's id passed. It now accepts such a tie only
+    where the ray meets the named triangle there, as the bench's check does."""
+    from hlbvh_warp import query
+
+    v, f = random_soup(rng, 60, scale=0.3)
+    mesh_path = tmp_path / "soup.ply"
+    trimesh.Trimesh(v, f, process=False).export(mesh_path)
+    true_intersect = query.intersect
+
+    def misnaming_intersect(bvh, *args, **kwargs):
+        t, prim, *rest = true_intersect(bvh, *args, **kwargs)
+        if bvh.method == "median":
+            # The right distance under the next triangle's id.
+            prim = np.where(prim >= 0, (prim + 1) % len(f), prim)
+        return (t, prim, *rest)
+
+    monkeypatch.setattr(query, "intersect", misnaming_intersect)
+    out = tmp_path / "quality.json"
+    # The command exits 1 when a builder disagrees.
+    assert quality.main(["--mesh", str(mesh_path), "--builders", "hlbvh,median", "--views", "2", "--side", "12",
+                         "--device", "cpu", "--json", str(out)]) == 1
+    rows = {r["builder"]: r for r in json.loads(out.read_text())["rows"]}
+    assert rows["hlbvh"]["disagree"] == 0
+    assert rows["median"]["disagree"] > 0
