@@ -271,6 +271,7 @@ def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
     # absolute below it: a 1e-5 triangle came out 1% off, a 1e-30 one empty).
     scale = max(np.abs(tri).max(), np.abs(lo).max(), np.abs(hi).max())
     eps = tol * scale
+    longest = max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c))
 
     def in_box(p):
         return bool(np.all(p >= lo - eps) and np.all(p <= hi + eps))
@@ -282,7 +283,10 @@ def triangle_box_area(tri, lower, upper, tol=1e-12) -> float:
             return False
         w = [np.dot(np.cross(c - b, p - b), n), np.dot(np.cross(a - c, p - c), n),
              np.dot(np.cross(b - a, p - a), n)]
-        return min(w) >= -eps * scale
+        # Each w is an edge times a difference of coordinates, whose rounding is about eps: the
+        # slack scales with the longest edge (eps * scale let a corner off a small triangle far
+        # from the origin count as on it, and doubled its area in a 1e4 box of side 2^-10).
+        return min(w) >= -eps * longest
 
     points = [p for p in tri if in_box(p)]
     for p, q in ((a, b), (b, c), (c, a)):

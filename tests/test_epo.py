@@ -141,3 +141,17 @@ def test_epo_rejects_box_trees_and_bad_costs(device):
     # A single triangle overlaps nothing; its SAH cost is still defined.
     assert end_point_overlap(bvh) == 0.0
     assert sah_cost(bvh) == pytest.approx(1.0)
+
+
+def test_the_oracles_triangle_area_in_a_box_far_from_the_origin():
+    """The oracle's on-triangle test had a slack growing with the coordinates squared: in a box
+    of side 2^-10 at 1e4 a box corner off the triangle counted as on it, and the area came out
+    twice the triangle's. The triangle fills exactly half the box's face: its whole area, at
+    the origin and at 1e4 alike."""
+    from oracles import triangle_box_area
+
+    d = 2.0**-10
+    for offset in (0.0, 1e4):
+        tri = np.array([[0.0, d, 0.0], [0.0, 0.0, 0.0], [d, 0.0, 0.0]]) + offset
+        area = triangle_box_area(tri, np.full(3, offset), np.full(3, offset + d))
+        assert area == pytest.approx(0.5 * d * d, rel=1e-9), offset
