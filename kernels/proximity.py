@@ -409,12 +409,25 @@ def near_bound(d2: wp.float64, tau: wp.float64):
     return bound
 
 
+# max_dist is inclusive, but the float64 squared distance of a triangle lying at exactly max_dist
+# can round above max_dist^2 (57600 + 7e-12 for an exact 240^2 on a tilted triangle with integer
+# vertices), which dropped the triangle. So a triangle counts when its computed squared distance is
+# at most max_dist^2 (1 + 2^-26): the computed distance is within tens of u (2^-53) of the exact one,
+# plus terms of u times the coordinates' magnitude and of TILT times the triangle's size (FAR_LOW's
+# step 2), below 2^-26 of d^2 unless the point lies 1e7 times nearer the triangle than its
+# coordinates' magnitude or a needle's size. The widening stays below float32's resolution: the
+# distance reported, rounded to float32, is still at most max_dist, and a triangle one float32 step
+# beyond max_dist (at least 2^-23 of d^2) still does not count. The walks' box bounds start from
+# the widened bound, so the boxes of such a triangle are entered as their proofs say.
+MAX_DIST_ROOM = wp.constant(wp.float64(1.0 + 2.0**-26))
+
+
 @wp.func
 def start_search(max_dist: float):
-    """An empty `PointSearch` bounded by max_dist (squared, in float64 and in float32), with no
-    slack (tau 0): the far walk's."""
+    """An empty `PointSearch` bounded by max_dist (squared and widened by `MAX_DIST_ROOM`, in
+    float64 and in float32), with no slack (tau 0): the far walk's."""
     s = PointSearch()
-    s.d2 = wp.float64(max_dist) * wp.float64(max_dist)
+    s.d2 = wp.float64(max_dist) * wp.float64(max_dist) * MAX_DIST_ROOM
     s.bound = s.d2
     s.box_d2 = max_dist * max_dist
     s.prim = -1

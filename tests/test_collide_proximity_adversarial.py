@@ -1,0 +1,93 @@
+"""Adversarial cases for the closest-point queries (``kernels/proximity.py``) and the triangle
+pair tests (``kernels/collide.py``), each checked against exact rational arithmetic on the float32
+inputs (`fractions.Fraction`), never against numbers the code printed."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+
+import hlbvh_warp
+
+#: Integer normals whose length is an integer (Pythagorean quadruples): a point k normals off a
+#: plane through integer points lies at exactly k times that length, a float32 number.
+PYTHAGOREAN_NORMALS = (((1, 2, 2), 3), ((2, 3, 6), 7), ((1, 4, 8), 9), ((4, 4, 7), 9), ((2, 6, 9), 11),
+                       ((6, 6, 7), 11), ((3, 4, 12), 13), ((2, 10, 11), 15))
+
+
+def exact_distance_sq(p, a, b, c) -> Fraction:
+    """Squared distance of float32 point p to the closed float32 triangle abc, in rationals: the
+    Gram equations' interior point when it lies in the triangle, and the three clamped edge
+    projections (the minimum over points of the triangle, so exact)."""
+    p, a, b, c = ([Fraction(float(x)) for x in np.float32(v)] for v in (p, a, b, c))
+
+    def sub(x, y):
+        return [x[i] - y[i] for i in range(3)]
+
+    def dot(x, y):
+        return sum(x[i] * y[i] for i in range(3))
+
+    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
+    g00, g01, g11, r0, r1 = dot(ab, ab), dot(ab, ac), dot(ac, ac), dot(ap, ab), dot(ap, ac)
+    det = g00 * g11 - g01 * g01
+    candidates = []
+    if det > 0:
+        s, t = (g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det
+        if s >= 0 and t >= 0 and s + t <= 1:
+            d = [ap[i] - s * ab[i] - t * ac[i] for i in range(3)]
+            candidates.append(dot(d, d))
+    for origin, edge in ((a, ab), (a, ac), (b, sub(c, b))):
+        den, op = dot(edge, edge), sub(p, origin)
+        w = Fraction(0) if den == 0 else min(max(dot(op, edge) / den, Fraction(0)), Fraction(1))
+        d = [op[i] - w * edge[i] for i in range(3)]
+        candidates.append(dot(d, d))
+    return min(candidates)
+
+
+def tilted_triangles_at_exact_distances(rng, n):
+    """``n`` (triangle, point, distance): integer triangles in tilted planes whose normal has an
+    integer length, and points straight above the face, a vertex or an edge midpoint at an exact
+    float32 distance. The float64 distance computed for such a point rounds up past it about one
+    time in thirty."""
+    out = []
+    while len(out) < n:
+        normal, length = PYTHAGOREAN_NORMALS[rng.integers(len(PYTHAGOREAN_NORMALS))]
+        normal = (np.array(normal, np.int64) * rng.choice([-1, 1], 3))[rng.permutation(3)]
+        e1 = np.cross(normal, rng.integers(-3, 4, 3))
+        if not e1.any():
+            continue
+        e2 = np.cross(normal, e1)
+        foot = rng.integers(-64, 64, 3)
+        tri = np.array([foot - e1 - e2, foot + 2 * e1 - e2, foot - e1 + 2 * e2])
+        where = rng.integers(3)  # above the face, a vertex or an edge midpoint (an integer point)
+        if where == 2 and ((tri[0] + tri[1]) % 2).any():
+            continue
+        base = (foot, tri[0], (tri[0] + tri[1]) // 2)[where]
+        k = int(rng.integers(1, 6))
+        point = base + k * normal
+        if max(np.abs(tri).max(), np.abs(point).max()) >= 2**24:
+            continue
+        out.append((tri.astype(np.float32), point.astype(np.float32), float(k * length)))
+    return out
+
+
+def test_a_triangle_at_exactly_max_dist_counts_in_tilted_planes(device):
+    """max_dist is inclusive: a triangle whose exact distance equals it is found, also where the
+    float64 distance computed for it rounds above the bound (it rounded 57600 + 7e-12 for an exact
+    240^2, and the triangle was dropped); one float32 step below the bound it is not."""
+    rng = np.random.default_rng(11)
+    cases = tilted_triangles_at_exact_distances(rng, 240)
+    faces = np.array([[0, 1, 2]], np.int32)
+    missed, wrongly_found = [], []
+    for tri, point, dist in cases:
+        assert exact_distance_sq(point, *tri) == Fraction(dist) ** 2  # the oracle's word, not the construction's
+        bvh = hlbvh_warp.build(tri, faces=faces, device=device)
+        _, distance, prim = hlbvh_warp.closest_point(bvh, point, max_dist=dist)
+        if prim[0] != 0 or distance[0] != np.float32(dist):
+            missed.append((tri.tolist(), point.tolist(), dist))
+        below = float(np.nextafter(np.float32(dist), np.float32(0)))
+        if hlbvh_warp.closest_point(bvh, point, max_dist=below)[2][0] != -1:
+            wrongly_found.append((tri.tolist(), point.tolist(), dist))
+    assert not missed, f"{len(missed)} of {len(cases)} triangles at exactly max_dist missed, first {missed[0]}"
+    assert not wrongly_found, f"{len(wrongly_found)} found one float32 step inside, first {wrongly_found[0]}"
