@@ -15,7 +15,9 @@
   some leaf whose box is no farther: so spatial-split trees answer correctly as well, testing the
   whole triangle at each of its leaves.
 - Equal distances go to the lowest primitive id, whatever the tree, so every builder gives the same
-  answer where the float64 distances are equal.
+  answer where the float64 distances are equal. An edge is measured from the same end in every
+  triangle holding it (`edge_closest`), so a point nearest an edge shared by two triangles is at
+  bitwise equal distances from both.
 - Stack overflow is handled as in ``traversal.py``: a node met with a full stack is tested as one
   leaf over its whole primitive range.
 """
@@ -86,6 +88,29 @@ def segment_parameter(ap: wp.vec3d, ab: wp.vec3d):
     if den > wp.float64(0.0):
         t = wp.clamp(wp.dot(ap, ab) / den, wp.float64(0.0), wp.float64(1.0))
     return t
+
+
+@wp.func
+def edge_closest(p: wp.vec3d, x: wp.vec3, y: wp.vec3):
+    """``(t, d2)``: the closest point x + t (y - x) of segment xy to p (`segment_parameter`) and its
+    squared distance, in float64. Measured from the end that comes first in lexicographic order,
+    whichever order the edge is given in: an edge shared by two triangles (as ab of one and bc
+    of the other, say) then gives both the same bits, so that a point nearest that edge is at
+    equal distances from both and goes to the lower id, as an exact tie should."""
+    flip = y[0] < x[0] or (y[0] == x[0] and (y[1] < x[1] or (y[1] == x[1] and y[2] < x[2])))
+    o = x
+    e = y
+    if flip:
+        o = y
+        e = x
+    o64 = wp.vec3d(o)
+    oe = wp.vec3d(e) - o64
+    op = p - o64
+    t = segment_parameter(op, oe)
+    d2 = wp.length_sq(op - oe * t)
+    if flip:
+        t = wp.float64(1.0) - t
+    return wp.vec2d(t, d2)
 
 
 @wp.func
@@ -199,13 +224,15 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
         result.point = wp.vec3(q)
         result.d2 = wp.length_sq(p64 - q)
     else:
-        bc = ac - ab
-        t_ab = segment_parameter(ap, ab)
-        t_ac = segment_parameter(ap, ac)
-        t_bc = segment_parameter(ap - ab, bc)
-        d_ab = wp.length_sq(ap - ab * t_ab)
-        d_ac = wp.length_sq(ap - ac * t_ac)
-        d_bc = wp.length_sq(ap - ab - bc * t_bc)
+        e_ab = edge_closest(p64, a, b)
+        e_ac = edge_closest(p64, a, c)
+        e_bc = edge_closest(p64, b, c)
+        t_ab = e_ab[0]
+        t_ac = e_ac[0]
+        t_bc = e_bc[0]
+        d_ab = e_ab[1]
+        d_ac = e_ac[1]
+        d_bc = e_bc[1]
         u = t_ab
         best = d_ab
         if d_ac < best:
@@ -321,9 +348,10 @@ EXACT_LOW = wp.constant(wp.float64(1.0 - 1.0e-12))
 # 2. d2c >= (1 - 29u) d^2 - d tau, tau = TILT L + ROUND_ABS (sqrt(3) M + L), with L the root box's
 #    diagonal (no triangle is longer) and M its largest coordinate magnitude (|point| <= sqrt(3) M):
 #    - a vertex equal to p: d2c = 0 exactly, and so is p's box distance (its gaps round to <= 0);
-#    - an edge: a + t ab (t clamped to [0, 1]) is on the segment up to u |ab| (the product) and u
-#      of each coordinate of ab = b - a (rounded); ap, ap - ab and the difference round by u of
-#      themselves: 3u d relative, 3u L absolute;
+#    - an edge xy, from its first end in lexicographic order (`edge_closest`): x + t xy (t clamped
+#      to [0, 1]) is on the segment up to u |xy| (the product) and u of each coordinate of
+#      xy = y - x (rounded); xp and the difference round by u of themselves: 3u d relative, 3u L
+#      absolute;
 #    - the face's projection: n . ap / |n| comes out within 9u of itself (ap: u, the dot: 3u, n.n:
 #      3u, the division and the product n * h: u each) plus 4u L; the plane of the computed n,
 #      tilted by at most TILT / 2 from the exact normal, lies within TILT L / 2 of the triangle

@@ -91,3 +91,55 @@ def test_a_triangle_at_exactly_max_dist_counts_in_tilted_planes(device):
             wrongly_found.append((tri.tolist(), point.tolist(), dist))
     assert not missed, f"{len(missed)} of {len(cases)} triangles at exactly max_dist missed, first {missed[0]}"
     assert not wrongly_found, f"{len(wrongly_found)} found one float32 step inside, first {wrongly_found[0]}"
+
+
+def edge_region_points(rng, vertices, faces, n):
+    """``n`` float32 points off a convex mesh near its edges: an edge point pushed out along the
+    mean of its ends (a point in the edge's Voronoi region, at exactly equal distances from the
+    two triangles sharing the edge), some at an end (a vertex's region)."""
+    v = np.asarray(vertices, np.float64)
+    tri = v[faces[rng.integers(len(faces), size=n)]]
+    k = rng.integers(3, size=n)
+    a, b = tri[np.arange(n), k], tri[np.arange(n), (k + 1) % 3]
+    w = rng.choice([0.0, 0.25, 0.5, 0.75], n)[:, None]
+    out = (a + b) / np.linalg.norm(a + b, axis=1, keepdims=True)
+    return (a + w * (b - a) + rng.choice([0.0, 0.1, 0.3, 0.6], n)[:, None] * out).astype(np.float32)
+
+
+def exact_ties(vertices, faces, points, gap=1e-9):
+    """For each point whose nearest triangles are tied exactly (rational distances equal) while
+    every other triangle lies farther by more than ``gap`` relative (beyond float64's resolution,
+    where the computed distances cannot swap the order): ``(point index, lowest tied id)``."""
+    tri = np.asarray(vertices, np.float32)[faces]
+    lo, hi = tri.min(axis=1).astype(np.float64), tri.max(axis=1).astype(np.float64)
+    out = []
+    for i, p in enumerate(np.asarray(points, np.float32)):
+        # The nearest triangle is no farther than the nearest vertex, and none is nearer than its
+        # box: the others need no rational work.
+        q = p.astype(np.float64)
+        reach = np.linalg.norm(tri.astype(np.float64) - q, axis=2).min()
+        box = np.linalg.norm(np.maximum(np.maximum(lo - q, q - hi), 0.0), axis=1)
+        exact = {int(j): exact_distance_sq(p, *tri[j]) for j in np.nonzero(box <= reach * (1 + 1e-9))[0]}
+        best = min(exact.values())
+        tied = sorted(j for j, x in exact.items() if x == best)
+        if len(tied) >= 2 and all(x > best * Fraction(1 + gap) for x in exact.values() if x != best):
+            out.append((i, tied[0]))
+    return out
+
+
+def test_a_point_nearest_a_shared_edge_goes_to_the_lower_id(device):
+    """A point in a shared edge's region is at exactly equal distances from the two triangles:
+    the lower id must win, whatever order each triangle lists the edge in. The edge was measured
+    from its first end in each triangle (ab from a, bc from b), so the two float64 distances
+    differed in the last bits and the higher id won 18 of 380 such ties on an icosphere."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    verts, faces = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    points = edge_region_points(np.random.default_rng(3), verts, faces, 500)
+    ties = exact_ties(verts, faces, points)
+    assert len(ties) > 300  # the generator is doing its job
+    bvh = hlbvh_warp.build(verts, faces=faces, device=device)
+    _, _, prim = hlbvh_warp.closest_point(bvh, points)
+    wrong = [(points[i].tolist(), int(prim[i]), lowest) for i, lowest in ties if prim[i] != lowest]
+    assert not wrong, f"{len(wrong)} of {len(ties)} exact ties went to a higher id, first {wrong[0]}"
