@@ -26,6 +26,7 @@ from typing import Any
 
 import warp as wp
 
+from . import collide
 from .traversal import (
     INF,
     STACK_SIZE,
@@ -154,6 +155,12 @@ NORMAL_RECHECK = wp.constant(1.3e-11)
 # (height above the plane / longest edge)^2 past which the face's closest point is taken from its
 # weights rather than the projection (see `closest_point_on_triangle`).
 FAR_FROM_PLANE = wp.constant(wp.float64(1.0e12))
+# Where the computed squared distance is at most this times |p|^2 + |a|^2 + |ab|^2 + |ac|^2, the
+# point may lie exactly on the triangle and is tested exactly (`closest_point_on_triangle`). For a
+# point on it, the face's residue is at most (TILT / 2 + a few u) |ap| plus u |p|, and the edges'
+# a few u of their coordinates, below 4e-9 (|p| + |a| + the longest edge): squared and summed,
+# well under 1e-15 of that sum.
+ON_SURFACE = wp.constant(wp.float64(1.0e-15))
 
 
 @wp.func
@@ -252,6 +259,18 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
         else:
             result.point = wp.vec3(a64 + ab * u + ac * v)
         result.d2 = best
+    # A point exactly on the triangle (an edge or the face, not only a vertex) is at distance 0
+    # too, but the projection leaves a residue: the same point on an edge shared by two
+    # triangles got two different residues, and max_dist = 0 missed some. Where the computed
+    # distance is within that residue (at most TILT and a few u of the coordinates, under
+    # ON_SURFACE), the exact predicates of the collision tests decide; rarely run: only on
+    # points within 1e-8 of the scale of the triangle.
+    if result.d2 > zero:
+        scale = wp.dot(p64, p64) + wp.dot(a64, a64) + wp.dot(ab, ab) + wp.dot(ac, ac)
+        if result.d2 <= ON_SURFACE * scale:
+            if collide.point_on_triangle(p, a, b, c) == 1:
+                result.point = p
+                result.d2 = zero
     result.u = float(u)
     result.v = float(v)
     return result

@@ -7,8 +7,10 @@ from __future__ import annotations
 from fractions import Fraction
 
 import numpy as np
+import warp as wp
 
 import hlbvh_warp
+from hlbvh_warp.kernels import collide
 
 #: Integer normals whose length is an integer (Pythagorean quadruples): a point k normals off a
 #: plane through integer points lies at exactly k times that length, a float32 number.
@@ -143,3 +145,105 @@ def test_a_point_nearest_a_shared_edge_goes_to_the_lower_id(device):
     _, _, prim = hlbvh_warp.closest_point(bvh, points)
     wrong = [(points[i].tolist(), int(prim[i]), lowest) for i, lowest in ties if prim[i] != lowest]
     assert not wrong, f"{len(wrong)} of {len(ties)} exact ties went to a higher id, first {wrong[0]}"
+
+
+def points_exactly_on_triangles(rng, n):
+    """``n`` pairs of float32 triangles sharing an edge (listed in opposite directions, the first
+    pair's ids 0 and 1, the next 2 and 3, ...), each with a float32 point lying exactly on the
+    pair: the shared edge's midpoint, or (a + b + 2 c) / 4 inside the first triangle, kept only
+    where those are float32 numbers (checked in rationals). The pairs lie 8 units apart, so each
+    point's triangles at distance 0 are its own pair's. Returns ``(vertices, faces, points)``."""
+    verts, faces, points = [], [], []
+    while len(points) < n:
+        a, b, c, d = (rng.uniform(-1, 1, (4, 3)) + [8.0 * len(points), 0, 0]).astype(np.float32)
+        ex = [[Fraction(float(x)) for x in v] for v in (a, b, c)]
+        if rng.integers(2):
+            exact = [(ex[0][i] + ex[1][i]) / 2 for i in range(3)]
+        else:
+            exact = [(ex[0][i] + ex[1][i] + 2 * ex[2][i]) / 4 for i in range(3)]
+        p = np.array([float(x) for x in exact], np.float32)
+        if any(Fraction(float(p[i])) != exact[i] for i in range(3)):
+            continue
+        k = 4 * len(points)
+        verts.append([a, b, c, d])
+        faces += [[k, k + 1, k + 2], [k + 3, k + 1, k]]  # the edge ab, as ab and as ba
+        points.append(p)
+    return (np.array(verts, np.float32).reshape(-1, 3), np.array(faces, np.int32),
+            np.array(points, np.float32))
+
+
+def test_points_exactly_on_the_surface_are_at_distance_zero(device):
+    """A point exactly on a triangle (a float32 point on a shared edge or inside a face, checked
+    in rationals) is at distance 0: the point itself comes back, a max_dist of 0 finds it, and on
+    an edge shared by two triangles the lower id wins the exact tie. The float64 projection left a
+    residue of about 1e-17 that differed between the two triangles, so the higher id won a
+    quarter of the edge points and max_dist = 0 found nothing for some."""
+    verts, faces, points = points_exactly_on_triangles(np.random.default_rng(4), 200)
+    on_both = np.array([exact_distance_sq(p, *verts[faces[2 * i + 1]]) == 0 for i, p in enumerate(points)])
+    assert all(exact_distance_sq(p, *verts[faces[2 * i]]) == 0 for i, p in enumerate(points))
+    assert on_both.sum() > 50 and (~on_both).sum() > 20  # edge points (a tie) and face points (inside one)
+    lowest = 2 * np.arange(len(points))
+    for flip in (False, True):
+        # Both id orders: the tie goes to the lower id, not to one triangle's rounding.
+        f = faces.reshape(-1, 2, 3)[:, ::-1].reshape(-1, 3) if flip else faces
+        expected = np.where(on_both | (not flip), lowest, lowest + 1)
+        bvh = hlbvh_warp.build(verts, faces=f, device=device)
+        for max_dist in (np.inf, 0.0):
+            closest, distance, prim = hlbvh_warp.closest_point(bvh, points, max_dist=max_dist)
+            wrong = np.nonzero((prim != expected) | (distance != 0) | (closest != points).any(axis=1))[0]
+            assert not len(wrong), (
+                f"max_dist={max_dist}, flip={flip}: {len(wrong)} of {len(points)} points on the surface answered "
+                f"wrongly, first {points[wrong[0]].tolist()}: prim {prim[wrong[0]]} (expected {expected[wrong[0]]}), "
+                f"distance {distance[wrong[0]]}")
+
+
+@wp.kernel
+def _point_on_triangle_kernel(tri: wp.array2d(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
+                              out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    out[i] = collide.point_on_triangle(points[i], tri[i, 0], tri[i, 1], tri[i, 2])
+
+
+def _nudged(x, rng):
+    """Each coordinate moved by -1, 0 or +1 float32 ulp."""
+    step = rng.integers(-1, 2, np.shape(x))
+    x = np.asarray(x, np.float32)
+    return np.where(step > 0, np.nextafter(x, np.float32(np.inf)),
+                    np.where(step < 0, np.nextafter(x, np.float32(-np.inf)), x)).astype(np.float32)
+
+
+def test_point_on_triangle_is_exact(device):
+    """`collide.point_on_triangle` (the closest-point walks' test for distance exactly 0) against
+    the rational distance: points exactly on faces, edges and vertices of tilted triangles and of
+    zero-area ones (segments with a repeated or collinear vertex, points), and the same points
+    moved by an ulp, at scales 2^-100 to 2^100."""
+    rng = np.random.default_rng(8)
+    verts, faces, points = points_exactly_on_triangles(rng, 60)
+    tri, pts = [verts[faces[0::2]]], [points]
+    # Zero-area triangles: (a, b, b), (a, b, m) with m the exact midpoint, (a, a, a); points on them.
+    segs, on = [], []
+    while len(segs) < 60:
+        a, b = rng.uniform(-1, 1, (2, 3)).astype(np.float32)
+        m = ((a.astype(np.float64) + b) / 2).astype(np.float32)
+        if (m.astype(np.float64) * 2 != a.astype(np.float64) + b).any():
+            continue
+        kind = len(segs) % 3
+        segs.append([a, b, b] if kind == 0 else [a, b, m] if kind == 1 else [a, a, a])
+        on.append(m if kind < 2 else a)
+    tri.append(np.array(segs, np.float32))
+    pts.append(np.array(on, np.float32))
+    tri = np.concatenate(tri)
+    pts = np.concatenate(pts)
+    tri = np.concatenate([tri, tri, tri[:, [2, 0, 1]]])
+    pts = np.concatenate([pts, _nudged(pts, rng), pts])
+    for scale in (2.0**-100, 1.0, 2.0**100):  # exact scalings: on stays on
+        t, p = (tri * np.float32(scale)).astype(np.float32), (pts * np.float32(scale)).astype(np.float32)
+        expected = np.array([exact_distance_sq(q, *x) == 0 for q, x in zip(p, t)])
+        assert 0.1 < expected.mean() < 0.9
+        out = wp.empty(len(p), dtype=wp.int32, device=device)
+        wp.launch(_point_on_triangle_kernel, dim=len(p), device=device,
+                  inputs=[wp.array(t, dtype=wp.vec3, device=device), wp.array(p, dtype=wp.vec3, device=device)],
+                  outputs=[out])
+        got = out.numpy() == 1
+        bad = np.nonzero(got != expected)[0]
+        assert not len(bad), f"scale {scale}: {len(bad)} wrong, first {t[bad[0]].tolist()}, {p[bad[0]].tolist()}"
