@@ -7,6 +7,7 @@ from __future__ import annotations
 from fractions import Fraction
 
 import numpy as np
+import pytest
 import warp as wp
 
 import hlbvh_warp
@@ -247,3 +248,12 @@ def test_point_on_triangle_is_exact(device):
         got = out.numpy() == 1
         bad = np.nonzero(got != expected)[0]
         assert not len(bad), f"scale {scale}: {len(bad)} wrong, first {t[bad[0]].tolist()}, {p[bad[0]].tolist()}"
+
+
+def test_a_nan_triangle_is_named_by_triangle_and_vertex(device):
+    """A NaN in triangle 1's third vertex is reported there, not as row 5 of the flattened vertices."""
+    tri = np.zeros((3, 3, 3), np.float32) + np.eye(3, dtype=np.float32)
+    bad = tri.copy()
+    bad[1, 2, 0] = np.nan
+    with pytest.raises(ValueError, match=r"tri_b has a NaN or Inf coordinate \(first at triangle 1, vertex 2: \[nan"):
+        hlbvh_warp.triangles_intersect(tri, bad, device=device)
