@@ -33,6 +33,8 @@ pair counts only when the triangles meet elsewhere (see `neighbours_meet`).
 
 import warp as wp
 
+from .traversal import outline_func
+
 wp.set_module_options({"enable_backward": False, "max_unroll": 0})
 
 vec12d = wp.types.vector(length=12, dtype=wp.float64)
@@ -122,7 +124,10 @@ def orient3d_exact(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
     )
     e = vec48d()
     n = int(0)
-    for m in range(4):
+    # A while loop, which no module's max_unroll unrolls: other modules' kernels call this too
+    # (`point_on_triangle`), and 4 unrolled copies of 24 inlined products slowed their CUDA builds.
+    m = int(0)
+    while m < 4:
         # Rows of the minor: the three points other than point m, in order (offsets into pts).
         r0 = 0
         if m == 0:
@@ -143,6 +148,7 @@ def orient3d_exact(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
         e, n = grow_triple_product(e, n, pts[r0 + 1], pts[r1 + 2], pts[r2 + 0], sign)
         e, n = grow_triple_product(e, n, pts[r0 + 2], pts[r1 + 0], pts[r2 + 1], sign)
         e, n = grow_triple_product(e, n, pts[r0 + 2], pts[r1 + 1], pts[r2 + 0], -sign)
+        m += 1
     return expansion_sign(e, n)
 
 
@@ -437,6 +443,61 @@ def triangles_meet(a0: wp.vec3, a1: wp.vec3, a2: wp.vec3, b0: wp.vec3, b1: wp.ve
                 meet = segments_meet(pick(i, a0, a1, a2), pick(i + 1, a0, a1, a2), pick(j, b0, b1, b2),
                                      pick(j + 1, b0, b1, b2))
     return meet
+
+
+@outline_func
+def point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """1 if p lies on the closed triangle abc, exactly for the float32 coordinates, else 0. A
+    zero-area abc is the segment or point it spans.
+
+    In the triangle's plane (`orient3d` 0) and inside it in a coordinate plane that keeps its
+    area (the signs of the three edge orientations not mixed); for a zero-area abc, collinear
+    with one of its edges in all three coordinate planes and within the edge's box (see
+    `segments_meet`). Written for other modules' kernels (the closest-point walks, for points
+    within rounding of a triangle): out of line, and with while loops, which no module's
+    ``max_unroll`` unrolls; inlined and unrolled at every call site, the exact predicates took
+    CUDA minutes to compile.
+    """
+    # A coordinate plane where abc has nonzero area (exactly), or -1.
+    axis = int(-1)
+    k = int(0)
+    while k < 3 and axis < 0:
+        if orient2d(a, b, c, k) != 0:
+            axis = k
+        k += 1
+    on = int(0)
+    if axis >= 0:
+        if orient3d(a, b, c, p) == 0:
+            positive = int(0)
+            negative = int(0)
+            k = int(0)
+            while k < 3:
+                o = orient2d(pick(k, a, b, c), pick(k + 1, a, b, c), p, axis)
+                if o > 0:
+                    positive = int(1)
+                elif o < 0:
+                    negative = int(1)
+                k += 1
+            on = 1 - positive * negative
+    else:
+        # Edge k // 3 in the coordinate plane dropping axis k % 3.
+        k = int(0)
+        collinear = int(1)
+        while k < 9 and on == 0:
+            x = pick(k // 3, a, b, c)
+            y = pick(k // 3 + 1, a, b, c)
+            if k % 3 == 0:
+                collinear = int(1)
+            if orient2d(x, y, p, k % 3) != 0:
+                collinear = int(0)
+            if k % 3 == 2 and collinear == 1:
+                inside = int(1)
+                for i in range(3):
+                    if p[i] < wp.min(x[i], y[i]) or p[i] > wp.max(x[i], y[i]):
+                        inside = int(0)
+                on = inside
+            k += 1
+    return on
 
 
 @wp.func

@@ -15,7 +15,9 @@
   some leaf whose box is no farther: so spatial-split trees answer correctly as well, testing the
   whole triangle at each of its leaves.
 - Equal distances go to the lowest primitive id, whatever the tree, so every builder gives the same
-  answer where the float64 distances are equal.
+  answer where the float64 distances are equal. An edge is measured from the same end in every
+  triangle holding it (`edge_closest`), so a point nearest an edge shared by two triangles is at
+  bitwise equal distances from both.
 - Stack overflow is handled as in ``traversal.py``: a node met with a full stack is tested as one
   leaf over its whole primitive range.
 """
@@ -24,6 +26,7 @@ from typing import Any
 
 import warp as wp
 
+from . import collide
 from .traversal import (
     INF,
     STACK_SIZE,
@@ -89,6 +92,29 @@ def segment_parameter(ap: wp.vec3d, ab: wp.vec3d):
 
 
 @wp.func
+def edge_closest(p: wp.vec3d, x: wp.vec3, y: wp.vec3):
+    """``(t, d2)``: the closest point x + t (y - x) of segment xy to p (`segment_parameter`) and its
+    squared distance, in float64. Measured from the end that comes first in lexicographic order,
+    whichever order the edge is given in: an edge shared by two triangles (as ab of one and bc
+    of the other, say) then gives both the same bits, so that a point nearest that edge is at
+    equal distances from both and goes to the lower id, as an exact tie should."""
+    flip = y[0] < x[0] or (y[0] == x[0] and (y[1] < x[1] or (y[1] == x[1] and y[2] < x[2])))
+    o = x
+    e = y
+    if flip:
+        o = y
+        e = x
+    o64 = wp.vec3d(o)
+    oe = wp.vec3d(e) - o64
+    op = p - o64
+    t = segment_parameter(op, oe)
+    d2 = wp.length_sq(op - oe * t)
+    if flip:
+        t = wp.float64(1.0) - t
+    return wp.vec2d(t, d2)
+
+
+@wp.func
 def sum_compensated(s: wp.float64, c: wp.float64, x: wp.float64):
     """One step of a compensated sum (Ogita, Rump & Oishi, "Accurate Sum and Dot Product", SIAM
     J. Sci. Comput. 2005, Sum2): adds x to the sum s and its rounding error to c (Knuth's
@@ -129,6 +155,12 @@ NORMAL_RECHECK = wp.constant(1.3e-11)
 # (height above the plane / longest edge)^2 past which the face's closest point is taken from its
 # weights rather than the projection (see `closest_point_on_triangle`).
 FAR_FROM_PLANE = wp.constant(wp.float64(1.0e12))
+# Where the computed squared distance is at most this times |p|^2 + |a|^2 + |ab|^2 + |ac|^2, the
+# point may lie exactly on the triangle and is tested exactly (`closest_point_on_triangle`). For a
+# point on it, the face's residue is at most (TILT / 2 + a few u) |ap| plus u |p|, and the edges'
+# a few u of their coordinates, below 4e-9 (|p| + |a| + the longest edge): squared and summed,
+# well under 1e-15 of that sum.
+ON_SURFACE = wp.constant(wp.float64(1.0e-15))
 
 
 @wp.func
@@ -199,13 +231,15 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
         result.point = wp.vec3(q)
         result.d2 = wp.length_sq(p64 - q)
     else:
-        bc = ac - ab
-        t_ab = segment_parameter(ap, ab)
-        t_ac = segment_parameter(ap, ac)
-        t_bc = segment_parameter(ap - ab, bc)
-        d_ab = wp.length_sq(ap - ab * t_ab)
-        d_ac = wp.length_sq(ap - ac * t_ac)
-        d_bc = wp.length_sq(ap - ab - bc * t_bc)
+        e_ab = edge_closest(p64, a, b)
+        e_ac = edge_closest(p64, a, c)
+        e_bc = edge_closest(p64, b, c)
+        t_ab = e_ab[0]
+        t_ac = e_ac[0]
+        t_bc = e_bc[0]
+        d_ab = e_ab[1]
+        d_ac = e_ac[1]
+        d_bc = e_bc[1]
         u = t_ab
         best = d_ab
         if d_ac < best:
@@ -225,6 +259,18 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
         else:
             result.point = wp.vec3(a64 + ab * u + ac * v)
         result.d2 = best
+    # A point exactly on the triangle (an edge or the face, not only a vertex) is at distance 0
+    # too, but the projection leaves a residue: the same point on an edge shared by two
+    # triangles got two different residues, and max_dist = 0 missed some. Where the computed
+    # distance is within that residue (at most TILT and a few u of the coordinates, under
+    # ON_SURFACE), the exact predicates of the collision tests decide; rarely run: only on
+    # points within 1e-8 of the scale of the triangle.
+    if result.d2 > zero:
+        scale = wp.dot(p64, p64) + wp.dot(a64, a64) + wp.dot(ab, ab) + wp.dot(ac, ac)
+        if result.d2 <= ON_SURFACE * scale:
+            if collide.point_on_triangle(p, a, b, c) == 1:
+                result.point = p
+                result.d2 = zero
     result.u = float(u)
     result.v = float(v)
     return result
@@ -321,9 +367,10 @@ EXACT_LOW = wp.constant(wp.float64(1.0 - 1.0e-12))
 # 2. d2c >= (1 - 29u) d^2 - d tau, tau = TILT L + ROUND_ABS (sqrt(3) M + L), with L the root box's
 #    diagonal (no triangle is longer) and M its largest coordinate magnitude (|point| <= sqrt(3) M):
 #    - a vertex equal to p: d2c = 0 exactly, and so is p's box distance (its gaps round to <= 0);
-#    - an edge: a + t ab (t clamped to [0, 1]) is on the segment up to u |ab| (the product) and u
-#      of each coordinate of ab = b - a (rounded); ap, ap - ab and the difference round by u of
-#      themselves: 3u d relative, 3u L absolute;
+#    - an edge xy, from its first end in lexicographic order (`edge_closest`): x + t xy (t clamped
+#      to [0, 1]) is on the segment up to u |xy| (the product) and u of each coordinate of
+#      xy = y - x (rounded); xp and the difference round by u of themselves: 3u d relative, 3u L
+#      absolute;
 #    - the face's projection: n . ap / |n| comes out within 9u of itself (ap: u, the dot: 3u, n.n:
 #      3u, the division and the product n * h: u each) plus 4u L; the plane of the computed n,
 #      tilted by at most TILT / 2 from the exact normal, lies within TILT L / 2 of the triangle
@@ -409,12 +456,25 @@ def near_bound(d2: wp.float64, tau: wp.float64):
     return bound
 
 
+# max_dist is inclusive, but the float64 squared distance of a triangle lying at exactly max_dist
+# can round above max_dist^2 (57600 + 7e-12 for an exact 240^2 on a tilted triangle with integer
+# vertices), which dropped the triangle. So a triangle counts when its computed squared distance is
+# at most max_dist^2 (1 + 2^-26): the computed distance is within tens of u (2^-53) of the exact one,
+# plus terms of u times the coordinates' magnitude and of TILT times the triangle's size (FAR_LOW's
+# step 2), below 2^-26 of d^2 unless the point lies 1e7 times nearer the triangle than its
+# coordinates' magnitude or a needle's size. The widening stays below float32's resolution: the
+# distance reported, rounded to float32, is still at most max_dist, and a triangle one float32 step
+# beyond max_dist (at least 2^-23 of d^2) still does not count. The walks' box bounds start from
+# the widened bound, so the boxes of such a triangle are entered as their proofs say.
+MAX_DIST_ROOM = wp.constant(wp.float64(1.0 + 2.0**-26))
+
+
 @wp.func
 def start_search(max_dist: float):
-    """An empty `PointSearch` bounded by max_dist (squared, in float64 and in float32), with no
-    slack (tau 0): the far walk's."""
+    """An empty `PointSearch` bounded by max_dist (squared and widened by `MAX_DIST_ROOM`, in
+    float64 and in float32), with no slack (tau 0): the far walk's."""
     s = PointSearch()
-    s.d2 = wp.float64(max_dist) * wp.float64(max_dist)
+    s.d2 = wp.float64(max_dist) * wp.float64(max_dist) * MAX_DIST_ROOM
     s.bound = s.d2
     s.box_d2 = max_dist * max_dist
     s.prim = -1
