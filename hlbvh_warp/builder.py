@@ -369,6 +369,20 @@ class Builder:
             return None
         return sources
 
+    def _refuse_host_frame_in_capture(self, sources: list | None):
+        """A frame given on the host (NumPy, or a CPU array) while a graph is captured on this
+        Builder's device: the graph would hold a copy from memory the caller frees or rewrites
+        (a NumPy frame is staged in a temporary array), so every replay would read stale or freed
+        memory. Refused before any launch; a device array, or the builder's own buffers written
+        in place, can be captured."""
+        if sources is None or not self.device.is_capturing:
+            return
+        for src in sources:
+            if src.device != self.device:
+                raise RuntimeError(f"a frame on {src.device} cannot be captured in a graph on {self.device}: a replay "
+                                   "would copy from memory the capture does not own; pass the frame as an array "
+                                   f"on {self.device}, or write it into the builder's buffers")
+
     def _copy_frame(self, dest: wp.array, source: wp.array):
         """``dest = source``; a float64 source (on this device, see `_source`) is rounded to float32."""
         if source.dtype == wp.vec3:
@@ -848,6 +862,7 @@ class Builder:
         if not self.sync_free and self.device.is_capturing:
             raise RuntimeError(f"a {self.method!r} rebuild on {self.device} reads counts on the host and cannot be "
                                "captured in a graph; capture a CUDA Builder with method='hlbvh' or 'lbvh'")
+        self._refuse_host_frame_in_capture(sources)
         start = time.perf_counter()
         unfinished = self._begin_frame()
         return self._full_rebuild(sources, start, UNFINISHED_REASON if unfinished else "rebuild requested")
@@ -877,6 +892,7 @@ class Builder:
         if self.device.is_cpu and self.device.is_capturing:
             raise RuntimeError(f"a refit on {self.device} runs launches on worker threads and cannot be captured in "
                                "a graph; capture a CUDA Builder instead")
+        self._refuse_host_frame_in_capture(sources)
         start = time.perf_counter()
         if self._begin_frame():
             # No whole topology to refit: the last frame stopped partway through writing it.

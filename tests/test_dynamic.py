@@ -440,6 +440,27 @@ def test_rebuild_is_graph_capturable_on_cuda(small_scene):
 
 
 @pytest.mark.skipif(not wp.get_cuda_devices(), reason="CUDA graph capture needs a CUDA device")
+@pytest.mark.parametrize("call", ["rebuild", "refit"])
+def test_a_host_frame_refuses_graph_capture(small_scene, rng, call):
+    # A NumPy frame is staged on the host and copied inside the capture: each replay would copy
+    # from memory freed since. A clear error before any launch; the builder still works after.
+    v, f = small_scene
+    device = wp.get_cuda_devices()[0]
+    builder = Builder(len(f), device=device, resort=True)
+    builder.build(v, f)
+    getattr(builder, call)(wp.array(v, dtype=wp.vec3, device=device))  # module loads outside the capture
+    frame = builder.frame
+    with pytest.raises(RuntimeError, match="cannot be captured in a graph"):
+        with wp.ScopedCapture(device):
+            getattr(builder, call)(v * np.float32(1.25))
+    assert builder.frame == frame
+    moved = v * np.float32(1.25)
+    getattr(builder, call)(moved)
+    check_tree_invariants(builder.bvh.to_numpy(), len(f))
+    check_rays(builder.bvh, moved, f, rng)
+
+
+@pytest.mark.skipif(not wp.get_cuda_devices(), reason="CUDA graph capture needs a CUDA device")
 def test_hlbvh_sah_rebuild_refuses_graph_capture(small_scene, rng):
     # Its cluster count is read on the host, which a capture cannot replay: a clear error, raised
     # before any launch, and the builder still works afterwards.
