@@ -1096,7 +1096,8 @@ def bvh_ray_query(
     low = ray_scaled_t_min(t_min, scale)
     limit = ray_scaled_t_max(t_max, scale)
     h = RayHit()
-    if bvh.packed_nodes.shape[0] > 0:
+    packed = bvh.packed_nodes.shape[0] > 0
+    if packed:
         root_begin = bvh.node_begin[0]
         # The root's record is at position 0; a root that is a leaf has none.
         root = wp.where(bvh.node_left[0] < 0, root_begin - bvh.node_end[0], 0)
@@ -1107,8 +1108,10 @@ def bvh_ray_query(
         start = walk_start(origin, d, low, limit, root_lower, root_upper)
         # A ray whose box differences may leave float32's range (coordinates near 1.7e38 on both
         # sides) takes the canonical walk, which decides its misses again in float64: the packed
-        # walk, which every other ray runs, keeps its box test as it is.
-        if ray_may_overflow(start.origin, root_lower, root_upper) == 0:
+        # walk, which every other ray runs, keeps its box test as it is. One call of the canonical
+        # walk serves both cases, not a copy in each branch.
+        packed = ray_may_overflow(start.origin, root_lower, root_upper) == 0
+        if packed:
             h = packed_ray_query(
                 bvh.packed_nodes,
                 bvh.packed_triangles,
@@ -1127,9 +1130,7 @@ def bvh_ray_query(
                 low,
                 limit,
             )
-        else:
-            h = canonical_ray_query(bvh, origin, d, low, limit, ignore_prim, any_hit)
-    else:
+    if not packed:
         h = canonical_ray_query(bvh, origin, d, low, limit, ignore_prim, any_hit)
     h.t = h.t * scale
     return h
