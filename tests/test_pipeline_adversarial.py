@@ -4,6 +4,7 @@ are checked against independent NumPy references."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import hlbvh_warp as hb
@@ -21,3 +22,26 @@ def test_morton_bounds_past_float64_are_refused_with_a_value_error(bounds):
     # setting raises a ValueError naming the field.
     with pytest.raises(ValueError, match="morton_bounds"):
         hb.BuildConfig(morton_bounds=bounds)
+
+
+def _tree_of(bvh):
+    """The tree up to node numbering: its order and the set of (begin, end, is_leaf) nodes."""
+    t = bvh.to_numpy()
+    nodes = {(int(b), int(e), bool(leaf)) for b, e, leaf in zip(t["node_begin"], t["node_end"], t["node_left"] < 0)}
+    return t["prim_order"].tolist(), nodes
+
+
+@pytest.mark.parametrize("emission", ["depth_first", "treelets"])
+@pytest.mark.parametrize("exponent", [500, 996, 1020])
+def test_hlbvh_sah_tree_is_the_same_for_costs_scaled_by_a_power_of_two(device, rng, emission, exponent):
+    # Eq. (1) is linear in (T1, T2): scaling both by 2^k scales every cluster cost, and every
+    # price of the cluster tree's sweep, exactly, so the splits must not change. Costs past 1e300
+    # lost to the sweep's "no split yet" mark (1e300), and past float64's range became inf: every
+    # cluster split fell back to the index median (an SAH cost 1.27x the unit costs' tree here).
+    lowers = rng.random((3000, 3)).astype(np.float32)
+    uppers = lowers + np.float32(0.01)
+    unit = hb.BuildConfig(emission=emission)
+    scaled = unit.replace(sah_traversal_cost=2.0**exponent, sah_intersection_cost=2.0**exponent)
+    expected = _tree_of(hb.build_from_bounds(lowers, uppers, method="hlbvh_sah", config=unit, device=device))
+    got = _tree_of(hb.build_from_bounds(lowers, uppers, method="hlbvh_sah", config=scaled, device=device))
+    assert got[1] == expected[1] and got[0] == expected[0]
