@@ -415,9 +415,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # The cluster costs are priced with T1 and T2 scaled by one power of two that brings the
         # larger into [1, 2). Eq. (1) is linear in (T1, T2), so the scale multiplies every cost and
         # every price of the cluster tree's sweep exactly (short of a ratio T1 / T2 so extreme that
-        # the smaller becomes subnormal) and changes no split; unscaled, costs
-        # past 1e300 (finite constants the config accepts) lost to the sweep's "no split yet" mark
-        # or overflowed to inf, and every cluster split fell back to the index median.
+        # the smaller becomes subnormal) and changes no split; unscaled, finite constants the
+        # config accepts (T1 = T2 = 2^1020) priced the clusters past float64's range, inf, and every
+        # cluster split fell back to the index median.
         self.cost_scale = scale = 2.0 ** (1 - math.frexp(max(cfg.sah_traversal_cost, cfg.sah_intersection_cost))[1])
         costs = (cfg.sah_traversal_cost * scale, cfg.sah_intersection_cost * scale)
 

@@ -33,8 +33,11 @@ MODE_SWEEP = wp.constant(0)
 MODE_BINNED = wp.constant(1)
 MODE_MEDIAN = wp.constant(2)
 
-# Larger than any split cost (areas are at most ~1e78 in float64, weights ~1e9).
-NO_COST = wp.constant(wp.float64(1.0e300))
+# The price of "no split found yet": infinite, so that every finite price beats it. A finite mark
+# (1e300, above any price of unit weights: areas reach ~1e78) can lie below every price of heavily
+# weighted items (`TopDownBuilder.build_levels`); then no split was ever found, and every node
+# fell back to the index median.
+NO_COST = wp.constant(wp.float64(float("inf")))
 
 
 @wp.func

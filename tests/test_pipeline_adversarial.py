@@ -45,3 +45,40 @@ def test_hlbvh_sah_tree_is_the_same_for_costs_scaled_by_a_power_of_two(device, r
     expected = _tree_of(hb.build_from_bounds(lowers, uppers, method="hlbvh_sah", config=unit, device=device))
     got = _tree_of(hb.build_from_bounds(lowers, uppers, method="hlbvh_sah", config=scaled, device=device))
     assert got[1] == expected[1] and got[0] == expected[0]
+
+
+def _top_down_tree(lowers, uppers, weight, mode, emission, device):
+    """A `TopDownBuilder` tree over the boxes, every item weighing `weight`."""
+    import warp as wp
+
+    from hlbvh_warp.builders import TopDownBuilder, _Arena
+
+    k = len(lowers)
+    lo = wp.array(lowers, dtype=wp.vec3, device=device)
+    hi = wp.array(uppers, dtype=wp.vec3, device=device)
+    weights = wp.full(k, wp.float64(weight), dtype=wp.float64, device=device)
+    out = _Arena(wp.get_device(device), k, 2 * k - 1)
+    builder = TopDownBuilder(k, device)
+    builder.sort_axes(lo, hi)
+    builder.build_levels(lo, hi, weights, mode=mode, num_bins=16, max_leaf_size=1, terminate_leaf_size=0,
+                         t_traversal=1.0, t_intersect=1.0, node_left=out.node_left, node_right=out.node_right,
+                         node_parent=out.node_parent, node_begin=out.node_begin, node_end=out.node_end,
+                         node_count=out.node_count, item_order=out.prim_order, emission=emission,
+                         binned_above=256)
+    return _tree_of(out.to_bvh("sweep_sah", hb.BuildConfig(), lo, hi, {}))
+
+
+@pytest.mark.parametrize("emission", ["depth_first", "treelets"])
+@pytest.mark.parametrize("mode", ["sweep", "binned"])
+def test_top_down_splits_are_the_same_for_weights_scaled_by_a_power_of_two(device, rng, mode, emission):
+    # The split prices A(L) W(L) + A(R) W(R) scale exactly with the weights. Prices past 1e300
+    # (weights of 2^1000 here) never beat the sweep's "no split yet" mark, which was 1e300: every
+    # node fell back to the index median.
+    from hlbvh_warp.kernels import sah
+
+    lowers = rng.random((1000, 3)).astype(np.float32)
+    uppers = lowers + np.float32(0.01)
+    rule = {"sweep": sah.MODE_SWEEP, "binned": sah.MODE_BINNED}[mode]
+    expected = _top_down_tree(lowers, uppers, 1.0, rule, emission, device)
+    got = _top_down_tree(lowers, uppers, 2.0**1000, rule, emission, device)
+    assert got[1] == expected[1] and got[0] == expected[0]
