@@ -4,6 +4,8 @@ are checked against independent NumPy references."""
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
@@ -82,3 +84,63 @@ def test_top_down_splits_are_the_same_for_weights_scaled_by_a_power_of_two(devic
     expected = _top_down_tree(lowers, uppers, 1.0, rule, emission, device)
     got = _top_down_tree(lowers, uppers, 2.0**1000, rule, emission, device)
     assert got[1] == expected[1] and got[0] == expected[0]
+
+
+def _coincident_reference(lowers, uppers, t1, t2, terminate):
+    """The tree a top-down SAH build with termination makes over boxes whose centroids all
+    coincide: no plane separates them, so a node of items [b, e) (in index order) can only be
+    halved at b + (e - b) // 2; it stays a leaf when that split, priced by eq. (1) in exact
+    rational arithmetic, costs at least T2 x its items. Returns the set of (begin, end, is_leaf)."""
+    lo = [[Fraction(float(x)) for x in row] for row in lowers]
+    hi = [[Fraction(float(x)) for x in row] for row in uppers]
+
+    def area(items):
+        d = [max(hi[i][a] for i in items) - min(lo[i][a] for i in items) for a in range(3)]
+        return 2 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+
+    nodes = set()
+    stack = [(0, len(lowers))]
+    while stack:
+        b, e = stack.pop()
+        size = e - b
+        mid = b + size // 2
+        if size > 1 and size <= terminate:
+            left, right = range(b, mid), range(mid, e)
+            price = area(left) * len(left) + area(right) * len(right)
+            if 2 * t1 + t2 * price / area(range(b, e)) >= t2 * size:
+                size = 1
+        if size <= 1:
+            nodes.add((b, e, True))
+            continue
+        nodes.add((b, e, False))
+        stack += [(b, mid), (mid, e)]
+    return nodes
+
+
+@pytest.mark.parametrize("emission", ["depth_first", "treelets"])
+@pytest.mark.parametrize("case", ["equal boxes", "nested boxes"])
+def test_binned_termination_prices_the_split_of_coincident_centroids(device, case, emission):
+    # build_top_down's terminate_leaf_size keeps a node a leaf where splitting it costs more under
+    # the SAH. Binned SAH finds no bin boundary when every centroid coincides and halves the node
+    # by index; that halving was made without the termination test, so eight equal boxes became 15
+    # nodes (SAH cost 22) where the leaf costs 8, and sweep_sah keeps the leaf.
+    import warp as wp
+
+    from hlbvh_warp.builders import build_top_down
+    from hlbvh_warp.hlbvh import StageTimer
+
+    if case == "equal boxes":
+        lowers = np.zeros((8, 3), np.float32)
+        uppers = np.ones((8, 3), np.float32)
+        t1 = 1.0
+    else:
+        # One centroid, boxes of two sizes: splitting the small pair from the large one pays when
+        # a traversal step is cheap.
+        half = np.array([1, 1, 1, 1, 64, 64, 64, 64], np.float32)[:, None] * np.ones(3, np.float32)
+        lowers, uppers = -half, half
+        t1 = 0.125
+    config = hb.BuildConfig(sah_traversal_cost=t1, sah_intersection_cost=1.0, emission=emission)
+    bvh = build_top_down(wp.array(lowers, dtype=wp.vec3, device=device), wp.array(uppers, dtype=wp.vec3, device=device),
+                         config, device, StageTimer(device, False), method="binned_sah", terminate_leaf_size=8)
+    expected = _coincident_reference(lowers, uppers, Fraction(t1), Fraction(1), 8)
+    assert _tree_of(bvh)[1] == expected
