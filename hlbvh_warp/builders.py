@@ -348,9 +348,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
     def __init__(self, num_prims: int, config: BuildConfig, device, prim_lowers: wp.array | None = None,
                  prim_uppers: wp.array | None = None):
         super().__init__(num_prims, config, device, prim_lowers, prim_uppers)
-        # The SAH cost of every node below the cluster roots, in units of `cost_scale` (`build_sah`).
+        # The SAH cost of every node below the cluster roots times 2^cost_exponent (`build_sah`).
         self.node_cost = memory.empty(2 * num_prims - 1, dtype=wp.float64, device=self.device)
-        self.cost_scale = 1.0
+        self.cost_exponent = 0
         self.prim_order = memory.empty(num_prims, dtype=wp.int32, device=self.device)
         self.top = None
 
@@ -418,8 +418,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # the smaller becomes subnormal) and changes no split; unscaled, finite constants the
         # config accepts (T1 = T2 = 2^1020) priced the clusters past float64's range, inf, and every
         # cluster split fell back to the index median.
-        self.cost_scale = scale = 2.0 ** (1 - math.frexp(max(cfg.sah_traversal_cost, cfg.sah_intersection_cost))[1])
-        costs = (cfg.sah_traversal_cost * scale, cfg.sah_intersection_cost * scale)
+        # The exponent by ldexp: 2^k itself is past float64 for the smallest T2 (5e-324, k = 1074).
+        self.cost_exponent = k = 1 - math.frexp(max(cfg.sah_traversal_cost, cfg.sah_intersection_cost))[1]
+        costs = (math.ldexp(cfg.sah_traversal_cost, k), math.ldexp(cfg.sah_intersection_cost, k))
 
         # Voxel hierarchy: one treelet segment per cluster, emitted over the low 3(n - m) bits.
         timer.stage("voxel_hierarchy")

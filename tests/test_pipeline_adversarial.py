@@ -34,16 +34,17 @@ def _tree_of(bvh):
 
 
 @pytest.mark.parametrize("emission", ["depth_first", "treelets"])
-@pytest.mark.parametrize("exponent", [500, 996, 1020])
-def test_hlbvh_sah_tree_is_the_same_for_costs_scaled_by_a_power_of_two(device, rng, emission, exponent):
+@pytest.mark.parametrize("costs", [(2.0**500, 2.0**500), (2.0**996, 2.0**996), (2.0**1020, 2.0**1020), (0.0, 5e-324)])
+def test_hlbvh_sah_tree_is_the_same_for_costs_scaled_by_a_power_of_two(device, rng, emission, costs):
     # Eq. (1) is linear in (T1, T2): scaling both by 2^k scales every cluster cost, and every
     # price of the cluster tree's sweep, exactly, so the splits must not change. Costs past 1e300
     # lost to the sweep's "no split yet" mark (1e300), and past float64's range became inf: every
     # cluster split fell back to the index median (an SAH cost 1.27x the unit costs' tree here).
+    # The smallest T2 (2^-1074) must not overflow the scale that corrects it.
     lowers = rng.random((3000, 3)).astype(np.float32)
     uppers = lowers + np.float32(0.01)
-    unit = hb.BuildConfig(emission=emission)
-    scaled = unit.replace(sah_traversal_cost=2.0**exponent, sah_intersection_cost=2.0**exponent)
+    unit = hb.BuildConfig(emission=emission, sah_traversal_cost=costs[0] and 1.0)
+    scaled = unit.replace(sah_traversal_cost=costs[0], sah_intersection_cost=costs[1])
     expected = _tree_of(hb.build_from_bounds(lowers, uppers, method="hlbvh_sah", config=unit, device=device))
     got = _tree_of(hb.build_from_bounds(lowers, uppers, method="hlbvh_sah", config=scaled, device=device))
     assert got[1] == expected[1] and got[0] == expected[0]
