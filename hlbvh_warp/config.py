@@ -190,7 +190,10 @@ class BuildConfig:
         ]
         for ok, message in checks:
             if not ok:
-                raise ValueError(f"BuildConfig: {message} (got {self})")
+                # The config as its repr shows it, but through `_shown`: morton_bounds is not checked
+                # yet, and a corner of more than 4300 digits made the repr itself raise.
+                shown = ", ".join(f"{f.name}={_shown(getattr(self, f.name))}" for f in dataclasses.fields(self))
+                raise ValueError(f"BuildConfig: {message} (got BuildConfig({shown}))")
         if self.morton_bounds is not None:
             try:
                 box = np.asarray(self.morton_bounds, dtype=np.float64)

@@ -145,3 +145,15 @@ def test_binned_termination_prices_the_split_of_coincident_centroids(device, cas
                          config, device, StageTimer(device, False), method="binned_sah", terminate_leaf_size=8)
     expected = _coincident_reference(lowers, uppers, Fraction(t1), Fraction(1), 8)
     assert _tree_of(bvh)[1] == expected
+
+
+def test_a_bad_setting_beside_an_overlong_morton_bounds_corner_is_named():
+    # The message of any other bad setting prints the whole config, morton_bounds (not checked
+    # yet) included; a corner of more than 4300 digits made that print raise Python's own
+    # ValueError on long integers instead.
+    with pytest.raises(ValueError, match="bits_per_axis must be in"):
+        hb.BuildConfig(bits_per_axis=11, morton_bounds=((0, 0, 0), (10**5000, 1, 1)))
+    # Otherwise the message shows the config as its repr does.
+    with pytest.raises(ValueError) as error:
+        hb.BuildConfig(bits_per_axis=11)
+    assert str(error.value).endswith(f"(got {hb.BuildConfig.__repr__(hb.BuildConfig()).replace('=10,', '=11,', 1)})")
