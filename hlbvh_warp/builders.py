@@ -17,6 +17,8 @@ reads one count per level to know when the tree is finished. By default they spl
 
 from __future__ import annotations
 
+import math
+
 import warp as wp
 
 from . import api, memory
@@ -346,7 +348,9 @@ class HlbvhSahPipeline(HlbvhPipeline):
     def __init__(self, num_prims: int, config: BuildConfig, device, prim_lowers: wp.array | None = None,
                  prim_uppers: wp.array | None = None):
         super().__init__(num_prims, config, device, prim_lowers, prim_uppers)
+        # The SAH cost of every node below the cluster roots times 2^cost_exponent (`build_sah`).
         self.node_cost = memory.empty(2 * num_prims - 1, dtype=wp.float64, device=self.device)
+        self.cost_exponent = 0
         self.prim_order = memory.empty(num_prims, dtype=wp.int32, device=self.device)
         self.top = None
 
@@ -408,6 +412,16 @@ class HlbvhSahPipeline(HlbvhPipeline):
                 num_clusters = self.merge_clusters(num_clusters)
         voxel_bits = 3 * (cfg.bits_per_axis - self.cluster_bits)
 
+        # The cluster costs are priced with T1 and T2 scaled by one power of two that brings the
+        # larger into [1, 2). Eq. (1) is linear in (T1, T2), so the scale multiplies every cost and
+        # every price of the cluster tree's sweep exactly (short of a ratio T1 / T2 so extreme that
+        # the smaller becomes subnormal) and changes no split; unscaled, finite constants the
+        # config accepts (T1 = T2 = 2^1020) priced the clusters past float64's range, inf, and every
+        # cluster split fell back to the index median.
+        # The exponent by ldexp: 2^k itself is past float64 for the smallest T2 (5e-324, k = 1074).
+        self.cost_exponent = k = 1 - math.frexp(max(cfg.sah_traversal_cost, cfg.sah_intersection_cost))[1]
+        costs = (math.ldexp(cfg.sah_traversal_cost, k), math.ldexp(cfg.sah_intersection_cost, k))
+
         # Voxel hierarchy: one treelet segment per cluster, emitted over the low 3(n - m) bits.
         timer.stage("voxel_hierarchy")
         if self.emission == "depth_first":
@@ -415,7 +429,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
             self.node_count.fill_(2 * num_clusters - 1)
             # Boxes and SAH costs of the cluster subtrees come out of the same walk.
             self.emit_depth_first(self.voxel_starts, self.voxel_count, num_clusters - 1, num_clusters,
-                                  node_cost=self.node_cost)
+                                  node_cost=self.node_cost, costs=costs)
         else:
             self._launch(
                 treelets.init_nodes_kernel,
@@ -436,7 +450,7 @@ class HlbvhSahPipeline(HlbvhPipeline):
         # Cluster costs: boxes and SAH costs of every cluster subtree, bottom-up (the depth-first
         # emission wrote them as it went).
         first_cluster_root = num_clusters - 1
-        t_traversal, t_intersect = wp.float64(cfg.sah_traversal_cost), wp.float64(cfg.sah_intersection_cost)
+        t_traversal, t_intersect = wp.float64(costs[0]), wp.float64(costs[1])
         if self.emission == "depth_first":
             timer.skipped("cluster_costs")
             timer.stage("cluster_items")
@@ -475,8 +489,8 @@ class HlbvhSahPipeline(HlbvhPipeline):
             num_bins=TOP_TREE_BINS,
             max_leaf_size=1,
             terminate_leaf_size=0,
-            t_traversal=cfg.sah_traversal_cost,
-            t_intersect=cfg.sah_intersection_cost,
+            t_traversal=costs[0],
+            t_intersect=costs[1],
             node_left=top.arena.node_left,
             node_right=top.arena.node_right,
             node_parent=top.arena.node_parent,

@@ -19,9 +19,13 @@ EMISSIONS = ("auto", "treelets", "depth_first")
 
 def _shown(value) -> str:
     """A setting's value for a message: Python refuses to print an integer of more than 4300
-    digits (its int_max_str_digits), so one that long is described instead."""
+    digits (its int_max_str_digits), so one that long is described instead, inside a tuple or
+    list too (a ``morton_bounds`` corner)."""
     if isinstance(value, int) and value.bit_length() > 1000:
         return f"an integer of about {int(value.bit_length() * 0.30103)} digits"
+    if isinstance(value, (tuple, list)):
+        inner = ", ".join(_shown(x) for x in value)
+        return f"({inner}{',' if len(value) == 1 else ''})" if isinstance(value, tuple) else f"[{inner}]"
     return repr(value)
 
 
@@ -186,15 +190,23 @@ class BuildConfig:
         ]
         for ok, message in checks:
             if not ok:
-                raise ValueError(f"BuildConfig: {message} (got {self})")
+                # The config as its repr shows it, but through `_shown`: morton_bounds is not checked
+                # yet, and a corner of more than 4300 digits made the repr itself raise.
+                shown = ", ".join(f"{f.name}={_shown(getattr(self, f.name))}" for f in dataclasses.fields(self))
+                raise ValueError(f"BuildConfig: {message} (got BuildConfig({shown}))")
         if self.morton_bounds is not None:
             try:
                 box = np.asarray(self.morton_bounds, dtype=np.float64)
             except (TypeError, ValueError):
                 box = np.zeros(0)
+            except OverflowError:
+                # An integer past float64's range (10**400): NumPy raises an OverflowError, not the
+                # ValueError every other bad setting gets.
+                raise ValueError(f"BuildConfig: morton_bounds must lie within the float32 range "
+                                 f"(got {_shown(self.morton_bounds)})") from None
             if box.shape != (2, 3):
                 raise ValueError(f"BuildConfig: morton_bounds must be ((x0, y0, z0), (x1, y1, z1)) "
-                                 f"(got {self.morton_bounds!r})")
+                                 f"(got {_shown(self.morton_bounds)})")
             # NumPy reads "0" and True as numbers; every other number field refuses them.
             if any(isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating))
                    for row in self.morton_bounds for x in row):

@@ -729,10 +729,12 @@ class HlbvhPipeline:
             self._emit(num_segments, 0, 1, stride, 1)
 
     def emit_depth_first(self, seed_starts: wp.array | None = None, seed_count: wp.array | None = None,
-                         first_seed_node: int = 0, num_seeds: int = 1, node_cost: wp.array | None = None):
+                         first_seed_node: int = 0, num_seeds: int = 1, node_cost: wp.array | None = None,
+                         costs: tuple | None = None):
         """The depth-first schedule of the emission (``BuildConfig.emission``): one thread per
         seed segment (default: the root, [0, N)) emits its whole subtree with every box, and with
-        `node_cost` given, every node's SAH cost. The splits, and so the tree, are those of the
+        `node_cost` given, every node's SAH cost, priced with ``costs = (T1, T2)`` (default the
+        config's). The splits, and so the tree, are those of the
         treelet passes of Pantaleoni & Luebke 2010 (section 3.2); the schedule is this library's,
         for Warp's CPU device. With seeds given, the caller has set `node_count` past the seeds'
         nodes and links their parents afterwards.
@@ -773,9 +775,10 @@ class HlbvhPipeline:
         shared = [n, seed_starts, seed_count, first_seed_node, cfg.max_leaf_size, self.sorted_codes,
                   self.leaf_lowers, self.leaf_uppers, serial, self.sorted_prim_ids, self.prim_lowers,
                   self.prim_uppers]
+        t_traversal, t_intersect = costs if costs is not None else (cfg.sah_traversal_cost, cfg.sah_intersection_cost)
         tail = [self.node_left, self.node_right, self.node_parent, self.node_begin, self.node_end, self.node_lowers,
-                self.node_uppers, int(node_cost is not None), wp.float64(cfg.sah_traversal_cost),
-                wp.float64(cfg.sah_intersection_cost), node_cost if node_cost is not None else self.empty_cost]
+                self.node_uppers, int(node_cost is not None), wp.float64(t_traversal), wp.float64(t_intersect),
+                node_cost if node_cost is not None else self.empty_cost]
         if not parallel or num_seeds < 2:
             self._launch(treelets.emit_depth_first_kernel, num_seeds, shared + [self.node_count] + tail + [0, serial])
             return

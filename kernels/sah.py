@@ -33,8 +33,11 @@ MODE_SWEEP = wp.constant(0)
 MODE_BINNED = wp.constant(1)
 MODE_MEDIAN = wp.constant(2)
 
-# Larger than any split cost (areas are at most ~1e78 in float64, weights ~1e9).
-NO_COST = wp.constant(wp.float64(1.0e300))
+# The price of "no split found yet": infinite, so that every finite price beats it. A finite mark
+# (1e300, above any price of unit weights: areas reach ~1e78) can lie below every price of heavily
+# weighted items (`TopDownBuilder.build_levels`); then no split was ever found, and every node
+# fell back to the index median.
+NO_COST = wp.constant(wp.float64(float("inf")))
 
 
 @wp.func
@@ -341,6 +344,34 @@ def binned_split_presorted(b: int, e: int, inputs: SplitInputs):
 
 
 @wp.func
+def index_split_price(b: int, pos: int, e: int, inputs: SplitInputs):
+    """``(A(L) W(L) + A(R) W(R), A(node), W(node))`` of the split of axis 0's order on [b, e) at
+    `pos`: the SAH price (MacDonald & Booth 1990) of a split chosen without one."""
+    order = inputs.order
+    item = order[b]
+    left_lower = inputs.item_lowers[item]
+    left_upper = inputs.item_uppers[item]
+    left_weight = inputs.item_weights[item]
+    for i in range(b + 1, pos):
+        item = order[i]
+        left_lower = wp.min(left_lower, inputs.item_lowers[item])
+        left_upper = wp.max(left_upper, inputs.item_uppers[item])
+        left_weight += inputs.item_weights[item]
+    item = order[pos]
+    right_lower = inputs.item_lowers[item]
+    right_upper = inputs.item_uppers[item]
+    right_weight = inputs.item_weights[item]
+    for i in range(pos + 1, e):
+        item = order[i]
+        right_lower = wp.min(right_lower, inputs.item_lowers[item])
+        right_upper = wp.max(right_upper, inputs.item_uppers[item])
+        right_weight += inputs.item_weights[item]
+    price = box_area64(left_lower, left_upper) * left_weight + box_area64(right_lower, right_upper) * right_weight
+    node_area = box_area64(wp.min(left_lower, right_lower), wp.max(left_upper, right_upper))
+    return price, node_area, left_weight + right_weight
+
+
+@wp.func
 def choose_split(b: int, e: int, inputs: SplitInputs):
     """The split of the range [b, e) under `mode`: ``(axis, position, 1)``, or ``(0, 0, 0)`` for a leaf.
 
@@ -450,7 +481,13 @@ def choose_split(b: int, e: int, inputs: SplitInputs):
 
     if best_axis < 0:
         # Binned: every centroid coincides on every axis, no plane separates them; halve by index.
-        return wp.vec3i(0, b + size // 2, 1)
+        best_axis = 0
+        best_pos = b + size // 2
+        if size > terminate_leaf_size:
+            return wp.vec3i(best_axis, best_pos, 1)
+        # Priced like a found split for the termination test below: made without it, a node
+        # that a leaf serves better was halved down to single items.
+        best_cost, node_area, total_weight = index_split_price(b, best_pos, e, inputs)
 
     if size <= terminate_leaf_size:
         # Optional SAH termination: keep the node a leaf when splitting costs more than
