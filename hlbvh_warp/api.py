@@ -84,10 +84,8 @@ def _resolve(method: str, config: BuildConfig | None, device):
 
 def _load_optional_builders():
     # Reference builders register themselves on import; imported lazily to keep `import` cheap.
-    try:
-        from . import builders  # noqa: F401
-    except ImportError:
-        pass
+    # They are part of the package: an import error is a bug to show, not "unknown method".
+    from . import builders  # noqa: F401
 
 
 def build(mesh, faces=None, *, method: str = "hlbvh", device=None, config: BuildConfig | None = None,

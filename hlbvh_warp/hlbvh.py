@@ -98,7 +98,8 @@ class StageTimer:
             # schedule (the CPU's depth-first emission skips bbox, the treelet passes do not),
             # ``timings["skipped"]`` raised a KeyError on one device and not on the other.
             self.timings.setdefault("skipped", [])
-            self.timings["total"] = sum(v for k, v in self.timings.items() if k not in ("skipped",))
+            # A second call must not count the first one's total in.
+            self.timings["total"] = sum(v for k, v in self.timings.items() if k not in ("skipped", "total"))
         return self.timings
 
 

@@ -157,3 +157,19 @@ def test_a_bad_setting_beside_an_overlong_morton_bounds_corner_is_named():
     with pytest.raises(ValueError) as error:
         hb.BuildConfig(bits_per_axis=11)
     assert str(error.value).endswith(f"(got {hb.BuildConfig.__repr__(hb.BuildConfig()).replace('=10,', '=11,', 1)})")
+
+
+def test_a_stage_timer_finished_twice_totals_its_stages_once():
+    """`StageTimer.finish` summed every entry but "skipped" into "total", so a second call counted
+    the first call's total in as a stage: twice the stages' sum."""
+    from hlbvh_warp.hlbvh import StageTimer
+
+    timer = StageTimer("cpu", True)
+    timer.stage("first")
+    sum(range(10000))
+    timer.stage("second")
+    timer.finish()
+    timings = timer.finish()
+    stages = [v for k, v in timings.items() if k not in ("skipped", "total")]
+    assert len(stages) == 2
+    assert timings["total"] == pytest.approx(sum(stages), rel=1e-12)
