@@ -152,8 +152,8 @@ def sweep_bin_boundaries(
     by A(L) N(L) + A(R) N(R): N(L) counts `enter` of the bins below j, N(R) counts `leave` of the
     bins from j on. An object split passes each bin's count as both; a spatial split's
     references enter at the bin of their lower corner and leave at their upper corner's. Both
-    sides non-empty and smaller than n. Returns the best so far, updated: the first cheapest in
-    axis-then-boundary order.
+    sides non-empty and smaller than n. Returns the best so far, updated: the cheapest, of exact
+    equals the most balanced (least |N(L) - N(R)|), then the first in axis-then-boundary order.
 
     The binned SAH sweep of Wald ("On Fast Construction of SAH-based Bounding Volume Hierarchies",
     IEEE RT 2007): the greedy SAH split of MacDonald & Booth 1990 priced at bin boundaries only, one
@@ -181,7 +181,13 @@ def sweep_bin_boundaries(
         r_n = right_count[j]
         if l_n > 0 and r_n > 0 and l_n < n and r_n < n:
             cost = box_area64(l_lo, l_hi) * wp.float64(l_n) + right_area[j] * wp.float64(r_n)
-            if best_axis < 0 or cost < best_cost:
+            better = best_axis < 0 or cost < best_cost
+            if best_axis >= 0 and cost == best_cost:
+                # Zero-area boxes (degenerate triangles on one axis-parallel line) price every
+                # boundary at 0: the first one peeled a bin off per level, a chain some 60 ln N
+                # deep, where the sweep builders send exact ties to the middle.
+                better = wp.abs(l_n - r_n) < wp.abs(best_left - best_right)
+            if better:
                 best_cost = cost
                 best_axis = axis
                 best_bin = j
@@ -192,9 +198,9 @@ def sweep_bin_boundaries(
 
 @wp.func
 def best_bin_split(boxes_lo: Any, boxes_hi: Any, enter: Any, leave: Any, extent: wp.vec3, num_bins: int, n: int):
-    """The first cheapest bin boundary over the axes of nonzero `extent` (`sweep_bin_boundaries`
-    per axis, binned SAH after Wald 2007): ``(cost, axis, boundary, left count, right count)``,
-    axis -1 where none splits."""
+    """The cheapest bin boundary over the axes of nonzero `extent`, of exact equals the most
+    balanced (`sweep_bin_boundaries` per axis, binned SAH after Wald 2007): ``(cost, axis,
+    boundary, left count, right count)``, axis -1 where none splits."""
     best_cost = wp.float64(0.0)
     best_axis = int(-1)
     best_bin = int(0)
@@ -344,28 +350,28 @@ def binned_split_presorted(b: int, e: int, inputs: SplitInputs):
 
 
 @wp.func
+def order_range_box(begin: int, end: int, inputs: SplitInputs):
+    """``(lower, upper, weight)`` of the items at positions [begin, end) of axis 0's order
+    (begin < end)."""
+    order = inputs.order
+    item = order[begin]
+    lower = inputs.item_lowers[item]
+    upper = inputs.item_uppers[item]
+    weight = inputs.item_weights[item]
+    for i in range(begin + 1, end):
+        item = order[i]
+        lower = wp.min(lower, inputs.item_lowers[item])
+        upper = wp.max(upper, inputs.item_uppers[item])
+        weight += inputs.item_weights[item]
+    return lower, upper, weight
+
+
+@wp.func
 def index_split_price(b: int, pos: int, e: int, inputs: SplitInputs):
     """``(A(L) W(L) + A(R) W(R), A(node), W(node))`` of the split of axis 0's order on [b, e) at
     `pos`: the SAH price (MacDonald & Booth 1990) of a split chosen without one."""
-    order = inputs.order
-    item = order[b]
-    left_lower = inputs.item_lowers[item]
-    left_upper = inputs.item_uppers[item]
-    left_weight = inputs.item_weights[item]
-    for i in range(b + 1, pos):
-        item = order[i]
-        left_lower = wp.min(left_lower, inputs.item_lowers[item])
-        left_upper = wp.max(left_upper, inputs.item_uppers[item])
-        left_weight += inputs.item_weights[item]
-    item = order[pos]
-    right_lower = inputs.item_lowers[item]
-    right_upper = inputs.item_uppers[item]
-    right_weight = inputs.item_weights[item]
-    for i in range(pos + 1, e):
-        item = order[i]
-        right_lower = wp.min(right_lower, inputs.item_lowers[item])
-        right_upper = wp.max(right_upper, inputs.item_uppers[item])
-        right_weight += inputs.item_weights[item]
+    left_lower, left_upper, left_weight = order_range_box(b, pos, inputs)
+    right_lower, right_upper, right_weight = order_range_box(pos, e, inputs)
     price = box_area64(left_lower, left_upper) * left_weight + box_area64(right_lower, right_upper) * right_weight
     node_area = box_area64(wp.min(left_lower, right_lower), wp.max(left_upper, right_upper))
     return price, node_area, left_weight + right_weight

@@ -25,7 +25,7 @@ import warp as wp
 from .metrics import box_area64, clip_to_slab, mat93d, triangle_in_box
 from .morton import box_centroid
 from .recursive_sah import bin_of as centroid_bin
-from .sah import BIG, MAX_SWEEP_BINS, sweep_areas, sweep_counts
+from .sah import BIG, MAX_SWEEP_BINS, best_bin_split
 
 # Forward-only kernels: no adjoints to compile.
 wp.set_module_options({"enable_backward": False})
@@ -64,54 +64,8 @@ except TypeError:  # a Warp without the inlining hint: the same functions, inlin
 @out_of_line
 def best_split_of_bins(boxes_lo: bin_boxes, boxes_hi: bin_boxes, enter: bin_counts, leave: bin_counts,
                        extent: wp.vec3, num_bins: int, n: int):
-    """The cheapest bin boundary over the axes of nonzero `extent`, priced as `best_bin_split`
-    prices it (A(L) N(L) + A(R) N(R), the binned SAH of Wald 2007; both sides non-empty and
-    smaller than n): ``(cost, axis, boundary, left count, right count)``, axis -1 where none
-    splits. Among exact equals the most balanced one (least |N(L) - N(R)|), then the first in
-    axis-then-boundary order. Compiled once."""
-    # Zero-area boxes (degenerate triangles on one axis-parallel line) price every boundary at 0:
-    # the first one peeled a bin off per level, a chain some 60 ln N deep, where the sweep
-    # builders send exact ties to the middle.
-    best_cost = wp.float64(0.0)
-    best_axis = int(-1)
-    best_bin = int(0)
-    best_left = int(0)
-    best_right = int(0)
-    right_area = sweep_areas()
-    right_count = sweep_counts()
-    for axis in range(3):
-        if extent[axis] > 0.0:
-            r_lo = wp.vec3(BIG)
-            r_hi = wp.vec3(-BIG)
-            r_n = int(0)
-            for j in range(num_bins - 1, 0, -1):
-                slot = axis * num_bins + j
-                r_lo = wp.min(r_lo, wp.vec3(boxes_lo[slot]))
-                r_hi = wp.max(r_hi, wp.vec3(boxes_hi[slot]))
-                r_n += leave[slot]
-                right_area[j] = box_area64(r_lo, r_hi)
-                right_count[j] = r_n
-            l_lo = wp.vec3(BIG)
-            l_hi = wp.vec3(-BIG)
-            l_n = int(0)
-            for j in range(1, num_bins):
-                slot = axis * num_bins + j - 1
-                l_lo = wp.min(l_lo, wp.vec3(boxes_lo[slot]))
-                l_hi = wp.max(l_hi, wp.vec3(boxes_hi[slot]))
-                l_n += enter[slot]
-                r_n = right_count[j]
-                if l_n > 0 and r_n > 0 and l_n < n and r_n < n:
-                    cost = box_area64(l_lo, l_hi) * wp.float64(l_n) + right_area[j] * wp.float64(r_n)
-                    better = best_axis < 0 or cost < best_cost
-                    if best_axis >= 0 and cost == best_cost:
-                        better = wp.abs(l_n - r_n) < wp.abs(best_left - best_right)
-                    if better:
-                        best_cost = cost
-                        best_axis = axis
-                        best_bin = j
-                        best_left = l_n
-                        best_right = r_n
-    return best_cost, best_axis, best_bin, best_left, best_right
+    """`best_bin_split` over the kernel's bin arrays (of exact equals the most balanced), compiled once."""
+    return best_bin_split(boxes_lo, boxes_hi, enter, leave, extent, num_bins, n)
 
 
 @out_of_line

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 
 
@@ -496,3 +498,41 @@ def sphere_past_float32_extent(rng):
     c = np.float32(0.5) * small[f].min(1) + np.float32(0.5) * small[f].max(1)
     assert ((c.max(0).astype(np.float64) - c.min(0)) * 2.0**127 > np.finfo(np.float32).max).all()
     return small, big, f
+
+
+def exact_distance_sq(p, a, b, c) -> Fraction:
+    """Squared distance of float32 point p to the closed float32 triangle abc, in rationals: the
+    Gram equations' interior point when it lies in the triangle, and the three clamped edge
+    projections (the minimum over points of the triangle, so exact)."""
+    p, a, b, c = ([Fraction(float(x)) for x in np.float32(v)] for v in (p, a, b, c))
+
+    def sub(x, y):
+        return [x[i] - y[i] for i in range(3)]
+
+    def dot(x, y):
+        return sum(x[i] * y[i] for i in range(3))
+
+    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
+    g00, g01, g11, r0, r1 = dot(ab, ab), dot(ab, ac), dot(ac, ac), dot(ap, ab), dot(ap, ac)
+    det = g00 * g11 - g01 * g01
+    candidates = []
+    if det > 0:
+        s, t = (g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det
+        if s >= 0 and t >= 0 and s + t <= 1:
+            d = [ap[i] - s * ab[i] - t * ac[i] for i in range(3)]
+            candidates.append(dot(d, d))
+    for origin, edge in ((a, ab), (a, ac), (b, sub(c, b))):
+        den, op = dot(edge, edge), sub(p, origin)
+        w = Fraction(0) if den == 0 else min(max(dot(op, edge) / den, Fraction(0)), Fraction(1))
+        d = [op[i] - w * edge[i] for i in range(3)]
+        candidates.append(dot(d, d))
+    return min(candidates)
+
+
+def assert_exact_node_boxes(tree: dict, vertices: np.ndarray, faces: np.ndarray):
+    """Every node box of `tree` (``Bvh.to_numpy()``) is the union of its triangles' boxes: min
+    and max of the same floats, so equal to the bit."""
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    node_lo, node_hi = numpy_node_boxes(tree, corners.min(axis=1), corners.max(axis=1))
+    np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
+    np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))

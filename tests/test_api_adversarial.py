@@ -19,6 +19,16 @@ def _big_sphere(subdivisions=2):
     return vertices, np.asarray(mesh.faces, np.int32)
 
 
+def _rays_across_the_big_sphere(rng, n=64):
+    """The big sphere and n rays from inside it near one side towards the other, with long
+    directions: the hits lie at t of about 1, not past float32 as for unit ones."""
+    vertices, faces = _big_sphere()
+    scale = 1.7 * 2.0**127
+    origins = (np.c_[rng.uniform(-0.9, -0.7, n), rng.uniform(-0.2, 0.2, (n, 2))] * scale).astype(np.float32)
+    directions = (np.c_[np.ones(n), rng.uniform(-0.4, 0.4, (n, 2))] * 2.0**120).astype(np.float32)
+    return vertices, faces, origins, directions
+
+
 @wp.kernel
 def _canonical_closest_hit_kernel(view: hlbvh_warp.BvhView, origins: wp.array(dtype=wp.vec3),
                                   directions: wp.array(dtype=wp.vec3), prims: wp.array(dtype=wp.int32)):
@@ -32,13 +42,9 @@ def test_rays_across_a_mesh_spanning_float32_do_not_leak(device, rng):
     infinity: the walk dropped every box on the far side, and 499 of 500 rays from inside the
     closed sphere escaped, though the triangle test (which shears in float64 there) hits them.
     Every ray from inside must hit, each query must agree with the float64 brute force."""
-    vertices, faces = _big_sphere()
-    scale = 1.7 * 2.0**127
+    vertices, faces, origins, directions = _rays_across_the_big_sphere(rng)
+    n = len(origins)
     bvh = hlbvh_warp.build(vertices, faces, device=device)
-    n = 64
-    origins = (np.c_[rng.uniform(-0.9, -0.7, n), rng.uniform(-0.2, 0.2, (n, 2))] * scale).astype(np.float32)
-    # Long directions: the hits lie at t of about 1, not past float32 as for unit ones.
-    directions = (np.c_[np.ones(n), rng.uniform(-0.4, 0.4, (n, 2))] * 2.0**120).astype(np.float32)
     hit, t_ref, margin = numpy_all_hits(vertices, faces, origins, directions, np.inf)
     clear = hit & (margin > 1e-4)
     assert clear.any(axis=1).all()  # the oracle: every ray crosses the sphere away from its edges
@@ -181,12 +187,9 @@ def test_wide_rays_across_a_mesh_spanning_float32_do_not_leak(device, rng, width
     force's hits."""
     from hlbvh_warp import wide
 
-    vertices, faces = _big_sphere()
-    scale = 1.7 * 2.0**127
+    vertices, faces, origins, directions = _rays_across_the_big_sphere(rng)
+    n = len(origins)
     bvh = hlbvh_warp.build(vertices, faces, device=device)
-    n = 64
-    origins = (np.c_[rng.uniform(-0.9, -0.7, n), rng.uniform(-0.2, 0.2, (n, 2))] * scale).astype(np.float32)
-    directions = (np.c_[np.ones(n), rng.uniform(-0.4, 0.4, (n, 2))] * 2.0**120).astype(np.float32)
     hit, t_ref, margin = numpy_all_hits(vertices, faces, origins, directions, np.inf)
     assert (hit & (margin > 1e-4)).any(axis=1).all()
     best = np.where(hit, t_ref, np.inf).min(axis=1)

@@ -16,8 +16,8 @@ import hlbvh_warp as hw
 from hlbvh_warp import stress_report
 from hlbvh_warp.builder import PIPELINE_METHODS, POLICIES, Builder
 
-from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, check_tree_invariants,
-                     numpy_node_boxes, numpy_sah, random_rays)
+from oracles import (assert_exact_node_boxes, assert_hits_match, brute_force_closest_hit, brute_overlaps,
+                     check_tree_invariants, numpy_node_boxes, numpy_sah, random_rays)
 
 
 def _soup(rng, num_tris):
@@ -63,10 +63,7 @@ def _check_mesh_frame(builder: Builder, vertices: np.ndarray, faces: np.ndarray,
     max of the same floats, so exact), and the closest hits of a float64 brute force."""
     tree = builder.bvh.to_numpy()
     check_tree_invariants(tree, len(faces), builder.config.max_leaf_size)
-    corners = vertices.astype(np.float64)[faces]
-    node_lo, node_hi = numpy_node_boxes(tree, corners.min(axis=1), corners.max(axis=1))
-    np.testing.assert_array_equal(tree["node_lowers"], node_lo.astype(np.float32))
-    np.testing.assert_array_equal(tree["node_uppers"], node_hi.astype(np.float32))
+    assert_exact_node_boxes(tree, vertices, faces)
     origins = rng.random((64, 3)).astype(np.float32) * 3.0 - 1.0
     directions = (rng.random((64, 3)).astype(np.float32) - origins).astype(np.float32)
     t, prim = hw.intersect(builder.bvh, origins, directions)

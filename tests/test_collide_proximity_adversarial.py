@@ -13,39 +13,14 @@ import warp as wp
 import hlbvh_warp
 from hlbvh_warp.kernels import collide
 
+from oracles import exact_distance_sq
+
 #: Integer normals whose length is an integer (Pythagorean quadruples): a point k normals off a
 #: plane through integer points lies at exactly k times that length, a float32 number.
 PYTHAGOREAN_NORMALS = (((1, 2, 2), 3), ((2, 3, 6), 7), ((1, 4, 8), 9), ((4, 4, 7), 9), ((2, 6, 9), 11),
                        ((6, 6, 7), 11), ((3, 4, 12), 13), ((2, 10, 11), 15))
 
 
-def exact_distance_sq(p, a, b, c) -> Fraction:
-    """Squared distance of float32 point p to the closed float32 triangle abc, in rationals: the
-    Gram equations' interior point when it lies in the triangle, and the three clamped edge
-    projections (the minimum over points of the triangle, so exact)."""
-    p, a, b, c = ([Fraction(float(x)) for x in np.float32(v)] for v in (p, a, b, c))
-
-    def sub(x, y):
-        return [x[i] - y[i] for i in range(3)]
-
-    def dot(x, y):
-        return sum(x[i] * y[i] for i in range(3))
-
-    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
-    g00, g01, g11, r0, r1 = dot(ab, ab), dot(ab, ac), dot(ac, ac), dot(ap, ab), dot(ap, ac)
-    det = g00 * g11 - g01 * g01
-    candidates = []
-    if det > 0:
-        s, t = (g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det
-        if s >= 0 and t >= 0 and s + t <= 1:
-            d = [ap[i] - s * ab[i] - t * ac[i] for i in range(3)]
-            candidates.append(dot(d, d))
-    for origin, edge in ((a, ab), (a, ac), (b, sub(c, b))):
-        den, op = dot(edge, edge), sub(p, origin)
-        w = Fraction(0) if den == 0 else min(max(dot(op, edge) / den, Fraction(0)), Fraction(1))
-        d = [op[i] - w * edge[i] for i in range(3)]
-        candidates.append(dot(d, d))
-    return min(candidates)
 
 
 def tilted_triangles_at_exact_distances(rng, n):

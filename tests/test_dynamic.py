@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import warp as wp
@@ -166,28 +168,33 @@ def test_auto_policy_forces_rebuild_after_max_refits(small_scene):
 def test_auto_beats_rebuild_every_frame_on_bending(device):
     """Less total time than rebuilding every frame, SAH within 10% of it on every frame, over the
     bending example's 24 frames (at 12, half as many, each frame moves a vertex more than
-    `large_motion` for the first half of the bend, and those frames rebuild by design)."""
-    v, f = default_scene(20000)
-    num_frames = 24
-    mesh = BendingMesh(v, f, device=device)
-    auto = Builder(len(f), device=device, policy="auto")
-    every = Builder(len(f), device=device, policy="rebuild")
-    auto.build(mesh.vertices, f)
-    every.build(mesh.vertices, f)
+    `large_motion` for the first half of the bend, and those frames rebuild by design). The
+    sequence runs three times and each policy keeps its least total, as `timeit` keeps its best:
+    one frame stalled by the machine (37 ms against 3) outweighed the other 23 frames' margin."""
     import time
 
-    total = {"auto": 0.0, "every": 0.0}
-    for frame in range(1, num_frames + 1):
-        vertices = mesh.update(frame / num_frames)
-        for name, builder in (("auto", auto), ("every", every)):
-            wp.synchronize_device(device)
-            start = time.perf_counter()
-            builder.update(vertices)
-            wp.synchronize_device(device)
-            total[name] += time.perf_counter() - start
-        ratio = numpy_sah(auto.bvh.to_numpy()) / numpy_sah(every.bvh.to_numpy())
-        assert ratio <= 1.10, f"frame {frame}: auto SAH is {ratio:.3f} x rebuild-every-frame"
-    assert total["auto"] < total["every"], total
+    v, f = default_scene(20000)
+    num_frames = 24
+    best = {"auto": math.inf, "every": math.inf}
+    for _ in range(3):
+        mesh = BendingMesh(v, f, device=device)
+        auto = Builder(len(f), device=device, policy="auto")
+        every = Builder(len(f), device=device, policy="rebuild")
+        auto.build(mesh.vertices, f)
+        every.build(mesh.vertices, f)
+        total = {"auto": 0.0, "every": 0.0}
+        for frame in range(1, num_frames + 1):
+            vertices = mesh.update(frame / num_frames)
+            for name, builder in (("auto", auto), ("every", every)):
+                wp.synchronize_device(device)
+                start = time.perf_counter()
+                builder.update(vertices)
+                wp.synchronize_device(device)
+                total[name] += time.perf_counter() - start
+            ratio = numpy_sah(auto.bvh.to_numpy()) / numpy_sah(every.bvh.to_numpy())
+            assert ratio <= 1.10, f"frame {frame}: auto SAH is {ratio:.3f} x rebuild-every-frame"
+        best = {name: min(best[name], total[name]) for name in best}
+    assert best["auto"] < best["every"], best
     assert {r["decision"] for r in list(auto.reports)[1:]} >= {"refit"}
 
 

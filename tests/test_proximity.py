@@ -31,7 +31,7 @@ from conftest import shared_mesh
 from handmade_trees import canonical_view, caterpillar
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from oracles import random_soup
+from oracles import exact_distance_sq, random_soup
 
 import hlbvh_warp
 from hlbvh_warp import api, host_morton, query, stress_report
@@ -698,34 +698,6 @@ def test_thin_triangle_face_region(device):
     assert np.allclose(closest[:, :2], p[:, :2], rtol=1e-6, atol=0) and (np.abs(closest[:, 2]) <= 1e-21).all()
 
 
-def _exact_distance_sq(p, a, b, c):
-    """The squared distance of the float32 inputs in rational arithmetic: the Gram equations'
-    interior point if it lies in the triangle, and the three clamped edge projections."""
-    from fractions import Fraction
-
-    p, a, b, c = ([Fraction(float(x)) for x in np.float32(v)] for v in (p, a, b, c))
-
-    def sub(x, y):
-        return [x[i] - y[i] for i in range(3)]
-
-    def dot(x, y):
-        return sum(x[i] * y[i] for i in range(3))
-
-    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
-    g00, g01, g11, r0, r1 = dot(ab, ab), dot(ab, ac), dot(ac, ac), dot(ap, ab), dot(ap, ac)
-    det = g00 * g11 - g01 * g01
-    candidates = []
-    if det > 0:
-        s, t = (g11 * r0 - g01 * r1) / det, (g00 * r1 - g01 * r0) / det
-        if s >= 0 and t >= 0 and s + t <= 1:
-            d = [ap[i] - s * ab[i] - t * ac[i] for i in range(3)]
-            candidates.append(dot(d, d))
-    for origin, edge in ((a, ab), (a, ac), (b, sub(c, b))):
-        den, op = dot(edge, edge), sub(p, origin)
-        w = Fraction(0) if den == 0 else min(max(dot(op, edge) / den, Fraction(0)), Fraction(1))
-        d = [op[i] - w * edge[i] for i in range(3)]
-        candidates.append(dot(d, d))
-    return min(candidates)
 
 
 def test_needles_whose_vertices_differ_widely_in_magnitude(device):
@@ -754,7 +726,7 @@ def test_needles_whose_vertices_differ_widely_in_magnitude(device):
         tri = np.array([a, b, c], np.float32)
         bvh = hlbvh_warp.build(tri, faces=np.array([[0, 1, 2]], np.int32), device=device)
         distance = float(hlbvh_warp.closest_point(bvh, np.float32(p))[1][0])
-        expected = sqrt(_exact_distance_sq(p, *tri))
+        expected = sqrt(exact_distance_sq(p, *tri))
         assert abs(distance - expected) <= 2.0**-24 * expected + 1e-12 * 2.0, (p, tri.tolist(), distance, expected)
 
 
