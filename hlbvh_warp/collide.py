@@ -145,17 +145,11 @@ def _triangle_rows(values, name: str) -> np.ndarray:
         # Straight to float32, rounded once, as a mesh's vertices are (`inputs._check_points`):
         # through float64 an integer past 2^53 is rounded twice, to another float32 at times.
         return np.ascontiguousarray(arr.astype(np.float32))
-    # Named by triangle and vertex: the check below names a row of the flattened vertices, which
-    # for triangle 1's third vertex read "row 5".
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        k, j, _ = (int(x) for x in np.argwhere(bad)[0])
-        raise ValueError(f"{name} has a NaN or Inf coordinate "
-                         f"(first at triangle {k}, vertex {j}: {arr[k, j].tolist()})")
     # Checked and narrowed from the given dtype, as a mesh's vertices are: through float64 a long
     # double is rounded twice (to another float32 at times), and one past float64's range would
-    # be refused as the infinity it became.
-    inputs.check_float32_range(arr.reshape(-1, 3), name)
+    # be refused as the infinity it became. Checked as triangles, so that a NaN is named by
+    # triangle and vertex (flattened, triangle 1's third vertex read "row 5").
+    inputs.check_float32_range(arr, name)
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 

@@ -49,10 +49,12 @@ def _check_points(values, name: str) -> np.ndarray:
 
 def check_float32_range(arr: np.ndarray, name: str):
     """Raise if host coordinates hold a NaN or Inf, or would not fit in float32: every build
-    narrows them to float32, where 1e39 would silently become Inf."""
+    narrows them to float32, where 1e39 would silently become Inf. `arr` is ``(n, 3)`` points
+    (the first bad one named by row) or ``(K, 3, 3)`` triangles (named by triangle and vertex)."""
     if not np.isfinite(arr).all():
-        row = int(np.argwhere(~np.isfinite(arr))[0][0])
-        raise ValueError(f"{name} has a NaN or Inf coordinate (first at row {row}: {arr[row].tolist()})")
+        at = tuple(int(x) for x in np.argwhere(~np.isfinite(arr))[0][:-1])
+        where = f"triangle {at[0]}, vertex {at[1]}" if len(at) == 2 else f"row {at[0]}"
+        raise ValueError(f"{name} has a NaN or Inf coordinate (first at {where}: {arr[at].tolist()})")
     # A finite float32 is in range by definition; wider input must fit before it is narrowed.
     if arr.dtype != np.float32 and arr.size and np.abs(arr).max() > np.finfo(np.float32).max:
         raise ValueError(f"{name} has a coordinate beyond the float32 range")
