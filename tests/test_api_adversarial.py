@@ -4,11 +4,14 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
+from conftest import TEST_KERNEL_OPTIONS
 
 import hlbvh_warp
 from hlbvh_warp import query
 
 from oracles import numpy_all_hits
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 
 def _big_sphere(subdivisions=2):

@@ -48,7 +48,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import DEVICES, shared_mesh
+from conftest import DEVICES, shared_mesh, TEST_KERNEL_OPTIONS
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from oracles import brute_overlaps, random_soup
@@ -56,6 +56,8 @@ from oracles import brute_overlaps, random_soup
 import hlbvh_warp
 from hlbvh_warp import api, stress_report
 from hlbvh_warp.config import BuildConfig
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 api._load_optional_builders()
 #: Every builder whose tree is a permutation of whole triangles (sbvh splits them: refused;

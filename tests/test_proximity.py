@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import shared_mesh
+from conftest import shared_mesh, TEST_KERNEL_OPTIONS
 from handmade_trees import canonical_view, caterpillar
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -39,6 +39,8 @@ from hlbvh_warp.builder import Builder
 from hlbvh_warp.bvh import bvh_from_numpy
 from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
 from hlbvh_warp.kernels import proximity, traversal
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 api._load_optional_builders()
 METHODS = sorted(api.BUILDERS)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, TEST_KERNEL_OPTIONS
 from oracles import (assert_hits_match, brute_force_closest_hit, brute_overlaps, numpy_all_hits, random_rays,
                      random_soup)
 
@@ -19,6 +19,8 @@ from hlbvh_warp import query, wide
 from hlbvh_warp.builder import Builder
 from hlbvh_warp.config import BuildConfig
 from hlbvh_warp.kernels import traversal
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 
 @pytest.fixture

@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
+from conftest import TEST_KERNEL_OPTIONS
 from handmade_trees import canonical_view
 from oracles import (assert_range_hits_match, crossings, crossings_prim, directions_off_surface, expected_range_hits,
                      nested_shells, numpy_all_hits, random_rays)
 
 import hlbvh_warp
 from hlbvh_warp import query, wide
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import shared_mesh
+from conftest import shared_mesh, TEST_KERNEL_OPTIONS
 from handmade_trees import canonical_view, caterpillar
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -18,6 +18,8 @@ from oracles import brute_force_closest_hit
 
 from hlbvh_warp import api, query, stress_report, wide
 from hlbvh_warp.config import TRAVERSAL_STACK_SIZE, BuildConfig
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 api._load_optional_builders()
 METHODS = sorted(api.BUILDERS)

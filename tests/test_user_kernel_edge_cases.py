@@ -7,9 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+from conftest import TEST_KERNEL_OPTIONS
 
 import hlbvh_warp as hb
 from hlbvh_warp import wide
+
+wp.set_module_options(TEST_KERNEL_OPTIONS)  # quick CPU compiles of this file's kernels (conftest)
 
 
 @wp.struct
