@@ -203,19 +203,14 @@ class HlbvhPipeline:
         self.blocks_sorted_views = [self.blocks_sorted[j : j + 1] for j in range(self.blocks_sorted.shape[0])]
         self.scratch_codes = ints(n)
         self.scratch_ids = ints(n)
-        # Treelet emission.
-        self.head_to_node = ints(n)
-        self.head_to_end = ints(n)
-        self.head_flags = ints(n)
-        self.segment_id = ints(n)
-        self.segment_heads = ints(n)
-        self.segment_ends = ints(n)
-        self.segment_nodes = ints(n)
-        self.segment_count = ints(1)
-        self.split_pos = ints(n * stride)
-        self.split_count = ints(n)
-        self.split_offset = ints(n)
-        self.max_segment = ints(1)
+        # Treelet emission (Fig. 4): 8 + 2^p ints per primitive (64 bytes at p = 3) that only the
+        # treelet passes read. The depth-first schedule, the CPU's default, emits the same splits
+        # from the sorted codes alone, so there the passes' scratch is not allocated.
+        treelet = self.emission == "treelets"
+        for name, count in (("head_to_node", n), ("head_to_end", n), ("head_flags", n), ("segment_id", n),
+                            ("segment_heads", n), ("segment_ends", n), ("segment_nodes", n), ("segment_count", 1),
+                            ("split_pos", n * stride), ("split_count", n), ("split_offset", n), ("max_segment", 1)):
+            setattr(self, name, ints(count) if treelet else None)
         # The tree itself.
         # A one-shot build reads the caller's boxes in place (the pipeline never writes them
         # unless asked to compute triangle bounds); a `Builder` owns its own.

@@ -335,3 +335,30 @@ def test_pooling_starts_at_its_documented_size_and_classes_waste_at_most_an_eigh
     sizes = np.arange(512 * KIB + 4, 4096 * KIB, 36 * KIB + 4)
     assert max(memory._size_class(int(n)) / n - 1.0 for n in sizes) <= 0.125
     assert all(memory._size_class(int(n)) >= n for n in sizes)
+
+
+@pytest.mark.parametrize("planes", [1, 3, 4])
+def test_only_the_treelet_schedule_holds_the_treelet_passes_scratch(device, rng, planes):
+    """The treelet passes (Pantaleoni & Luebke 2010, Fig. 4) keep per primitive a head flag, its
+    node and end, a segment id, head, end and node, a split count and offset, and 2^p - 1 split
+    positions: 8 + 2^p ints, and two counters. The depth-first schedule emits the same splits
+    from the sorted codes and reads none of them, so it holds none; it holds the tree-order leaf
+    boxes instead (two vec3 per primitive). Both schedules build the same tree."""
+    from hlbvh_warp.config import BuildConfig
+    from hlbvh_warp.hlbvh import HlbvhPipeline
+
+    n = 3000
+    lo = rng.random((n, 3)).astype(np.float32)
+    trees = {}
+    held = {}
+    for emission in ("depth_first", "treelets"):
+        config = BuildConfig(planes_per_pass=planes, emission=emission)
+        held[emission] = HlbvhPipeline(n, config, device).held_bytes()
+        tree = hw.build_from_bounds(lo, lo + 0.01, device=device, config=config).to_numpy()
+        # The schedules number the nodes differently: compare the order and the node ranges.
+        ranges = {(int(b), int(e), int(left) < 0)
+                  for b, e, left in zip(tree["node_begin"], tree["node_end"], tree["node_left"])}
+        trees[emission] = (tree["prim_order"].tolist(), ranges)
+    treelet_ints = (8 + 2**planes) * n + 2
+    assert held["treelets"] - held["depth_first"] == 4 * treelet_ints - 2 * 12 * n
+    assert trees["depth_first"] == trees["treelets"]
